@@ -1,0 +1,25 @@
+"""One measured experiment: time, inputs, outputs, optional known initial state and derivatives."""
+from __future__ import annotations
+
+from typing import Optional
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.limits import MAX_SAMPLES
+from schemas.model import Name
+
+# null marks a missing sample; NaN/inf are rejected with a named field later (JSON has no NaN).
+Series = list[Optional[float]]
+
+
+class Experiment(BaseModel):
+    """Sampled data of one run; every series has one value per time sample."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: Name = "experiment"
+    time: list[float] = Field(min_length=2, max_length=MAX_SAMPLES)
+    inputs: dict[Name, Series] = Field(default_factory=dict)
+    outputs: dict[Name, Series] = Field(default_factory=dict)
+    initial_state: dict[Name, float] = Field(default_factory=dict)
+    derivatives: dict[Name, Series] = Field(default_factory=dict)

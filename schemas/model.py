@@ -1,0 +1,93 @@
+"""The model: states, inputs, parameters with bounds, equations and outputs."""
+from __future__ import annotations
+
+import math
+from typing import Annotated, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+
+from schemas.limits import (
+    MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
+)
+
+Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
+Expression = Annotated[str, StringConstraints(min_length=1, max_length=MAX_EXPRESSION_LENGTH)]
+
+RESERVED_NAMES = {"t", "pi", "e", "inf"}
+
+
+class Parameter(BaseModel):
+    """An unknown constant; `value` is the initial guess."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: Name
+    value: float = Field(allow_inf_nan=False)
+    lower: Optional[float] = Field(default=None, allow_inf_nan=True)
+    upper: Optional[float] = Field(default=None, allow_inf_nan=True)
+    fixed: bool = False
+    per_experiment: bool = False
+    unit: Optional[str] = Field(default=None, max_length=32)
+
+    @model_validator(mode="after")
+    def _bounds_hold_the_guess(self) -> "Parameter":
+        lo = -math.inf if self.lower is None else self.lower
+        hi = math.inf if self.upper is None else self.upper
+        if math.isnan(lo) or math.isnan(hi):
+            raise ValueError("lower/upper may not be NaN; omit them for no bound")
+        if lo > hi:
+            raise ValueError(f"lower ({lo}) is above upper ({hi}); swap them")
+        if not lo <= self.value <= hi:
+            raise ValueError(
+                f"value {self.value} lies outside [lower, upper] = [{lo}, {hi}]; "
+                "give an initial guess inside the bounds")
+        return self
+
+
+class Model(BaseModel):
+    """A grey-box ODE model whose expressions use the whitelist grammar."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: Name = "model"
+    states: list[Name] = Field(min_length=1, max_length=MAX_STATES)
+    inputs: list[Name] = Field(default_factory=list, max_length=MAX_STATES)
+    parameters: list[Parameter] = Field(default_factory=list, max_length=MAX_PARAMETERS)
+    constants: dict[Name, float] = Field(default_factory=dict)
+    definitions: dict[Name, Expression] = Field(default_factory=dict)
+    equations: dict[Name, Expression]
+    outputs: Optional[dict[Name, Expression]] = None
+    constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS)
+
+    @model_validator(mode="after")
+    def _names_are_consistent(self) -> "Model":
+        groups = {
+            "states": list(self.states),
+            "inputs": list(self.inputs),
+            "parameters": [p.name for p in self.parameters],
+            "constants": list(self.constants),
+            "definitions": list(self.definitions),
+        }
+        seen: dict[str, str] = {}
+        for group, names in groups.items():
+            for name in names:
+                if name in RESERVED_NAMES:
+                    raise ValueError(f"{group}: '{name}' is reserved (t, pi, e, inf); rename it")
+                if name in seen:
+                    raise ValueError(
+                        f"{group}: name '{name}' is already used in {seen[name]}; names must be unique")
+                seen[name] = group
+        missing = [s for s in self.states if s not in self.equations]
+        if missing:
+            raise ValueError(f"equations: no equation for state(s) {missing}; give d/dt of every state")
+        extra = [k for k in self.equations if k not in self.states]
+        if extra:
+            raise ValueError(f"equations: {extra} are not states; equations are keyed by state name")
+        for name, value in self.constants.items():
+            if not math.isfinite(value):
+                raise ValueError(f"constants.{name}: must be a finite number")
+        return self
+
+    def measured_outputs(self) -> dict[str, str]:
+        """Output equations, defaulting to every state measured as itself."""
+        return dict(self.outputs) if self.outputs is not None else {s: s for s in self.states}

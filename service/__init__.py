@@ -1,0 +1,1 @@
+"""HTTP service, job store, executors and CLI of greyfit: thin layers over `solvers`."""

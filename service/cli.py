@@ -1,0 +1,64 @@
+"""`greyfit` command line: fit, discover, batch, serve."""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from pydantic import ValidationError
+
+
+def _read_json(path: str) -> dict:
+    text = sys.stdin.read() if path == "-" else Path(path).read_text()
+    return json.loads(text)
+
+
+def _validation_message(exc: ValidationError) -> str:
+    lines = []
+    for err in exc.errors():
+        loc = ".".join(str(p) for p in err["loc"])
+        lines.append(f"{loc}: {err['msg']}")
+    return "\n".join(lines)
+
+
+def cmd_fit(args) -> int:
+    from schemas import FitRequest
+    from solvers.fit import fit_model
+    request = FitRequest.model_validate(_read_json(args.request))
+    result = fit_model(request)
+    print(result.model_dump_json(indent=2 if args.pretty else None))
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="greyfit", description=__doc__)
+    sub = parser.add_subparsers(dest="command", required=True)
+    p_fit = sub.add_parser("fit", help="fit one request (JSON file or - for stdin); result JSON on stdout")
+    p_fit.add_argument("request")
+    p_fit.add_argument("--pretty", action="store_true")
+    p_fit.set_defaults(func=cmd_fit)
+    for extra in _extra_commands():
+        extra(sub)
+    args = parser.parse_args(argv)
+    from solvers.errors import FitError
+    try:
+        return args.func(args)
+    except FileNotFoundError as exc:
+        print(f"greyfit: no such file: {exc.filename}", file=sys.stderr)
+    except json.JSONDecodeError as exc:
+        print(f"greyfit: not valid JSON: {exc}", file=sys.stderr)
+    except ValidationError as exc:
+        print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
+    except FitError as exc:
+        print(f"greyfit: {type(exc).__name__}: {exc}", file=sys.stderr)
+    return 2
+
+
+def _extra_commands():
+    """Sub-commands defined by other modules (service, discovery), registered if importable."""
+    return []
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

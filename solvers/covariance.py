@@ -1,0 +1,80 @@
+"""Jacobian-based covariance σ²(JᵀJ)⁻¹ with bound handling and identifiability notes."""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from solvers.statistics import student_t_quantile
+
+CONDITION_LIMIT = 1e12
+
+
+@dataclass
+class CovarianceEstimate:
+    """Covariance of the free, interior parameters (physical units) or None with a note."""
+
+    names: list[str]
+    matrix: np.ndarray | None
+    stderr: dict[str, float]
+    ci: dict[str, tuple[float, float]]
+    note: str | None
+
+
+def _combination(vector: np.ndarray, labels: list[str]) -> str:
+    order = np.argsort(-np.abs(vector))
+    terms = [f"{vector[i]:+.2f}*{labels[i]}" for i in order if abs(vector[i]) > 0.1][:6]
+    return " ".join(terms) if terms else labels[int(order[0])]
+
+
+def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str], values: np.ndarray,
+                        scale: np.ndarray, keep: np.ndarray, n_params: int,
+                        level: float = 0.95) -> CovarianceEstimate:
+    """Covariance from the residual Jacobian in scaled variables.
+
+    Parameters
+    ----------
+    jac : (ndata, ncols) Jacobian of the weighted residual w.r.t. the scaled decision variables;
+        the first `n_params` columns are parameters, the rest nuisance variables (initial states).
+    residual : weighted residual at the solution.
+    labels, values, scale : per column; values in physical units, physical = scale * scaled.
+    keep : columns to include (parameters on an active bound are left out, reported as such).
+    """
+    cols = np.flatnonzero(keep)
+    j = jac[:, cols]
+    ndata, nvar = j.shape
+    dof = ndata - nvar
+    names = [labels[c] for c in cols if c < n_params]
+    if dof <= 0:
+        return CovarianceEstimate(names, None, {}, {}, f"{ndata} residuals for {nvar} free variables: "
+                                  "no degree of freedom left to estimate the noise")
+    info = j.T @ j
+    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    normed = info / np.outer(d, d)   # column-equilibrated, so the test does not depend on units
+    eigval, eigvec = np.linalg.eigh(normed)
+    if eigval[0] <= eigval[-1] / CONDITION_LIMIT:
+        lab = [labels[c] for c in cols]
+        kind = "indefinite" if eigval[0] < 0 else "singular"
+        return CovarianceEstimate(
+            names, None, {}, {},
+            f"information matrix is {kind} (condition {eigval[-1] / max(eigval[0], 1e-300):.1e}); "
+            f"not identifiable from these data: {_combination(eigvec[:, 0], lab)}")
+    sigma2 = float(residual @ residual) / dof
+    inv = np.linalg.inv(normed) / np.outer(d, d)
+    cov_scaled = sigma2 * inv
+    sc = scale[cols]
+    cov = cov_scaled * np.outer(sc, sc)
+    npar = len(names)
+    cov = cov[:npar, :npar]
+    t = student_t_quantile(0.5 + level / 2, dof)
+    stderr, ci = {}, {}
+    for k, c in enumerate(cols[:npar]):
+        se = float(np.sqrt(max(cov[k, k], 0.0)))
+        stderr[labels[c]] = se
+        ci[labels[c]] = (float(values[c] - t * se), float(values[c] + t * se))
+    return CovarianceEstimate(names, cov, stderr, ci, None)
+
+
+def correlation_from(cov: np.ndarray) -> np.ndarray:
+    sd = np.sqrt(np.diag(cov))
+    return cov / np.outer(sd, sd)

@@ -1,0 +1,219 @@
+"""`fit_model`: compile, build the chosen problem, solve (multistart), covariance, diagnostics."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from schemas.fit import (
+    CovariancePublic, ExperimentTrace, FitMethod, FitMetrics, FitRequest, FitResult,
+    ParameterEstimate, SolverInfo,
+)
+from solvers.covariance import correlation_from, estimate_covariance
+from solvers.data import ExperimentData, prepare_experiments
+from solvers.diagnostics import residual_analysis, rmse_and_fit
+from solvers.equation_error import EquationErrorProblem, build_equation_error
+from solvers.errors import DataError
+from solvers.model_compiler import CompiledModel, compile_model
+from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
+from solvers.parameters import ParameterLayout, build_layout
+from solvers.shooting import OutputErrorModel, build_multiple_shooting, build_single_shooting
+from solvers.statistics import information_criteria
+
+BOUND_TOLERANCE = 1e-5
+
+
+@dataclass
+class Residuals:
+    """Unweighted residual (model − measured) and measured signal per reported channel."""
+
+    channels: list[str]
+    per_experiment: list[tuple[np.ndarray, np.ndarray]]  # (measured, residual), each (nch, N)
+
+
+def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
+    """The user's guess first, then n-1 draws inside the bounds (log-uniform over decades)."""
+    starts = [layout.initial.copy()]
+    rng = np.random.default_rng(seed)
+    for _ in range(n - 1):
+        theta = np.empty(layout.size)
+        for i in range(layout.size):
+            lo, hi, v = layout.lower[i], layout.upper[i], layout.initial[i]
+            lo = lo if np.isfinite(lo) else v - 0.5 * layout.scale[i]
+            hi = hi if np.isfinite(hi) else v + 0.5 * layout.scale[i]
+            if lo > 0 and hi / lo > 10:
+                theta[i] = np.exp(rng.uniform(np.log(lo), np.log(hi)))
+            else:
+                theta[i] = rng.uniform(lo, hi)
+        starts.append(theta)
+    return starts
+
+
+def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int]:
+    if linear:
+        outcome = solve_linear_least_squares(problem, options)
+        if outcome is not None:
+            return outcome, 1
+    solver = LeastSquaresSolver(problem, options)
+    best = None
+    for theta0 in starts:
+        out = solver.solve(problem.initial_guess(theta0))
+        if best is None or (out.success, -out.cost) > (best.success, -best.cost):
+            best = out
+    return best, len(starts)
+
+
+def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
+    lo, hi = layout.lower / layout.scale, layout.upper / layout.scale
+    flags = []
+    for i, v in enumerate(theta_s):
+        if np.isfinite(lo[i]) and v - lo[i] <= BOUND_TOLERANCE * max(1.0, abs(lo[i])):
+            flags.append("lower")
+        elif np.isfinite(hi[i]) and hi[i] - v <= BOUND_TOLERANCE * max(1.0, abs(hi[i])):
+            flags.append("upper")
+        else:
+            flags.append(None)
+    return flags
+
+
+def fit_model(request: FitRequest) -> FitResult:
+    """Fit the request's model to its experiments; see `schemas.fit.FitResult`."""
+    started = time.perf_counter()
+    opts = request.options
+    cm = compile_model(request.model)
+    data = prepare_experiments(request.experiments, cm)
+    layout = build_layout(request.model, [d.name for d in data])
+    if layout.size == 0:
+        raise DataError("every parameter is fixed; free at least one", "model.parameters")
+    unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
+    if unknown_w:
+        raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",
+                        f"options.output_weights.{unknown_w[0]}")
+    starts = draw_starts(layout, opts.multistart, opts.seed)
+
+    eep: EquationErrorProblem | None = None
+    oem: OutputErrorModel | None = None
+    if request.method == FitMethod.equation_error:
+        eep = build_equation_error(cm, data, layout, opts)
+        problem = eep.problem
+        outcome, n_starts = _solve(problem, opts, starts, eep.linear)
+    else:
+        oem = OutputErrorModel(cm, data, layout, opts)
+        build = build_single_shooting if request.method == FitMethod.single_shooting else build_multiple_shooting
+        problem = build(oem)
+        outcome, n_starts = _solve(problem, opts, starts, False)
+
+    theta_s = outcome.w[:layout.size]
+    theta = layout.physical(theta_s)
+    bounds = _at_bound(layout, theta_s)
+    x0s = problem.x0_of(outcome.w)
+
+    # Jacobian and residual for the covariance; for multiple shooting the nodes are eliminated
+    # by using the single-shooting residual at the solution (gaps are zero there).
+    if eep is not None:
+        jac, res = problem.evaluate_jacobian(outcome.w)
+        labels, values, scale = list(layout.labels), theta, layout.scale
+        n_extra = 0
+    else:
+        th_sym, x0_sym, r_cov = oem.single_shooting_residual()
+        w_cov = ca.vertcat(th_sym, x0_sym)
+        x0_free = [x0s[e][cm.states[i]] / oem.xscale[i] for e, f in enumerate(oem.free_x0) for i in f]
+        w_val = np.concatenate([theta_s, np.array(x0_free, dtype=float)])
+        labels = list(layout.labels) + oem.x0_labels()
+        x0_scale = [oem.xscale[i] for f in oem.free_x0 for i in f]
+        scale = np.concatenate([layout.scale, x0_scale])
+        values = np.concatenate([theta, np.array(x0_free) * np.array(x0_scale, dtype=float)])
+        n_extra = len(x0_free)
+        jac_fn = ca.Function("residual_jacobian", [w_cov], [ca.jacobian(r_cov, w_cov), r_cov])
+        jac, res = (np.array(v) for v in jac_fn(w_val))
+        res = res.ravel()
+    keep = np.array([b is None for b in bounds] + [True] * n_extra)
+    cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level)
+
+    ndata = res.size
+    nvarys = int(keep.sum())
+    cost = 0.5 * float(res @ res)
+    aic, bic = information_criteria(2 * cost, ndata, nvarys)
+    channels = _residuals(cm, data, layout, eep, oem, theta, x0s)
+    rmse, fitp, analyses = {}, {}, []
+    for c, name in enumerate(channels.channels):
+        segments = []
+        for d, (meas, r) in zip(data, channels.per_experiment):
+            ok = np.isfinite(meas[c]) & np.isfinite(r[c])
+            segments.append((meas[c][ok], r[c][ok], {u: d.u[k][ok] for k, u in enumerate(cm.inputs)}))
+        analysis = residual_analysis(name, segments)
+        analyses.append(analysis)
+        rmse[name], fitp[name] = analysis.rmse, analysis.fit_percent
+
+    params: dict[str, ParameterEstimate] = {}
+    for i, label in enumerate(layout.labels):
+        params[label] = ParameterEstimate(
+            value=float(theta[i]), stderr=cov.stderr.get(label), ci95=cov.ci.get(label),
+            at_bound=bounds[i], initial=float(layout.initial[i]), experiment=layout.experiment[i])
+    for name, value in layout.fixed.items():
+        params[name] = ParameterEstimate(value=value, fixed=True, initial=value)
+
+    covariance = correlation = None
+    if cov.matrix is not None:
+        covariance = CovariancePublic(names=cov.names, matrix=cov.matrix.tolist())
+        correlation = CovariancePublic(names=cov.names, matrix=correlation_from(cov.matrix).tolist())
+    initial_states = {d.name: x0s[e] for e, d in enumerate(data)} if oem is not None else {
+        d.name: {s: float(eep.per_experiment[e].x[i, eep.per_experiment[e].rows[0]])
+                 for i, s in enumerate(cm.states)} for e, d in enumerate(data)}
+    traces = None
+    if opts.return_traces:
+        traces = [ExperimentTrace(
+            name=d.name, time=d.t.tolist(),
+            simulated={ch: (meas[c] + r[c]).tolist() for c, ch in enumerate(channels.channels)},
+            residuals={ch: [None if not np.isfinite(v) else float(v) for v in r[c]]
+                       for c, ch in enumerate(channels.channels)})
+            for d, (meas, r) in zip(data, channels.per_experiment)]
+    return FitResult(
+        success=outcome.success, status="success" if outcome.success else "failed",
+        message=_message(outcome.status), parameters=params,
+        covariance=covariance, covariance_note=cov.note, correlation=correlation,
+        initial_states=initial_states,
+        metrics=FitMetrics(cost=cost, ndata=ndata, nfree=ndata - nvarys, nvarys=nvarys,
+                           rmse=rmse, fit_percent=fitp, aic=aic, bic=bic),
+        solver=SolverInfo(method=request.method, iterations=outcome.iterations,
+                          wall_time_s=time.perf_counter() - started, return_status=outcome.status,
+                          starts=n_starts,
+                          derivative_filter=eep.derivative_filter if eep else None,
+                          linear_in_parameters=eep.linear if eep else None),
+        residual_analysis=analyses, traces=traces)
+
+
+def _message(status: str) -> str:
+    return {
+        "Solve_Succeeded": "Ipopt converged to the requested tolerance",
+        "Solved_To_Acceptable_Level": "Ipopt converged to an acceptable level",
+        "Linear_Least_Squares": "solved in closed form (residual affine in the parameters, no active bound)",
+        "Maximum_Iterations_Exceeded": "Ipopt stopped at max_iter; raise options.max_iter or improve the guess",
+        "Maximum_CpuTime_Exceeded": "Ipopt stopped at max_cpu_time; raise options.max_cpu_time",
+        "Infeasible_Problem_Detected": "the bounds and constraints cannot all hold",
+    }.get(status, f"Ipopt returned {status}")
+
+
+def _residuals(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout, eep, oem,
+               theta, x0s) -> Residuals:
+    """Unweighted residuals: simulated outputs for output error, derivatives for equation error."""
+    if eep is not None:
+        per = []
+        for e, d in enumerate(data):
+            ed = eep.per_experiment[e]
+            pe = layout.full(e, theta / layout.scale)
+            f = np.array(cm.rhs.map(d.n)(np.nan_to_num(ed.x), d.u, np.repeat(pe[:, None], d.n, 1),
+                                         d.t[None, :]))
+            meas = ed.dx[eep.equations].copy()
+            resid = f[eep.equations] - meas
+            mask = np.zeros(d.n, dtype=bool)
+            mask[ed.rows] = True
+            meas[:, ~mask] = np.nan
+            resid[:, ~mask] = np.nan
+            per.append((meas, resid))
+        return Residuals([f"der({cm.states[i]})" for i in eep.equations], per)
+    sims = oem.simulate(theta, [np.array([x0s[e][s] for s in cm.states]) for e in range(len(data))])
+    per = [(d.y, ys - d.y) for d, (_, ys) in zip(data, sims)]
+    return Residuals(list(cm.outputs), per)

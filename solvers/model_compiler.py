@@ -1,0 +1,122 @@
+"""Compile a `schemas.Model` once into CasADi Functions f(x,u,p,t) and h(x,u,p,t)."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from schemas.model import Model
+from solvers.errors import ModelDefinitionError
+from solvers.expressions import compile_expression, parse, names_in, to_casadi
+
+
+@dataclass
+class CompiledModel:
+    """CasADi form of a model; `p` is the full physical parameter vector in declaration order."""
+
+    model: Model
+    states: list[str]
+    inputs: list[str]
+    parameters: list[str]
+    outputs: list[str]
+    output_expressions: dict[str, str]
+    rhs: ca.Function   # (x, u, p, t) -> dx/dt
+    output: ca.Function  # (x, u, p, t) -> y
+    constraint: ca.Function | None  # (p) -> g, with g >= 0 (or g == 0 where marked)
+    constraint_equality: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    direct_outputs: dict[str, str] = field(default_factory=dict)  # output name -> state it measures
+
+    @property
+    def nx(self) -> int:
+        return len(self.states)
+
+    @property
+    def nu(self) -> int:
+        return len(self.inputs)
+
+    @property
+    def np(self) -> int:
+        return len(self.parameters)
+
+    @property
+    def ny(self) -> int:
+        return len(self.outputs)
+
+    def equation_parameters(self) -> dict[str, set[str]]:
+        """Which parameters each state equation depends on, definitions expanded."""
+        x, u, p, t = _symbols(self)
+        dx = self.rhs(x, u, p, t)
+        deps = {}
+        for i, s in enumerate(self.states):
+            deps[s] = {name for j, name in enumerate(self.parameters) if ca.depends_on(dx[i], p[j])}
+        return deps
+
+
+def _symbols(cm: "CompiledModel"):
+    return (ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t"))
+
+
+def compile_model(model: Model) -> CompiledModel:
+    """Build rhs/output/constraint Functions; raises ModelDefinitionError naming the field."""
+    x = ca.SX.sym("x", len(model.states))
+    u = ca.SX.sym("u", len(model.inputs))
+    params = [p.name for p in model.parameters]
+    p = ca.SX.sym("p", len(params))
+    t = ca.SX.sym("t")
+    env: dict[str, object] = {"t": t}
+    env.update({n: x[i] for i, n in enumerate(model.states)})
+    env.update({n: u[i] for i, n in enumerate(model.inputs)})
+    env.update({n: p[i] for i, n in enumerate(params)})
+    env.update(model.constants)
+    for name, text in model.definitions.items():
+        env[name] = compile_expression(text, env, f"definitions.{name}")
+
+    dx = ca.vertcat(*[compile_expression(model.equations[s], env, f"equations.{s}")
+                      for s in model.states])
+    outputs = model.measured_outputs()
+    if not outputs:
+        raise ModelDefinitionError("at least one output is needed", "outputs")
+    direct = {}
+    y_list = []
+    for name, text in outputs.items():
+        node = parse(text, f"outputs.{name}")
+        if node[0] == "name" and node[1] in model.states:
+            direct[name] = node[1]
+        y_list.append(to_casadi(node, env, f"outputs.{name}"))
+    y = ca.vertcat(*y_list)
+
+    constraint = None
+    equality = []
+    if model.constraints:
+        g = []
+        param_env = {k: v for k, v in env.items() if k not in model.states and k not in model.inputs}
+        for i, text in enumerate(model.constraints):
+            where = f"constraints[{i}]"
+            node = parse(text, where)
+            if node[0] != "cmp" or node[1] == "!=":
+                raise ModelDefinitionError(
+                    "a constraint is a comparison such as 'a1*a2 - a3 >= 0' (<=, >=, == allowed)", where)
+            used = names_in(node) - set(param_env) - {"pi", "e"}
+            if used:
+                raise ModelDefinitionError(
+                    f"constraints may use parameters, constants and parameter-only definitions; "
+                    f"'{sorted(used)[0]}' is not one", where)
+            lhs, rhs = to_casadi(node[2], env, where), to_casadi(node[3], env, where)
+            expr = lhs - rhs if node[1] in (">", ">=", "==") else rhs - lhs
+            if ca.depends_on(expr, ca.vertcat(x, u, t)):
+                raise ModelDefinitionError("constraints may only involve parameters", where)
+            g.append(expr)
+            equality.append(node[1] == "==")
+        constraint = ca.Function("g", [p], [ca.vertcat(*g)])
+
+    rhs = ca.Function("rhs", [x, u, p, t], [dx], ["x", "u", "p", "t"], ["dx"])
+    out = ca.Function("output", [x, u, p, t], [y], ["x", "u", "p", "t"], ["y"])
+    for fn in (rhs, out):
+        if fn.has_free():
+            raise ModelDefinitionError(f"free symbols {fn.get_free()} in the model", "equations")
+    return CompiledModel(
+        model=model, states=list(model.states), inputs=list(model.inputs), parameters=params,
+        outputs=list(outputs), output_expressions=outputs, rhs=rhs, output=out,
+        constraint=constraint, constraint_equality=np.array(equality, dtype=bool),
+        direct_outputs=direct)

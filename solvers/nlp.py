@@ -1,0 +1,84 @@
+"""Solve a LeastSquaresProblem with Ipopt (Gauss-Newton or exact Hessian), or in closed form."""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from schemas.fit import FitOptions
+from solvers.problem import LeastSquaresProblem
+
+SUCCESS_STATUSES = {"Solve_Succeeded", "Solved_To_Acceptable_Level", "Linear_Least_Squares"}
+
+
+@dataclass
+class NlpOutcome:
+    w: np.ndarray
+    cost: float
+    status: str
+    success: bool
+    iterations: int
+    wall_time_s: float
+
+
+class LeastSquaresSolver:
+    """Builds the Ipopt instance once; `solve(w0)` may be called for every multistart."""
+
+    def __init__(self, problem: LeastSquaresProblem, options: FitOptions):
+        self.problem = problem
+        w, r = problem.w, problem.residual
+        nlp = {"x": w, "f": 0.5 * ca.sumsqr(r), "g": problem.g}
+        opts = {
+            "ipopt.max_iter": options.max_iter,
+            "ipopt.max_cpu_time": options.max_cpu_time,
+            "ipopt.tol": options.tol,
+            "ipopt.print_level": 0,
+            "ipopt.sb": "yes",
+            "print_time": False,
+        }
+        if options.hessian == "gauss_newton":
+            jac = ca.jacobian(r, w)
+            sigma = ca.MX.sym("sigma")
+            lam_g = ca.MX.sym("lam_g", problem.g.numel())
+            opts["hess_lag"] = ca.Function(
+                "nlp_hess_l",
+                {"x": w, "p": ca.MX.sym("p", 0), "lam_f": sigma, "lam_g": lam_g,
+                 "hess_gamma_x_x": sigma * ca.triu(ca.mtimes(jac.T, jac))},
+                ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+        self.solver = ca.nlpsol("greyfit", "ipopt", nlp, opts)
+        self.residual = ca.Function("residual", [w], [r])
+
+    def solve(self, w0: np.ndarray) -> NlpOutcome:
+        p = self.problem
+        lbw, ubw = p.lbw, p.ubw
+        w0 = np.clip(w0, lbw, ubw)
+        start = time.perf_counter()
+        sol = self.solver(x0=w0, lbx=lbw, ubx=ubw, lbg=p.lbg, ubg=p.ubg)
+        stats = self.solver.stats()
+        w = np.array(sol["x"]).ravel()
+        status = str(stats.get("return_status", "unknown"))
+        return NlpOutcome(w, float(sol["f"]), status, status in SUCCESS_STATUSES,
+                          int(stats.get("iter_count", 0)), time.perf_counter() - start)
+
+
+def solve_linear_least_squares(problem: LeastSquaresProblem, options: FitOptions) -> NlpOutcome | None:
+    """Closed-form solution when the residual is affine in θ and no bound or constraint is active.
+
+    Returns None when the unconstrained optimum violates a bound or a constraint (Ipopt then
+    solves the convex QP).
+    """
+    start = time.perf_counter()
+    w = problem.w
+    a, b = problem.evaluate_jacobian(np.zeros(w.numel()))
+    sol, *_ = np.linalg.lstsq(a, -b, rcond=None)
+    feasible = np.all(sol >= problem.lbw - 1e-12) and np.all(sol <= problem.ubw + 1e-12)
+    if problem.g.numel():
+        gval = np.array(ca.Function("g", [w], [problem.g])(sol)).ravel()
+        feasible = feasible and np.all(gval >= problem.lbg - 1e-9) and np.all(gval <= problem.ubg + 1e-9)
+    if not feasible:
+        return None
+    r = a @ sol + b
+    return NlpOutcome(sol, 0.5 * float(r @ r), "Linear_Least_Squares", True, 0,
+                      time.perf_counter() - start)

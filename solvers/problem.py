@@ -1,0 +1,82 @@
+"""The least-squares NLP every method builds: min ½‖r(w)‖² s.t. lbg ≤ g(w) ≤ ubg, lbw ≤ w ≤ ubw."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import casadi as ca
+import numpy as np
+
+from schemas.fit import FitOptions
+from solvers.data import ExperimentData
+from solvers.model_compiler import CompiledModel
+from solvers.parameters import ParameterLayout
+
+
+@dataclass
+class LeastSquaresProblem:
+    """Decision vector w = [θ (scaled parameters); method-specific variables]."""
+
+    w: ca.MX
+    residual: ca.MX
+    g: ca.MX
+    lbg: np.ndarray
+    ubg: np.ndarray
+    lbw: np.ndarray
+    ubw: np.ndarray
+    n_theta: int
+    initial_guess: Callable[[np.ndarray], np.ndarray]  # physical θ -> w0
+    x0_of: Callable[[np.ndarray], list[dict[str, float]]]  # w -> initial states per experiment
+    extra_labels: list[str] = field(default_factory=list)
+    # numeric (J, r) at w; set where a cheaper form than differentiating the MX graph exists
+    jacobian: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+
+    def evaluate_jacobian(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        if self.jacobian is not None:
+            return self.jacobian(w)
+        fn = ca.Function("residual_jacobian", [self.w], [ca.jacobian(self.residual, self.w), self.residual])
+        jac, res = fn(w)
+        return np.array(jac), np.array(res).ravel()
+
+
+def parameter_constraints(cm: CompiledModel, layout: ParameterLayout, theta: ca.MX):
+    """User constraints g(p) ≥ 0 (or = 0) applied to every experiment's parameter vector."""
+    if cm.constraint is None:
+        return [], [], []
+    g, lo, hi = [], [], []
+    n_exp = len(layout.matrix)
+    shared = all(e is None for e in layout.experiment)
+    for e in range(1 if shared else n_exp):
+        g.append(cm.constraint(layout.full(e, theta)))
+        ng = cm.constraint_equality.size
+        lo.append(np.zeros(ng))
+        hi.append(np.where(cm.constraint_equality, 0.0, np.inf))
+    return g, lo, hi
+
+
+def theta_bounds(layout: ParameterLayout) -> tuple[np.ndarray, np.ndarray]:
+    return layout.lower / layout.scale, layout.upper / layout.scale
+
+
+def output_weights(cm: CompiledModel, data: list[ExperimentData], options: FitOptions) -> np.ndarray:
+    """Weight per output: user value, else 1/std of the measured output over all experiments."""
+    w = np.ones(cm.ny)
+    for j, name in enumerate(cm.outputs):
+        if name in options.output_weights:
+            w[j] = options.output_weights[name]
+            continue
+        values = np.concatenate([d.y[j][np.isfinite(d.y[j])] for d in data])
+        sd = float(np.std(values)) if values.size > 1 else 0.0
+        w[j] = 1.0 / sd if sd > 0 else 1.0
+    return w
+
+
+def state_scales(cm: CompiledModel, data: list[ExperimentData]) -> np.ndarray:
+    """O(1) scaling for state variables from the range of directly measured states."""
+    scale = np.ones(cm.nx)
+    for out, state in cm.direct_outputs.items():
+        j, i = cm.outputs.index(out), cm.states.index(state)
+        values = np.concatenate([np.abs(d.y[j][np.isfinite(d.y[j])]) for d in data])
+        if values.size and values.max() > 0:
+            scale[i] = float(values.max())
+    return scale

@@ -1,0 +1,217 @@
+"""Output-error problems: single shooting (mapaccum) and multiple shooting (map + gap constraints)."""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from schemas.fit import FitOptions
+from solvers.data import ExperimentData, fill_missing
+from solvers.integration import make_step
+from solvers.model_compiler import CompiledModel
+from solvers.parameters import ParameterLayout
+from solvers.problem import (
+    LeastSquaresProblem, output_weights, parameter_constraints, state_scales, theta_bounds,
+)
+
+
+class OutputErrorModel:
+    """Shared pieces of both shooting methods: integrator, weights, masks, x0 handling."""
+
+    def __init__(self, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+                 options: FitOptions):
+        self.cm, self.data, self.layout, self.options = cm, data, layout, options
+        self.step = make_step(cm, options)
+        self.weights = output_weights(cm, data, options)
+        self.xscale = state_scales(cm, data)
+        self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
+        self._sims: dict[int, ca.Function] = {}
+
+    def simulator(self, n: int) -> ca.Function:
+        if n not in self._sims:
+            self._sims[n] = self.step.mapaccum("sim", n)
+        return self._sims[n]
+
+    def step_inputs(self, d: ExperimentData, i0: int, i1: int):
+        """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked)."""
+        return d.u[:, i0:i1], d.u[:, i0 + 1:i1 + 1], d.t[i0:i1][None, :], np.diff(d.t[i0:i1 + 1])[None, :]
+
+    def trajectory(self, e: int, x0, p):
+        """States at every sample of experiment e from x0 (nx × N)."""
+        d = self.data[e]
+        u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
+        xs = self.simulator(d.n - 1)(x0, u0, u1, ca.repmat(p, 1, d.n - 1), t0, dt)
+        return ca.horzcat(x0, xs)
+
+    def outputs_of(self, e: int, states, p):
+        d = self.data[e]
+        return self.cm.output.map(d.n)(states, d.u, ca.repmat(p, 1, d.n), d.t[None, :])
+
+    def residual_of(self, e: int, y_model):
+        """Weighted residual at the measured (non-null) samples, column-major order."""
+        d = self.data[e]
+        idx = np.flatnonzero(d.mask.ravel(order="F"))
+        ymeas = d.y.ravel(order="F")[idx]
+        wts = np.tile(self.weights, d.n)[idx]
+        return wts * (ca.vec(y_model)[idx.tolist()] - ymeas)
+
+    def x0_guess(self, e: int) -> np.ndarray:
+        """Known initial states, else the first measured sample of a directly measured state, else 0."""
+        d, x0 = self.data[e], np.zeros(self.cm.nx)
+        for out, state in self.cm.direct_outputs.items():
+            x0[self.cm.states.index(state)] = fill_missing(d.y[self.cm.outputs.index(out)], d.t)[0]
+        for i, v in d.x0_known.items():
+            x0[i] = v
+        return x0
+
+    def assemble_x0(self, e: int, free_scaled):
+        """Initial state vector from known values and the (scaled) free entries."""
+        d = self.data[e]
+        parts, k = [], 0
+        for i in range(self.cm.nx):
+            if i in d.x0_known:
+                parts.append(d.x0_known[i])
+            else:
+                parts.append(free_scaled[k] * self.xscale[i])
+                k += 1
+        return ca.vertcat(*parts)
+
+    def x0_labels(self) -> list[str]:
+        return [f"x0[{d.name}].{self.cm.states[i]}" for d, free in zip(self.data, self.free_x0)
+                for i in free]
+
+    def single_shooting_residual(self) -> tuple[ca.MX, ca.MX, ca.MX]:
+        """(θ, free x0 (scaled), residual) with every experiment simulated from its initial state."""
+        theta = ca.MX.sym("theta", self.layout.size)
+        x0_free = ca.MX.sym("x0", sum(len(f) for f in self.free_x0))
+        res, k = [], 0
+        for e, d in enumerate(self.data):
+            n_free = len(self.free_x0[e])
+            x0 = self.assemble_x0(e, x0_free[k:k + n_free])
+            k += n_free
+            p = self.layout.full(e, theta)
+            res.append(self.residual_of(e, self.outputs_of(e, self.trajectory(e, x0, p), p)))
+        return theta, x0_free, ca.vertcat(*res)
+
+    def simulate(self, theta_phys: np.ndarray, x0s: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Numeric (states, outputs) per experiment for physical θ and full initial states."""
+        out = []
+        theta_s = theta_phys / self.layout.scale
+        for e, d in enumerate(self.data):
+            p = self.layout.full(e, theta_s)
+            xs = np.array(self.trajectory(e, x0s[e], p))
+            ys = np.array(self.outputs_of(e, xs, p))
+            out.append((xs, ys))
+        return out
+
+
+def _x0_reader(oem: OutputErrorModel, offset: int, stride_of):
+    def read(w: np.ndarray) -> list[dict[str, float]]:
+        result = []
+        for e, d in enumerate(oem.data):
+            start = offset + stride_of(e)
+            x0 = {}
+            k = 0
+            for i, s in enumerate(oem.cm.states):
+                if i in d.x0_known:
+                    x0[s] = d.x0_known[i]
+                else:
+                    x0[s] = float(w[start + k] * oem.xscale[i])
+                    k += 1
+            result.append(x0)
+        return result
+    return read
+
+
+def build_single_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
+    theta, x0_free, r = oem.single_shooting_residual()
+    g, lbg, ubg = parameter_constraints(oem.cm, oem.layout, theta)
+    lo, hi = theta_bounds(oem.layout)
+    nfree = x0_free.numel()
+    offsets = np.cumsum([0] + [len(f) for f in oem.free_x0])
+
+    def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
+        x0 = [oem.x0_guess(e)[f] / oem.xscale[f] for e, f in enumerate(oem.free_x0)]
+        return np.concatenate([theta_phys / oem.layout.scale, *x0]) if nfree else theta_phys / oem.layout.scale
+
+    return LeastSquaresProblem(
+        w=ca.vertcat(theta, x0_free), residual=r, g=ca.vertcat(*g),
+        lbg=np.concatenate(lbg) if lbg else np.zeros(0), ubg=np.concatenate(ubg) if ubg else np.zeros(0),
+        lbw=np.concatenate([lo, -np.inf * np.ones(nfree)]), ubw=np.concatenate([hi, np.inf * np.ones(nfree)]),
+        n_theta=oem.layout.size, initial_guess=initial_guess,
+        x0_of=_x0_reader(oem, oem.layout.size, lambda e: int(offsets[e])),
+        extra_labels=oem.x0_labels())
+
+
+def _node_indices(n: int, interval: int) -> np.ndarray:
+    idx = list(range(0, n - 1, interval)) + [n - 1]
+    return np.array(idx)
+
+
+def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
+    """Nodes every `shooting_interval` samples; continuity gaps as equality constraints."""
+    cm, layout = oem.cm, oem.layout
+    theta = ca.MX.sym("theta", layout.size)
+    w_parts, res, gaps = [theta], [], []
+    lbw_x, ubw_x, node_offsets = [], [], []
+    offset = layout.size
+    node_sets = [_node_indices(d.n, oem.options.shooting_interval) for d in oem.data]
+    xs = ca.DM(oem.xscale)
+    for e, d in enumerate(oem.data):
+        nodes = node_sets[e]
+        xn_s = ca.MX.sym(f"X{e}", cm.nx, nodes.size)
+        w_parts.append(ca.vec(xn_s))
+        node_offsets.append(offset)
+        offset += cm.nx * nodes.size
+        xn = ca.repmat(xs, 1, nodes.size) * xn_s
+        lo = np.full((cm.nx, nodes.size), -np.inf)
+        hi = np.full((cm.nx, nodes.size), np.inf)
+        for i, v in d.x0_known.items():
+            lo[i, 0] = hi[i, 0] = v / oem.xscale[i]
+        lbw_x.append(lo.ravel(order="F"))
+        ubw_x.append(hi.ravel(order="F"))
+        p = layout.full(e, theta)
+        lengths = np.diff(nodes)
+        pieces = []
+        # intervals come in at most two lengths (the last may be shorter): one map per length
+        for length in sorted(set(lengths.tolist()), key=lambda L: np.flatnonzero(lengths == L)[0]):
+            ks = np.flatnonzero(lengths == length)
+            sim = oem.simulator(int(length)).map(int(ks.size), "thread", 2)
+            cols = np.concatenate([np.arange(nodes[k], nodes[k] + length) for k in ks])
+            pred = sim(xn[:, ks.tolist()], d.u[:, cols], d.u[:, cols + 1], ca.repmat(p, 1, cols.size),
+                       d.t[cols][None, :], (d.t[cols + 1] - d.t[cols])[None, :])
+            pieces.append(pred)
+            ends = [(j + 1) * int(length) - 1 for j in range(ks.size)]
+            gaps.append((pred[:, ends] - xn[:, (ks + 1).tolist()]) / xs)
+        states = ca.horzcat(xn[:, 0], *pieces)
+        res.append(oem.residual_of(e, oem.outputs_of(e, states, p)))
+
+    g_par, lbg_par, ubg_par = parameter_constraints(cm, layout, theta)
+    g = ca.vertcat(*[ca.vec(gp) for gp in gaps], *g_par)
+    n_gap = sum(cm.nx * (ns.size - 1) for ns in node_sets)
+    lo, hi = theta_bounds(layout)
+
+    def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
+        """Nodes from the data where a state is measured, else from a simulation at the guess."""
+        parts = [theta_phys / layout.scale]
+        x0s = [oem.x0_guess(e) for e in range(len(oem.data))]
+        sims = oem.simulate(theta_phys, x0s)
+        for e, d in enumerate(oem.data):
+            states = sims[e][0]
+            states = np.where(np.isfinite(states) & (np.abs(states) < 1e12), states, 0.0)
+            for out, state in cm.direct_outputs.items():
+                states[cm.states.index(state)] = fill_missing(d.y[cm.outputs.index(out)], d.t)
+            for i, v in d.x0_known.items():
+                states[i, 0] = v
+            parts.append((states[:, node_sets[e]] / oem.xscale[:, None]).ravel(order="F"))
+        return np.concatenate(parts)
+
+    def x0_of(w: np.ndarray) -> list[dict[str, float]]:
+        return [{s: float(w[node_offsets[e] + i] * oem.xscale[i]) for i, s in enumerate(cm.states)}
+                for e in range(len(oem.data))]
+
+    return LeastSquaresProblem(
+        w=ca.vertcat(*[ca.vec(v) for v in w_parts]), residual=ca.vertcat(*res), g=g,
+        lbg=np.concatenate([np.zeros(n_gap), *lbg_par]), ubg=np.concatenate([np.zeros(n_gap), *ubg_par]),
+        lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
+        n_theta=layout.size, initial_guess=initial_guess, x0_of=x0_of,
+        extra_labels=[])

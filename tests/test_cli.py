@@ -1,0 +1,44 @@
+"""`greyfit fit` as a user runs it: result JSON on stdout, clear message and exit 2 on bad input."""
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLE = ROOT / "examples" / "msd_request.json"
+
+
+def run_cli(*args, stdin=None):
+    return subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, input=stdin,
+                          capture_output=True, text=True, timeout=300)
+
+
+def test_fit_prints_result_json():
+    proc = run_cli("fit", str(EXAMPLE))
+    assert proc.returncode == 0, proc.stderr
+    result = json.loads(proc.stdout)
+    assert result["success"] is True
+    # the example was made with c = 0.8, k = 5.0 (tests/systems.py)
+    assert result["parameters"]["c"]["value"] == pytest.approx(0.8, rel=0.03)
+    assert result["parameters"]["k"]["value"] == pytest.approx(5.0, rel=0.01)
+
+
+def test_fit_reads_stdin_and_reports_bad_input(tmp_path):
+    body = json.loads(EXAMPLE.read_text())
+    body["model"]["equations"]["v"] = "(u - c*v - kk*x)/m"
+    proc = run_cli("fit", "-", stdin=json.dumps(body))
+    assert proc.returncode == 2
+    assert "ModelDefinitionError: equations.v: unknown name 'kk'" in proc.stderr
+    body["model"]["equations"]["v"] = "(u - c*v - k*x)/m"
+    body["experiments"][0]["time"] = body["experiments"][0]["time"][:-1]
+    bad = tmp_path / "bad.json"
+    bad.write_text(json.dumps(body))
+    proc = run_cli("fit", str(bad))
+    assert proc.returncode == 2 and "time has 200" in proc.stderr
+    proc = run_cli("fit", str(tmp_path / "missing.json"))
+    assert proc.returncode == 2 and "no such file" in proc.stderr
+    bad.write_text("{not json")
+    proc = run_cli("fit", str(bad))
+    assert proc.returncode == 2 and "not valid JSON" in proc.stderr

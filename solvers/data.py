@@ -34,8 +34,8 @@ class ExperimentData:
 def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
     if len(values) != n:
         raise DataError(f"{len(values)} values, time has {n}; give one value per time sample", where)
-    arr = np.array([np.nan if v is None else v for v in values], dtype=float)
-    bad = [i for i, v in enumerate(values) if v is not None and not math.isfinite(v)]
+    arr = np.array(values, dtype=float)   # None becomes NaN
+    bad = [int(i) for i in np.flatnonzero(~np.isfinite(arr)) if values[i] is not None]
     if bad:
         raise DataError(f"value at index {bad[0]} is {values[bad[0]]}; only finite numbers "
                         "(or null for a missing sample) are allowed", where)

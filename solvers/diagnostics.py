@@ -29,13 +29,12 @@ def _xcorr(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
     if denom == 0:
         return np.zeros(2 * lags + 1)
     n = a.size
-    out = []
-    for k in range(-lags, lags + 1):
-        if k >= 0:
-            out.append(np.sum(a[k:] * b[:n - k]))
-        else:
-            out.append(np.sum(a[:n + k] * b[-k:]))
-    return np.array(out) / denom
+    full = np.correlate(a, b, mode="full")   # index n-1+k holds Σ a(t+k) b(t)
+    lo, hi = n - 1 - lags, n + lags
+    out = np.zeros(2 * lags + 1)
+    seg = full[max(lo, 0):min(hi, 2 * n - 1)]
+    out[max(0, -lo):max(0, -lo) + seg.size] = seg
+    return out / denom
 
 
 def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]],

@@ -109,18 +109,28 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
         weights[i] = 1.0 / sd if sd > 0 else 1.0
 
     theta = ca.MX.sym("theta", layout.size)
-    res = []
-    for e, (d, ed) in enumerate(zip(data, eqd)):
-        n = ed.rows.size
-        p = layout.full(e, theta)
-        f = cm.rhs.map(n)(ed.x[:, ed.rows], d.u[:, ed.rows], ca.repmat(p, 1, n), d.t[ed.rows][None, :])
-        r = (ed.dx[equations][:, ed.rows] - f[equations, :]) * weights[equations][:, None]
-        res.append(ca.vec(r))
-    r = ca.vertcat(*res)
+
+    def residual() -> ca.MX:
+        res = []
+        for e, (d, ed) in enumerate(zip(data, eqd)):
+            n = ed.rows.size
+            p = layout.full(e, theta)
+            f = cm.rhs.map(n)(ed.x[:, ed.rows], d.u[:, ed.rows], ca.repmat(p, 1, n), d.t[ed.rows][None, :])
+            r = (ed.dx[equations][:, ed.rows] - f[equations, :]) * weights[equations][:, None]
+            res.append(ca.vec(r))
+        return ca.vertcat(*res)
+
     sample_jacobian = _sample_jacobian(cm, layout, equations, weights)
+    linear = _affine_in_theta(cm, layout, equations)
+    affine: list[tuple[np.ndarray, np.ndarray]] = []
 
     def jacobian(w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """(J, r) sample by sample in SX: far cheaper than differentiating the mapped MX graph."""
+        if linear and affine:
+            jac, r0 = affine[0]
+            return jac, jac @ w + r0
+        if linear:
+            w = np.zeros_like(w)
         blocks, resids = [], []
         for e, (d, ed) in enumerate(zip(data, eqd)):
             n = ed.rows.size
@@ -131,12 +141,14 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
             resids.append(np.array(rr).ravel(order="F"))
             blocks.append(np.array(jj).reshape(neq, n, w.size).transpose(1, 0, 2)
                           .reshape(n * neq, w.size))
-        return np.vstack(blocks), np.concatenate(resids)
-    linear = _affine_in_theta(cm, layout, equations)
+        out = np.vstack(blocks), np.concatenate(resids)
+        if linear:
+            affine.append(out)
+        return out
     g, lbg, ubg = parameter_constraints(cm, layout, theta)
     lo, hi = theta_bounds(layout)
     problem = LeastSquaresProblem(
-        w=theta, residual=r, g=ca.vertcat(*g),
+        w=theta, residual_builder=residual, g=ca.vertcat(*g),
         lbg=np.concatenate(lbg) if lbg else np.zeros(0), ubg=np.concatenate(ubg) if ubg else np.zeros(0),
         lbw=lo, ubw=hi, n_theta=layout.size,
         initial_guess=lambda th: th / layout.scale, x0_of=lambda w: [{} for _ in data],

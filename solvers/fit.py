@@ -19,7 +19,9 @@ from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel, compile_model
 from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
-from solvers.shooting import OutputErrorModel, build_multiple_shooting, build_single_shooting
+from solvers.shooting import (
+    OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
+)
 from solvers.statistics import information_criteria
 
 BOUND_TOLERANCE = 1e-5
@@ -117,18 +119,13 @@ def fit_model(request: FitRequest) -> FitResult:
         labels, values, scale = list(layout.labels), theta, layout.scale
         n_extra = 0
     else:
-        th_sym, x0_sym, r_cov = oem.single_shooting_residual()
-        w_cov = ca.vertcat(th_sym, x0_sym)
         x0_free = [x0s[e][cm.states[i]] / oem.xscale[i] for e, f in enumerate(oem.free_x0) for i in f]
-        w_val = np.concatenate([theta_s, np.array(x0_free, dtype=float)])
         labels = list(layout.labels) + oem.x0_labels()
         x0_scale = [oem.xscale[i] for f in oem.free_x0 for i in f]
         scale = np.concatenate([layout.scale, x0_scale])
         values = np.concatenate([theta, np.array(x0_free) * np.array(x0_scale, dtype=float)])
         n_extra = len(x0_free)
-        jac_fn = ca.Function("residual_jacobian", [w_cov], [ca.jacobian(r_cov, w_cov), r_cov])
-        jac, res = (np.array(v) for v in jac_fn(w_val))
-        res = res.ravel()
+        jac, res = sensitivity_jacobian(oem, theta_s, x0s)
     keep = np.array([b is None for b in bounds] + [True] * n_extra)
     cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level)
 

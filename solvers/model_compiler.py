@@ -46,10 +46,10 @@ class CompiledModel:
     def equation_parameters(self) -> dict[str, set[str]]:
         """Which parameters each state equation depends on, definitions expanded."""
         x, u, p, t = _symbols(self)
-        dx = self.rhs(x, u, p, t)
-        deps = {}
-        for i, s in enumerate(self.states):
-            deps[s] = {name for j, name in enumerate(self.parameters) if ca.depends_on(dx[i], p[j])}
+        rows, cols = ca.jacobian(self.rhs(x, u, p, t), p).sparsity().get_triplet()
+        deps: dict[str, set[str]] = {s: set() for s in self.states}
+        for i, j in zip(rows, cols):
+            deps[self.states[i]].add(self.parameters[j])
         return deps
 
 

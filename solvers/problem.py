@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import cached_property
 from typing import Callable
 
 import casadi as ca
@@ -18,7 +19,7 @@ class LeastSquaresProblem:
     """Decision vector w = [θ (scaled parameters); method-specific variables]."""
 
     w: ca.MX
-    residual: ca.MX
+    residual_builder: Callable[[], ca.MX]   # built on first use: the closed-form path never needs it
     g: ca.MX
     lbg: np.ndarray
     ubg: np.ndarray
@@ -30,6 +31,10 @@ class LeastSquaresProblem:
     extra_labels: list[str] = field(default_factory=list)
     # numeric (J, r) at w; set where a cheaper form than differentiating the MX graph exists
     jacobian: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+
+    @cached_property
+    def residual(self) -> ca.MX:
+        return self.residual_builder()
 
     def evaluate_jacobian(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.jacobian is not None:

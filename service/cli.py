@@ -56,8 +56,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _extra_commands():
-    """Sub-commands defined by other modules (service, discovery), registered if importable."""
-    return []
+    from service.cli_service import add_batch, add_serve
+    return [add_serve, add_batch]
 
 
 if __name__ == "__main__":

@@ -1,0 +1,84 @@
+"""The FastAPI application factory."""
+from __future__ import annotations
+
+import logging
+from contextlib import asynccontextmanager
+from typing import Optional
+
+from fastapi import FastAPI, HTTPException, Request
+from starlette.types import ASGIApp, Receive, Scope, Send
+
+from service.dispatcher import Dispatcher
+from service.executors import make_executor
+from service.metrics import Metrics
+from service.problems import install_handlers, problem
+from service.routes import fits, health, jobs, ops
+from service.settings import Settings, get_settings
+from service.store import JobStore, make_engine
+
+log = logging.getLogger("greyfit.service")
+
+
+class BodyLimit:
+    """Refuse bodies above max_body_bytes with 413 before they are read into memory."""
+
+    def __init__(self, app: ASGIApp, max_bytes: int):
+        self.app, self.max_bytes = app, max_bytes
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        declared = dict(scope.get("headers") or []).get(b"content-length")
+        detail = (f"the body exceeds this server's limit of {self.max_bytes} bytes "
+                  "(GREYFIT_MAX_BODY_BYTES); decimate the data or split it into several jobs")
+        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
+            return await problem(413, "Request too large", detail, "request-too-large")(scope, receive, send)
+        seen = 0
+
+        async def limited() -> dict:
+            nonlocal seen
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.max_bytes:   # a chunked body without Content-Length
+                    raise HTTPException(413, detail)
+            return message
+
+        await self.app(scope, limited, send)
+
+
+def create_app(settings: Optional[Settings] = None) -> FastAPI:
+    settings = settings or get_settings()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        store = JobStore(make_engine(settings.resolved_database_url()))
+        executor = make_executor(settings)
+        dispatcher = Dispatcher(store, executor, settings, app.state.metrics)
+        app.state.store, app.state.dispatcher = store, dispatcher
+        dispatcher.start()
+        log.info("greyfit ready: %s executor, store %s", settings.executor, store.engine.url)
+        try:
+            yield
+        finally:
+            dispatcher.stop()
+            store.engine.dispose()
+
+    app = FastAPI(title="greyfit", version="0.1.0", lifespan=lifespan,
+                  description="Fit the physical parameters of ODE models to measured data.")
+    app.state.settings = settings
+    app.state.metrics = Metrics()
+    install_handlers(app)
+    for router in (health.router, fits.router, jobs.router, ops.router):
+        app.include_router(router)
+
+    @app.middleware("http")
+    async def count_requests(request: Request, call_next):
+        response = await call_next(request)
+        route = request.scope.get("route")
+        app.state.metrics.count_request(request.method, getattr(route, "path", "unmatched"),
+                                        response.status_code)
+        return response
+
+    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
+    return app

@@ -1,0 +1,99 @@
+"""`greyfit serve` and `greyfit batch`."""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+
+
+def add_serve(sub) -> None:
+    p = sub.add_parser("serve", help="run the HTTP service (uvicorn)")
+    p.add_argument("--host", default="127.0.0.1")
+    p.add_argument("--port", type=int, default=8000)
+    p.add_argument("--workers", type=int, default=None, help="fit worker processes (default: cores)")
+    p.add_argument("--data-dir", default=None, help="where the SQLite job store lives (default ./data)")
+    p.set_defaults(func=cmd_serve)
+
+
+def cmd_serve(args) -> int:
+    import uvicorn
+    from service.app import create_app
+    from service.settings import Settings
+    overrides = {}
+    if args.workers:
+        overrides["workers"] = args.workers
+    if args.data_dir:
+        overrides["data_dir"] = Path(args.data_dir)
+    settings = Settings(**overrides)
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+    return 0
+
+
+def add_batch(sub) -> None:
+    p = sub.add_parser("batch", help="many fits locally in parallel; resumable")
+    p.add_argument("requests", help="JSON lines, one FitRequest per line")
+    p.add_argument("--out", required=True, help="JSON lines of results; lines already there are skipped")
+    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--kind", choices=["fit", "discover"], default="fit")
+    p.set_defaults(func=cmd_batch)
+
+
+def cmd_batch(args) -> int:
+    from pydantic import ValidationError
+
+    from schemas import FitRequest
+    from service.executors import LocalWorkerPool
+    from service.settings import Settings
+    settings = Settings(**({"workers": args.workers} if args.workers else {}))
+    out_path = Path(args.out)
+    done: set[int] = set()
+    if out_path.exists():
+        for line in out_path.read_text().splitlines():
+            try:
+                done.add(int(json.loads(line)["line"]))
+            except (ValueError, KeyError, TypeError):
+                continue   # a line cut off by an interrupted run is simply redone
+    todo: list[tuple[int, dict]] = []
+    bad: list[dict] = []
+    for i, line in enumerate(Path(args.requests).read_text().splitlines(), start=1):
+        if not line.strip() or i in done:
+            continue
+        try:
+            body = json.loads(line)
+            if args.kind == "fit":
+                FitRequest.model_validate(body)
+            todo.append((i, body))
+        except (json.JSONDecodeError, ValidationError) as exc:
+            bad.append({"line": i, "status": "failed", "error": {"type": type(exc).__name__, "detail": str(exc)}})
+    total = len(todo) + len(bad)
+    print(f"greyfit batch: {len(done)} already done, {total} to do", file=sys.stderr)
+    pool = LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)
+    finished = 0
+    started = time.monotonic()
+    with out_path.open("a") as out:
+        for record in bad:
+            out.write(json.dumps(record) + "\n")
+            finished += 1
+        queue = list(todo)
+        while queue or pool.free() < len(pool.slots):
+            while queue and pool.free():
+                i, body = queue.pop(0)
+                pool.submit(str(i), args.kind, body)
+            for key, outcome in pool.poll():
+                out.write(json.dumps({"line": int(key), **outcome}) + "\n")
+                out.flush()
+                finished += 1
+                _progress(finished, total, started)
+            time.sleep(0.02)
+    pool.shutdown()
+    print(file=sys.stderr)
+    return 0
+
+
+def _progress(done: int, total: int, started: float) -> None:
+    width = 30
+    filled = int(width * done / max(total, 1))
+    rate = done / max(time.monotonic() - started, 1e-9)
+    sys.stderr.write(f"\r[{'#' * filled}{'.' * (width - filled)}] {done}/{total}  {rate:.1f} fits/s")
+    sys.stderr.flush()

@@ -1,0 +1,199 @@
+"""Where fits run: persistent local worker processes (default) or a Dask cluster (scale-out).
+
+Both expose the same small interface to the dispatcher: `free()`, `submit(key, kind, request)`,
+`poll() -> [(key, outcome)]`, `cancel(key)`, `shutdown()`.
+"""
+from __future__ import annotations
+
+import multiprocessing as mp
+import resource
+import signal
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional
+
+from service.tasks import run_task
+
+Outcome = dict[str, Any]
+
+
+def _worker_main(conn, cpu_seconds: float) -> None:
+    """Loop of one local worker process: receive a task, run it under a CPU-time limit, reply."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the server, which stops us
+    import solvers.fit  # noqa: F401  (import CasADi once, not per task)
+    while True:
+        try:
+            msg = conn.recv()
+        except EOFError:
+            return
+        if msg is None:
+            return
+        key, kind, request = msg
+        used = resource.getrusage(resource.RUSAGE_SELF)
+        spent = used.ru_utime + used.ru_stime
+        soft = int(spent + cpu_seconds) + 1
+        resource.setrlimit(resource.RLIMIT_CPU, (soft, soft + 5))   # SIGXCPU, then SIGKILL
+        outcome = run_task(kind, request, cpu_seconds)
+        conn.send((key, outcome))
+
+
+@dataclass
+class _Slot:
+    process: Any
+    conn: Any
+    key: Optional[str] = None
+    started: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+class LocalWorkerPool:
+    """A fixed number of worker processes; a task that overruns or crashes costs only its worker."""
+
+    def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
+        self.ctx = mp.get_context("spawn")
+        self.cpu_seconds = cpu_seconds
+        self.wall_seconds = wall_seconds
+        self.slots = [self._spawn() for _ in range(workers)]
+
+    def _spawn(self) -> _Slot:
+        parent, child = self.ctx.Pipe()
+        proc = self.ctx.Process(target=_worker_main, args=(child, self.cpu_seconds), daemon=True)
+        proc.start()
+        child.close()
+        return _Slot(proc, parent)
+
+    def free(self) -> int:
+        return sum(1 for s in self.slots if s.key is None)
+
+    def submit(self, key: str, kind: str, request: dict) -> None:
+        slot = next(s for s in self.slots if s.key is None)
+        slot.key, slot.started = key, time.monotonic()
+        slot.conn.send((key, kind, request))
+
+    def _replace(self, i: int) -> None:
+        slot = self.slots[i]
+        if slot.process.is_alive():
+            slot.process.kill()
+        slot.process.join(timeout=5)
+        slot.conn.close()
+        self.slots[i] = self._spawn()
+
+    def poll(self) -> list[tuple[str, Outcome]]:
+        done = []
+        for i, slot in enumerate(self.slots):
+            if slot.key is None:
+                if not slot.process.is_alive():
+                    self._replace(i)
+                continue
+            try:
+                ready = slot.conn.poll()
+            except (OSError, EOFError):
+                ready = False
+            if ready:
+                try:
+                    key, outcome = slot.conn.recv()
+                    slot.key = None
+                    done.append((key, outcome))
+                    continue
+                except (EOFError, OSError):
+                    pass
+            if not slot.process.is_alive():
+                code = slot.process.exitcode
+                reason = (f"exceeded the CPU-time limit of {self.cpu_seconds:g} s"
+                          if code in (-signal.SIGXCPU, -signal.SIGKILL) else
+                          f"the worker process died (exit code {code})")
+                done.append((slot.key, {"status": "failed", "error": {"type": "WorkerLost", "field": None,
+                                                                      "detail": reason}}))
+                self._replace(i)
+            elif time.monotonic() - slot.started > self.wall_seconds:
+                done.append((slot.key, {"status": "failed", "error": {
+                    "type": "Timeout", "field": None,
+                    "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
+                self._replace(i)
+        return done
+
+    def cancel(self, key: str) -> bool:
+        for i, slot in enumerate(self.slots):
+            if slot.key == key:
+                self._replace(i)
+                return True
+        return False
+
+    def shutdown(self) -> None:
+        for slot in self.slots:
+            try:
+                if slot.key is None:
+                    slot.conn.send(None)
+            except (OSError, BrokenPipeError):
+                pass
+        deadline = time.monotonic() + 2
+        for slot in self.slots:
+            slot.process.join(timeout=max(0.0, deadline - time.monotonic()))
+            if slot.process.is_alive():
+                slot.process.kill()
+
+
+class DaskExecutor:
+    """Fits as tasks on a Dask distributed cluster (scheduler address from the settings).
+
+    The worker's CPU time cannot be capped per task inside a shared Dask worker, so the fit's own
+    Ipopt `max_cpu_time` and the wall-time limit (the future is cancelled) bound it instead.
+    """
+
+    def __init__(self, address: str, cpu_seconds: float, wall_seconds: float, capacity: int | None = None):
+        from distributed import Client
+        self.client = Client(address, set_as_default=False, timeout=30)
+        self.cpu_seconds, self.wall_seconds = cpu_seconds, wall_seconds
+        self._capacity = capacity
+        self.futures: dict[str, tuple[Any, float]] = {}
+
+    def capacity(self) -> int:
+        if self._capacity:
+            return self._capacity
+        info = self.client.scheduler_info()
+        return max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
+
+    def free(self) -> int:
+        return self.capacity() - len(self.futures)
+
+    def submit(self, key: str, kind: str, request: dict) -> None:
+        fut = self.client.submit(run_task, kind, request, self.cpu_seconds, pure=False,
+                                 key=f"greyfit-{key}-{time.time_ns()}")
+        self.futures[key] = (fut, time.monotonic())
+
+    def poll(self) -> list[tuple[str, Outcome]]:
+        done = []
+        for key, (fut, started) in list(self.futures.items()):
+            if fut.done():
+                del self.futures[key]
+                try:
+                    done.append((key, fut.result()))
+                except Exception as exc:  # the worker died or the task errored on the cluster
+                    done.append((key, {"status": "failed", "error": {
+                        "type": "WorkerLost", "field": None, "detail": f"dask: {type(exc).__name__}: {exc}"}}))
+            elif time.monotonic() - started > self.wall_seconds:
+                fut.cancel()
+                del self.futures[key]
+                done.append((key, {"status": "failed", "error": {
+                    "type": "Timeout", "field": None,
+                    "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
+        return done
+
+    def cancel(self, key: str) -> bool:
+        item = self.futures.pop(key, None)
+        if item:
+            item[0].cancel()
+        return item is not None
+
+    def shutdown(self) -> None:
+        for fut, _ in self.futures.values():
+            fut.cancel()
+        self.client.close()
+
+
+def make_executor(settings):
+    if settings.executor == "dask":
+        if not settings.dask_scheduler:
+            raise ValueError("GREYFIT_EXECUTOR=dask needs GREYFIT_DASK_SCHEDULER (e.g. tcp://host:8786)")
+        return DaskExecutor(settings.dask_scheduler, settings.task_cpu_seconds, settings.task_wall_seconds)
+    return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)

@@ -1,0 +1,37 @@
+"""This server's size limits (settings), applied after the schema's own hard limits."""
+from __future__ import annotations
+
+from schemas.fit import FitRequest
+from service.problems import LimitExceeded
+from service.settings import Settings
+
+
+def check_limits(req: FitRequest, settings: Settings, prefix: str = "") -> None:
+    """Raise LimitExceeded naming the field and the limit."""
+    if len(req.experiments) > settings.max_experiments:
+        raise LimitExceeded(f"{prefix}experiments", f"{len(req.experiments)} experiments, this server "
+                            f"accepts at most {settings.max_experiments}; split the request")
+    if len(req.model.parameters) > settings.max_parameters:
+        raise LimitExceeded(f"{prefix}model.parameters", f"{len(req.model.parameters)} parameters, "
+                            f"the limit is {settings.max_parameters}")
+    texts = {f"equations.{k}": v for k, v in req.model.equations.items()}
+    texts.update({f"definitions.{k}": v for k, v in req.model.definitions.items()})
+    texts.update({f"outputs.{k}": v for k, v in (req.model.outputs or {}).items()})
+    texts.update({f"constraints[{i}]": v for i, v in enumerate(req.model.constraints)})
+    for where, text in texts.items():
+        if len(text) > settings.max_expression_length:
+            raise LimitExceeded(f"{prefix}model.{where}", f"{len(text)} characters, the limit is "
+                                f"{settings.max_expression_length}; split it with definitions")
+    for i, exp in enumerate(req.experiments):
+        if len(exp.time) > settings.max_samples_per_experiment:
+            raise LimitExceeded(f"{prefix}experiments[{i}].time", f"{len(exp.time)} samples, the limit "
+                                f"is {settings.max_samples_per_experiment}; decimate or split the record")
+
+
+def data_values(req: FitRequest) -> int:
+    """How many numbers the request's experiments carry (the synchronous size measure)."""
+    total = 0
+    for exp in req.experiments:
+        series = 1 + len(exp.inputs) + len(exp.outputs) + len(exp.derivatives)
+        total += series * len(exp.time)
+    return total

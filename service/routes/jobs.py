@@ -1,0 +1,87 @@
+import json
+from typing import Any, Optional
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskPublic, TaskResult
+from service.deps import require_api_key
+from service.limits import check_limits
+from service.problems import LimitExceeded
+from service.store import job_status
+
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(require_api_key)])
+
+
+def job_public(record: dict[str, Any]) -> JobPublic:
+    job, rows = record["job"], record["tasks"]
+    done = [r for r in rows if r["status"] in ("succeeded", "failed", "cancelled")]
+    started = [r["started_at"] for r in rows if r["started_at"]]
+    finished = [r["finished_at"] for r in rows if r["finished_at"]]
+    return JobPublic(
+        id=job["id"], kind=job["kind"], label=job["label"], status=job_status(job, rows),
+        progress=JobProgress(done=len(done), total=job["total"],
+                             succeeded=sum(r["status"] == "succeeded" for r in rows),
+                             failed=sum(r["status"] == "failed" for r in rows)),
+        created_at=job["created_at"], started_at=min(started) if started else None,
+        finished_at=max(finished) if len(done) == len(rows) and finished else None,
+        tasks=[TaskPublic(index=r["idx"], status=r["status"], attempts=r["attempts"],
+                          started_at=r["started_at"], finished_at=r["finished_at"],
+                          error=json.loads(r["error"]) if r["error"] else None) for r in rows])
+
+
+def submit_job(request: Request, response: Response, kind: str, requests: list, label: Optional[str]) -> JobPublic:
+    state = request.app.state
+    settings = state.settings
+    if len(requests) > settings.max_batch_requests:
+        raise LimitExceeded("requests", f"{len(requests)} requests, the limit is {settings.max_batch_requests}; "
+                            "split the batch")
+    for i, req in enumerate(requests):
+        check_limits(getattr(req, "fit", req), settings, prefix=f"requests[{i}].")
+    job_id = state.store.create_job(kind, [r.model_dump(mode="json") for r in requests], label)
+    state.dispatcher.wake()
+    response.status_code = 202
+    response.headers["Location"] = f"/v1/jobs/{job_id}"
+    return job_public(state.store.get_job(job_id))
+
+
+@router.post("", response_model=JobPublic, status_code=202)
+def create_job(body: JobCreate, request: Request, response: Response) -> JobPublic:
+    """Accept a batch of fits; each request becomes a task. Poll the Location header."""
+    return submit_job(request, response, "fit", body.requests, body.label)
+
+
+@router.get("", response_model=JobsPublic)
+def list_jobs(request: Request, offset: int = Query(0, ge=0), limit: int = Query(20, ge=1, le=200)) -> JobsPublic:
+    """Jobs, newest first, with paging."""
+    records, count = request.app.state.store.list_jobs(offset, limit)
+    return JobsPublic(data=[job_public(r) for r in records], count=count)
+
+
+def _record(request: Request, job_id: str) -> dict:
+    record = request.app.state.store.get_job(job_id)
+    if record is None:
+        raise HTTPException(404, f"no job with id '{job_id}'")
+    return record
+
+
+@router.get("/{job_id}", response_model=JobPublic)
+def get_job(job_id: str, request: Request) -> JobPublic:
+    """Status, progress and per-task status of a job."""
+    return job_public(_record(request, job_id))
+
+
+@router.get("/{job_id}/results", response_model=JobResults)
+def get_results(job_id: str, request: Request) -> JobResults:
+    """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet."""
+    record = _record(request, job_id)
+    rows = request.app.state.store.results(job_id)
+    return JobResults(id=job_id, status=job_status(record["job"], record["tasks"]),
+                      results=[TaskResult(**r) for r in rows])
+
+
+@router.delete("/{job_id}", response_model=JobPublic)
+def cancel_job(job_id: str, request: Request) -> JobPublic:
+    """Cancel: queued tasks are dropped, running ones stopped; finished results are kept."""
+    _record(request, job_id)
+    request.app.state.store.cancel(job_id)
+    request.app.state.dispatcher.wake()
+    return job_public(_record(request, job_id))

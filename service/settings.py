@@ -1,0 +1,50 @@
+"""One settings class (env prefix GREYFIT_), built on demand by the cached `get_settings()`."""
+from __future__ import annotations
+
+import os
+from functools import lru_cache
+from pathlib import Path
+from typing import Literal, Optional
+
+from pydantic import Field
+from pydantic_settings import BaseSettings, SettingsConfigDict
+
+
+class Settings(BaseSettings):
+    model_config = SettingsConfigDict(env_prefix="GREYFIT_", env_file=None)
+
+    data_dir: Path = Field(default=Path("data"), description="where the SQLite job store lives")
+    database_url: Optional[str] = Field(
+        default=None, description="SQLAlchemy URL; default sqlite:///<data_dir>/greyfit.db; "
+                                  "postgresql+psycopg://... for several replicas")
+    executor: Literal["local", "dask"] = "local"
+    workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1, le=256,
+                         description="local worker processes")
+    dask_scheduler: Optional[str] = Field(default=None, description="e.g. tcp://10.0.0.5:8786")
+    api_key: Optional[str] = Field(default=None, description="if set, every endpoint but health "
+                                                            "requires 'Authorization: Bearer <key>'")
+    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
+    max_samples_per_experiment: int = Field(default=200_000, ge=2)
+    max_experiments: int = Field(default=50, ge=1)
+    max_parameters: int = Field(default=200, ge=1)
+    max_expression_length: int = Field(default=4000, ge=10)
+    max_batch_requests: int = Field(default=1000, ge=1)
+    sync_max_values: int = Field(default=50_000, ge=1, description="numbers in a synchronous fit's data; "
+                                                                  "larger requests go to /v1/jobs")
+    task_cpu_seconds: float = Field(default=600.0, gt=0, description="CPU-time limit of one fit")
+    task_wall_seconds: float = Field(default=1200.0, gt=0, description="wall-time limit of one fit")
+    task_max_attempts: int = Field(default=3, ge=1, description="a task whose worker dies this often fails")
+    lease_seconds: float = Field(default=30.0, gt=0, description="a running task whose server stops "
+                                                                "renewing it for this long is re-queued")
+    poll_seconds: float = Field(default=0.05, gt=0)
+
+    def resolved_database_url(self) -> str:
+        if self.database_url:
+            return self.database_url
+        self.data_dir.mkdir(parents=True, exist_ok=True)
+        return f"sqlite:///{(self.data_dir / 'greyfit.db').resolve()}"
+
+
+@lru_cache
+def get_settings() -> Settings:
+    return Settings()

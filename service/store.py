@@ -1,0 +1,209 @@
+"""Job store on SQLAlchemy Core: SQLite by default, PostgreSQL for several replicas.
+
+A task is claimed by a conditional UPDATE (status = 'queued'), so two dispatchers never run the
+same task; a running task holds a lease that its dispatcher renews, and tasks whose lease has
+expired (their server died) are re-queued — a job accepted is never lost.
+"""
+from __future__ import annotations
+
+import json
+import time
+import uuid
+from dataclasses import dataclass
+from typing import Any, Optional
+
+from sqlalchemy import (
+    Column, Float, Integer, MetaData, String, Table, Text, create_engine, event, func, select, update,
+)
+from sqlalchemy.engine import Engine
+
+metadata = MetaData()
+
+jobs = Table(
+    "jobs", metadata,
+    Column("id", String(36), primary_key=True),
+    Column("label", String(200)),
+    Column("kind", String(20), nullable=False),
+    Column("cancelled", Integer, nullable=False, default=0),
+    Column("created_at", Float, nullable=False),
+    Column("total", Integer, nullable=False),
+)
+
+tasks = Table(
+    "tasks", metadata,
+    Column("job_id", String(36), primary_key=True),
+    Column("idx", Integer, primary_key=True),
+    Column("status", String(12), nullable=False, index=True),
+    Column("request", Text, nullable=False),
+    Column("result", Text),
+    Column("error", Text),
+    Column("attempts", Integer, nullable=False, default=0),
+    Column("lease_until", Float),
+    Column("owner", String(36)),
+    Column("started_at", Float),
+    Column("finished_at", Float),
+)
+
+TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+@dataclass
+class TaskRow:
+    job_id: str
+    idx: int
+    kind: str
+    request: dict
+
+
+def make_engine(url: str) -> Engine:
+    if url.startswith("sqlite"):
+        engine = create_engine(url, connect_args={"check_same_thread": False, "timeout": 30})
+
+        @event.listens_for(engine, "connect")
+        def _pragmas(dbapi_conn, _record):  # WAL: readers do not block the dispatcher's writes
+            cur = dbapi_conn.cursor()
+            cur.execute("PRAGMA journal_mode=WAL")
+            cur.execute("PRAGMA synchronous=NORMAL")
+            cur.close()
+    else:
+        engine = create_engine(url, pool_pre_ping=True)
+    metadata.create_all(engine)
+    return engine
+
+
+class JobStore:
+    def __init__(self, engine: Engine):
+        self.engine = engine
+
+    def create_job(self, kind: str, requests: list[dict], label: Optional[str]) -> str:
+        job_id = str(uuid.uuid4())
+        now = time.time()
+        with self.engine.begin() as conn:
+            conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
+                                              created_at=now, total=len(requests)))
+            conn.execute(tasks.insert(), [
+                {"job_id": job_id, "idx": i, "status": "queued", "request": json.dumps(r), "attempts": 0}
+                for i, r in enumerate(requests)])
+        return job_id
+
+    def get_job(self, job_id: str) -> Optional[dict[str, Any]]:
+        with self.engine.connect() as conn:
+            job = conn.execute(select(jobs).where(jobs.c.id == job_id)).mappings().first()
+            if job is None:
+                return None
+            rows = conn.execute(
+                select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at,
+                       tasks.c.finished_at, tasks.c.error)
+                .where(tasks.c.job_id == job_id).order_by(tasks.c.idx)).mappings().all()
+        return {"job": dict(job), "tasks": [dict(r) for r in rows]}
+
+    def list_jobs(self, offset: int, limit: int) -> tuple[list[dict], int]:
+        with self.engine.connect() as conn:
+            count = conn.execute(select(func.count()).select_from(jobs)).scalar_one()
+            ids = conn.execute(select(jobs.c.id).order_by(jobs.c.created_at.desc())
+                               .offset(offset).limit(limit)).scalars().all()
+        return [self.get_job(i) for i in ids], count
+
+    def results(self, job_id: str) -> list[dict]:
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(tasks.c.idx, tasks.c.status, tasks.c.result, tasks.c.error)
+                                .where(tasks.c.job_id == job_id).order_by(tasks.c.idx)).mappings().all()
+        return [{"index": r["idx"], "status": r["status"],
+                 "result": json.loads(r["result"]) if r["result"] else None,
+                 "error": json.loads(r["error"]) if r["error"] else None} for r in rows]
+
+    def cancel(self, job_id: str) -> list[int]:
+        """Cancel queued tasks now and return the running ones (the dispatcher stops them)."""
+        now = time.time()
+        with self.engine.begin() as conn:
+            conn.execute(update(jobs).where(jobs.c.id == job_id).values(cancelled=1))
+            conn.execute(update(tasks).where(tasks.c.job_id == job_id, tasks.c.status == "queued")
+                         .values(status="cancelled", finished_at=now))
+            running = conn.execute(select(tasks.c.idx).where(
+                tasks.c.job_id == job_id, tasks.c.status == "running")).scalars().all()
+        return list(running)
+
+    def claim(self, owner: str, lease_seconds: float, max_attempts: int) -> Optional[TaskRow]:
+        """Take the oldest queued task, or None; safe against concurrent dispatchers."""
+        for _ in range(5):
+            with self.engine.begin() as conn:
+                row = conn.execute(
+                    select(tasks.c.job_id, tasks.c.idx, tasks.c.request, tasks.c.attempts, jobs.c.kind)
+                    .join(jobs, jobs.c.id == tasks.c.job_id)
+                    .where(tasks.c.status == "queued")
+                    .order_by(jobs.c.created_at, tasks.c.idx).limit(1)).mappings().first()
+                if row is None:
+                    return None
+                now = time.time()
+                if row["attempts"] >= max_attempts:
+                    conn.execute(update(tasks).where(tasks.c.job_id == row["job_id"], tasks.c.idx == row["idx"],
+                                                     tasks.c.status == "queued")
+                                 .values(status="failed", finished_at=now, error=json.dumps({
+                                     "type": "WorkerLost",
+                                     "detail": f"the task's worker stopped {row['attempts']} times "
+                                               "(crash, limit or server restart); not retried again"})))
+                    continue
+                res = conn.execute(
+                    update(tasks).where(tasks.c.job_id == row["job_id"], tasks.c.idx == row["idx"],
+                                        tasks.c.status == "queued")
+                    .values(status="running", owner=owner, lease_until=now + lease_seconds,
+                            started_at=now, attempts=row["attempts"] + 1))
+                if res.rowcount == 1:
+                    return TaskRow(row["job_id"], row["idx"], row["kind"], json.loads(row["request"]))
+        return None
+
+    def renew(self, owner: str, lease_seconds: float) -> None:
+        with self.engine.begin() as conn:
+            conn.execute(update(tasks).where(tasks.c.owner == owner, tasks.c.status == "running")
+                         .values(lease_until=time.time() + lease_seconds))
+
+    def requeue_expired(self) -> int:
+        """Tasks whose server stopped renewing their lease go back to the queue."""
+        with self.engine.begin() as conn:
+            res = conn.execute(update(tasks).where(tasks.c.status == "running",
+                                                   tasks.c.lease_until < time.time())
+                               .values(status="queued", owner=None, lease_until=None))
+        return res.rowcount
+
+    def requeue_owned(self, owner: str) -> int:
+        with self.engine.begin() as conn:
+            res = conn.execute(update(tasks).where(tasks.c.status == "running", tasks.c.owner == owner)
+                               .values(status="queued", owner=None, lease_until=None))
+        return res.rowcount
+
+    def finish(self, job_id: str, idx: int, owner: str, status: str, result: Optional[dict],
+               error: Optional[dict]) -> bool:
+        """Record a task's outcome once; False if the task is no longer ours (e.g. re-queued)."""
+        with self.engine.begin() as conn:
+            res = conn.execute(
+                update(tasks).where(tasks.c.job_id == job_id, tasks.c.idx == idx,
+                                    tasks.c.status == "running", tasks.c.owner == owner)
+                .values(status=status, finished_at=time.time(),
+                        result=json.dumps(result) if result is not None else None,
+                        error=json.dumps(error) if error is not None else None, lease_until=None))
+        return res.rowcount == 1
+
+    def queue_depth(self) -> int:
+        with self.engine.connect() as conn:
+            return conn.execute(select(func.count()).select_from(tasks)
+                                .where(tasks.c.status == "queued")).scalar_one()
+
+    def is_cancelled(self, job_id: str) -> bool:
+        with self.engine.connect() as conn:
+            return bool(conn.execute(select(jobs.c.cancelled).where(jobs.c.id == job_id)).scalar_one_or_none())
+
+
+def job_status(job: dict, task_rows: list[dict]) -> str:
+    """queued | running | succeeded | failed | cancelled, derived from the tasks.
+
+    A job whose tasks have all ended is `succeeded` if at least one task succeeded (failed tasks
+    carry their errors in the results), `failed` if none did, `cancelled` if it was cancelled.
+    """
+    statuses = [t["status"] for t in task_rows]
+    if job["cancelled"] and all(s in TERMINAL for s in statuses):
+        return "cancelled"
+    if all(s == "queued" for s in statuses):
+        return "queued"
+    if any(s in ("queued", "running") for s in statuses):
+        return "running"
+    return "succeeded" if any(s == "succeeded" for s in statuses) else "failed"

@@ -1,0 +1,55 @@
+"""What a worker runs: one request in, one JSON-ready outcome out (never raises)."""
+from __future__ import annotations
+
+import traceback
+from typing import Any, Callable
+
+from pydantic import ValidationError
+
+TASK_KINDS = ("fit", "discover")
+
+
+def _runners() -> dict[str, Callable[[dict, float], Any]]:
+    from schemas import FitRequest
+    from solvers.fit import fit_model
+
+    def fit(request: dict, cpu_seconds: float):
+        req = FitRequest.model_validate(request)
+        # Ipopt stops by itself before the worker's hard CPU limit would kill it
+        req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
+        return fit_model(req)
+
+    runners = {"fit": fit}
+    try:
+        from schemas.discovery import DiscoverRequest
+        from solvers.discovery import discover
+
+        def disc(request: dict, cpu_seconds: float):
+            req = DiscoverRequest.model_validate(request)
+            req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
+            return discover(req)
+
+        runners["discover"] = disc
+    except ImportError:  # pragma: no cover - discovery is part of the package
+        pass
+    return runners
+
+
+def run_task(kind: str, request: dict, cpu_seconds: float = 600.0) -> dict:
+    """{'status': 'succeeded', 'result': {...}} or {'status': 'failed', 'error': {type, field, detail}}."""
+    from solvers.errors import FitError
+    try:
+        runner = _runners()[kind]
+        result = runner(request, cpu_seconds)
+        return {"status": "succeeded", "result": result.model_dump(mode="json")}
+    except FitError as exc:
+        return {"status": "failed", "error": {"type": type(exc).__name__, "field": exc.field,
+                                              "detail": exc.message}}
+    except ValidationError as exc:
+        return {"status": "failed", "error": {"type": "ValidationError", "field": None,
+                                              "detail": str(exc), "errors": [
+                                                  {"loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]}}
+    except Exception as exc:  # a bug or a CasADi failure: the task fails, the worker goes on
+        return {"status": "failed", "error": {"type": "InternalError", "field": None,
+                                              "detail": f"{type(exc).__name__}: {exc}",
+                                              "trace": traceback.format_exc(limit=5)}}

@@ -5,7 +5,7 @@ import logging
 from contextlib import asynccontextmanager
 from typing import Optional
 
-from fastapi import FastAPI, HTTPException, Request
+from fastapi import FastAPI, HTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
 from service.dispatcher import Dispatcher
@@ -47,6 +47,29 @@ class BodyLimit:
         await self.app(scope, limited, send)
 
 
+class CountRequests:
+    """Pure ASGI middleware (not BaseHTTPMiddleware, which wraps errors raised while reading the body)."""
+
+    def __init__(self, app: ASGIApp, metrics: Metrics):
+        self.app, self.metrics = app, metrics
+
+    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        status = [500]
+
+        async def send_wrapper(message) -> None:
+            if message["type"] == "http.response.start":
+                status[0] = message["status"]
+            await send(message)
+
+        try:
+            await self.app(scope, receive, send_wrapper)
+        finally:
+            route = scope.get("route")
+            self.metrics.count_request(scope["method"], getattr(route, "path", "unmatched"), status[0])
+
+
 def create_app(settings: Optional[Settings] = None) -> FastAPI:
     settings = settings or get_settings()
 
@@ -72,13 +95,6 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     for router in (health.router, fits.router, jobs.router, ops.router):
         app.include_router(router)
 
-    @app.middleware("http")
-    async def count_requests(request: Request, call_next):
-        response = await call_next(request)
-        route = request.scope.get("route")
-        app.state.metrics.count_request(request.method, getattr(route, "path", "unmatched"),
-                                        response.status_code)
-        return response
-
+    app.add_middleware(CountRequests, metrics=app.state.metrics)
     app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     return app

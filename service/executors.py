@@ -32,7 +32,11 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         used = resource.getrusage(resource.RUSAGE_SELF)
         spent = used.ru_utime + used.ru_stime
         soft = int(spent + cpu_seconds) + 1
-        resource.setrlimit(resource.RLIMIT_CPU, (soft, soft + 5))   # SIGXCPU, then SIGKILL
+        # only the soft limit moves (raising a hard limit needs privileges): SIGXCPU ends the worker
+        hard = resource.getrlimit(resource.RLIMIT_CPU)[1]
+        if hard != resource.RLIM_INFINITY:
+            soft = min(soft, hard)
+        resource.setrlimit(resource.RLIMIT_CPU, (soft, hard))
         outcome = run_task(kind, request, cpu_seconds)
         conn.send((key, outcome))
 

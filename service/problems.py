@@ -85,9 +85,12 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(StarletteHTTPException)
     async def _http(_: Request, exc: StarletteHTTPException):
-        titles = {401: "Unauthorized", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
+        detail = str(exc.detail)
+        if exc.status_code == 400 and detail == "There was an error parsing the body":
+            detail = "the body could not be parsed: it must be UTF-8 JSON, nested at most ~1000 levels deep"
+        titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
                   413: "Request too large", 503: "Unavailable", 504: "Timeout"}
-        resp = problem(exc.status_code, titles.get(exc.status_code, "Error"), str(exc.detail),
+        resp = problem(exc.status_code, titles.get(exc.status_code, "Error"), detail,
                        titles.get(exc.status_code, "error").lower().replace(" ", "-"))
         for k, v in (exc.headers or {}).items():
             resp.headers[k] = v

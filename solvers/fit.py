@@ -59,12 +59,16 @@ def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int]:
         if outcome is not None:
             return outcome, 1
     solver = LeastSquaresSolver(problem, options)
-    best = None
+    best, used = None, 0
+    cpu0 = time.process_time()
     for theta0 in starts:
+        if best is not None and time.process_time() - cpu0 > options.max_cpu_time:
+            break   # max_cpu_time bounds the whole multistart, not each start
         out = solver.solve(problem.initial_guess(theta0))
+        used += 1
         if best is None or (out.success, -out.cost) > (best.success, -best.cost):
             best = out
-    return best, len(starts)
+    return best, used
 
 
 def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:

@@ -54,10 +54,12 @@ class OutputErrorModel:
     def residual_of(self, e: int, y_model):
         """Weighted residual at the measured (non-null) samples, column-major order."""
         d = self.data[e]
-        idx = np.flatnonzero(d.mask.ravel(order="F"))
-        ymeas = d.y.ravel(order="F")[idx]
-        wts = np.tile(self.weights, d.n)[idx]
-        return wts * (ca.vec(y_model)[idx.tolist()] - ymeas)
+        mask = d.mask.ravel(order="F")
+        wts = np.tile(self.weights, d.n)
+        if mask.all():   # no gather node: large index lists are slow to differentiate in MX
+            return wts * (ca.vec(y_model) - d.y.ravel(order="F"))
+        idx = np.flatnonzero(mask)
+        return wts[idx] * (ca.vec(y_model)[idx.tolist()] - d.y.ravel(order="F")[idx])
 
     def x0_guess(self, e: int) -> np.ndarray:
         """Known initial states, else the first measured sample of a directly measured state, else 0."""
@@ -175,6 +177,14 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
         lbw_x.append(lo.ravel(order="F"))
         ubw_x.append(hi.ravel(order="F"))
         p = layout.full(e, theta)
+        if oem.options.shooting_interval == 1:
+            # a node at every sample: contiguous slices only, outputs on the nodes themselves
+            pred = oem.step.map(d.n - 1, MAP_MODE)(xn[:, :-1], d.u[:, :-1], d.u[:, 1:],
+                                                   ca.repmat(p, 1, d.n - 1), d.t[None, :-1],
+                                                   np.diff(d.t)[None, :])
+            gaps.append((pred - xn[:, 1:]) / xs)
+            res.append(oem.residual_of(e, oem.outputs_of(e, xn, p)))
+            continue
         lengths = np.diff(nodes)
         pieces = []
         # intervals come in at most two lengths (the last may be shorter): one map per length

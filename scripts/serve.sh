@@ -1,10 +1,7 @@
 #!/usr/bin/env bash
-# Set up a virtual environment (.venv) with greyfit, then run the service on the embedded defaults
-# (SQLite under ./data, local worker processes). Extra arguments go to `greyfit serve`.
+# Set up .venv with greyfit, then run the service on the embedded defaults (SQLite under ./data,
+# local worker processes). Extra arguments go to `greyfit serve` (e.g. --port 8080 --workers 4).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3}
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
-.venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e .
+bash scripts/install.sh
 exec .venv/bin/greyfit serve "$@"

@@ -1,9 +1,6 @@
 #!/usr/bin/env bash
-# Set up a fresh virtual environment (.venv) with greyfit and its test extras, then run the tests.
+# Set up .venv with greyfit and its test extras, then run the whole test suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-PY=${PYTHON:-python3}
-[ -x .venv/bin/python ] || "$PY" -m venv .venv
-.venv/bin/python -m pip install --quiet --upgrade pip
-.venv/bin/python -m pip install --quiet -e ".[test]"
+bash scripts/install.sh test
 exec .venv/bin/python -m pytest -q "$@"

@@ -1,0 +1,28 @@
+# greyfit service image. Build: docker build -t greyfit .   Run: docker run -p 8000:8000 -v greyfit-data:/data greyfit
+FROM python:3.11-slim
+
+RUN useradd --create-home --uid 10001 greyfit && mkdir /data && chown greyfit /data
+WORKDIR /app
+RUN chown greyfit /app
+USER greyfit
+
+# Dependencies first (a layer that survives source changes): the project's own install step on
+# empty package stubs, the same scripts/install.sh the README and CI use.
+COPY --chown=greyfit pyproject.toml README.md ./
+COPY --chown=greyfit scripts/install.sh scripts/install.sh
+RUN mkdir schemas solvers service \
+ && touch schemas/__init__.py solvers/__init__.py service/__init__.py \
+ && bash scripts/install.sh
+
+# The source; the editable install above already points at /app.
+COPY --chown=greyfit schemas schemas
+COPY --chown=greyfit solvers solvers
+COPY --chown=greyfit service service
+COPY --chown=greyfit examples examples
+
+ENV GREYFIT_DATA_DIR=/data PYTHONUNBUFFERED=1
+VOLUME ["/data"]
+EXPOSE 8000
+HEALTHCHECK --interval=30s --timeout=5s --start-period=20s --retries=3 \
+  CMD .venv/bin/python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"
+CMD [".venv/bin/greyfit", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -1,0 +1,85 @@
+"""Against a real `greyfit serve` process on loopback: kill -9 mid-job, restart, nothing lost."""
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import httpx
+import pytest
+
+from tests.service.conftest import msd_request, slow_request
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def start_server(data_dir: Path, port: int) -> subprocess.Popen:
+    env = dict(os.environ, GREYFIT_LEASE_SECONDS="2", GREYFIT_POLL_SECONDS="0.02")
+    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
+                             "--port", str(port), "--data-dir", str(data_dir), "--workers", "2"],
+                            cwd=ROOT, env=env, start_new_session=True,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline:
+        try:
+            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
+                return proc
+        except httpx.HTTPError:
+            pass
+        if proc.poll() is not None:
+            raise AssertionError(f"server exited with {proc.returncode}")
+        time.sleep(0.2)
+    os.killpg(proc.pid, signal.SIGKILL)
+    raise AssertionError("server did not become ready")
+
+
+@pytest.mark.slow
+def test_kill_9_mid_job_restart_and_every_task_finishes_exactly_once(tmp_path):
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    server = start_server(tmp_path, port)
+    try:
+        resp = httpx.post(f"{base}/v1/jobs", json={"requests": [slow_request() for _ in range(8)]}, timeout=30)
+        assert resp.status_code == 202
+        job_id = resp.json()["id"]
+        deadline = time.monotonic() + 60
+        while time.monotonic() < deadline:
+            job = httpx.get(f"{base}/v1/jobs/{job_id}").json()
+            running = sum(t["status"] == "running" for t in job["tasks"])
+            if job["progress"]["done"] >= 1 and running >= 1:
+                break
+            time.sleep(0.05)
+        done_before = job["progress"]["done"]
+        assert done_before < 8, "the job finished before the kill; make the tasks slower"
+        os.killpg(server.pid, signal.SIGKILL)      # the server and its worker processes
+        server.wait(timeout=10)
+
+        server = start_server(tmp_path, port)
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            job = httpx.get(f"{base}/v1/jobs/{job_id}").json()
+            if job["status"] not in ("queued", "running"):
+                break
+            time.sleep(0.2)
+        assert job["status"] == "succeeded", job
+        assert job["progress"] == {"done": 8, "total": 8, "succeeded": 8, "failed": 0}
+        assert any(t["attempts"] == 2 for t in job["tasks"]), "no task was re-run after the kill"
+        results = httpx.get(f"{base}/v1/jobs/{job_id}/results").json()["results"]
+        assert [r["index"] for r in results] == list(range(8))
+        assert all(r["status"] == "succeeded" and r["result"]["success"] for r in results)
+        # and the restarted server serves new work
+        assert httpx.post(f"{base}/v1/fits", json=msd_request(1), timeout=60).status_code == 200
+    finally:
+        server.send_signal(signal.SIGTERM)
+        try:
+            server.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            os.killpg(server.pid, signal.SIGKILL)

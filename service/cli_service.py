@@ -79,9 +79,12 @@ def cmd_batch(args) -> int:
         while queue or pool.free() < len(pool.slots):
             while queue and pool.free():
                 i, body = queue.pop(0)
-                pool.submit(str(i), args.kind, body)
+                pool.submit(str(i), args.kind, body)   # already parsed to check it; sent as is
             for key, outcome in pool.poll():
-                out.write(json.dumps({"line": int(key), **outcome}) + "\n")
+                if outcome["status"] == "succeeded":
+                    out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome["result_json"]}}}\n')
+                else:
+                    out.write(json.dumps({"line": int(key), **outcome}) + "\n")
                 out.flush()
                 finished += 1
                 _progress(finished, total, started)

@@ -33,11 +33,12 @@ class Dispatcher:
     def submit_sync(self, kind: str, request: dict) -> cf.Future:
         fut: cf.Future = cf.Future()
         self.sync.put((f"sync-{uuid.uuid4()}", kind, request, fut))
-        self._wake.set()
+        self.wake()
         return fut
 
     def wake(self) -> None:
         self._wake.set()
+        self.executor.wake()
 
     def running_count(self) -> int:
         return len(self.running)
@@ -52,7 +53,7 @@ class Dispatcher:
 
     def stop(self) -> None:
         self._stop.set()
-        self._wake.set()
+        self.wake()
         if self._thread:
             self._thread.join(timeout=10)
         self.executor.shutdown()
@@ -80,7 +81,11 @@ class Dispatcher:
             except Exception:  # the loop must survive a database hiccup
                 log.exception("dispatcher iteration failed")
                 time.sleep(1.0)
-            self._wake.wait(self.settings.poll_seconds)
+            if not self._wake.is_set():
+                try:
+                    self.executor.wait(self.settings.poll_seconds)
+                except Exception:  # e.g. a Dask timeout: just loop again
+                    pass
             self._wake.clear()
 
     def _fill(self) -> None:
@@ -112,7 +117,7 @@ class Dispatcher:
                     item[1].set_result(outcome)
             else:
                 self.store.finish(item[1], item[2], self.owner, outcome["status"],
-                                  outcome.get("result"), outcome.get("error"))
+                                  outcome.get("result_json"), outcome.get("error"))
 
     def _stop_cancelled(self) -> None:
         jobs = {item[1] for item in self.running.values() if item[0] == "job"}

@@ -6,6 +6,8 @@ Both expose the same small interface to the dispatcher: `free()`, `submit(key, k
 from __future__ import annotations
 
 import multiprocessing as mp
+import multiprocessing.connection as mp_connection
+import os
 import resource
 import signal
 import time
@@ -57,7 +59,23 @@ class LocalWorkerPool:
         self.ctx = mp.get_context("spawn")
         self.cpu_seconds = cpu_seconds
         self.wall_seconds = wall_seconds
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_w, False)
         self.slots = [self._spawn() for _ in range(workers)]
+
+    def wait(self, timeout: float) -> None:
+        """Block until a worker replies or dies, `wake()` is called, or the timeout passes."""
+        busy = [s for s in self.slots if s.key is not None]
+        handles = [s.conn for s in busy] + [s.process.sentinel for s in busy] + [self._wake_r]
+        ready = mp_connection.wait(handles, timeout=timeout)
+        if self._wake_r in ready:
+            os.read(self._wake_r, 4096)
+
+    def wake(self) -> None:
+        try:
+            os.write(self._wake_w, b"x")
+        except BlockingIOError:
+            pass   # the pipe is full of wake-ups already
 
     def _spawn(self) -> _Slot:
         parent, child = self.ctx.Pipe()
@@ -182,6 +200,17 @@ class DaskExecutor:
                     "type": "Timeout", "field": None,
                     "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
         return done
+
+    def wait(self, timeout: float) -> None:
+        futures = [f for f, _ in self.futures.values()]
+        if futures:
+            from distributed import wait as dask_wait
+            dask_wait(futures, timeout=timeout, return_when="FIRST_COMPLETED")
+        else:
+            time.sleep(timeout)
+
+    def wake(self) -> None:
+        pass
 
     def cancel(self, key: str) -> bool:
         item = self.futures.pop(key, None)

@@ -1,16 +1,17 @@
 """Turn a worker outcome into a response or the matching error."""
 from __future__ import annotations
 
-from fastapi import HTTPException
+from fastapi import HTTPException, Response
 
 from solvers.errors import DataError, FitError, ModelDefinitionError
 
 _ERRORS = {"DataError": DataError, "ModelDefinitionError": ModelDefinitionError}
 
 
-def outcome_or_raise(outcome: dict) -> dict:
+def outcome_or_raise(outcome: dict) -> Response:
+    """The worker's result JSON as the response (not parsed again), or the matching error."""
     if outcome["status"] == "succeeded":
-        return outcome["result"]
+        return Response(outcome["result_json"], media_type="application/json")
     err = outcome["error"]
     cls = _ERRORS.get(err["type"])
     if cls is not None:

@@ -36,7 +36,8 @@ class Settings(BaseSettings):
     task_max_attempts: int = Field(default=3, ge=1, description="a task whose worker dies this often fails")
     lease_seconds: float = Field(default=30.0, gt=0, description="a running task whose server stops "
                                                                 "renewing it for this long is re-queued")
-    poll_seconds: float = Field(default=0.05, gt=0)
+    poll_seconds: float = Field(default=0.5, gt=0, description="longest wait of the dispatcher between "
+                                                                "housekeeping rounds (it wakes on events)")
 
     def resolved_database_url(self) -> str:
         if self.database_url:

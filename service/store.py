@@ -52,7 +52,7 @@ class TaskRow:
     job_id: str
     idx: int
     kind: str
-    request: dict
+    request: str   # the request's JSON text, handed to the worker unparsed
 
 
 def make_engine(url: str) -> Engine:
@@ -149,7 +149,7 @@ class JobStore:
                     .values(status="running", owner=owner, lease_until=now + lease_seconds,
                             started_at=now, attempts=row["attempts"] + 1))
                 if res.rowcount == 1:
-                    return TaskRow(row["job_id"], row["idx"], row["kind"], json.loads(row["request"]))
+                    return TaskRow(row["job_id"], row["idx"], row["kind"], row["request"])
         return None
 
     def renew(self, owner: str, lease_seconds: float) -> None:
@@ -171,7 +171,7 @@ class JobStore:
                                .values(status="queued", owner=None, lease_until=None))
         return res.rowcount
 
-    def finish(self, job_id: str, idx: int, owner: str, status: str, result: Optional[dict],
+    def finish(self, job_id: str, idx: int, owner: str, status: str, result_json: Optional[str],
                error: Optional[dict]) -> bool:
         """Record a task's outcome once; False if the task is no longer ours (e.g. re-queued)."""
         with self.engine.begin() as conn:
@@ -179,7 +179,7 @@ class JobStore:
                 update(tasks).where(tasks.c.job_id == job_id, tasks.c.idx == idx,
                                     tasks.c.status == "running", tasks.c.owner == owner)
                 .values(status=status, finished_at=time.time(),
-                        result=json.dumps(result) if result is not None else None,
+                        result=result_json,
                         error=json.dumps(error) if error is not None else None, lease_until=None))
         return res.rowcount == 1
 

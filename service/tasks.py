@@ -13,8 +13,8 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
     from schemas import FitRequest
     from solvers.fit import fit_model
 
-    def fit(request: dict, cpu_seconds: float):
-        req = FitRequest.model_validate(request)
+    def fit(request: dict | str, cpu_seconds: float):
+        req = _parse(FitRequest, request)
         # Ipopt stops by itself before the worker's hard CPU limit would kill it
         req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
         return fit_model(req)
@@ -24,8 +24,8 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
         from schemas.discovery import DiscoverRequest
         from solvers.discovery import discover
 
-        def disc(request: dict, cpu_seconds: float):
-            req = DiscoverRequest.model_validate(request)
+        def disc(request: dict | str, cpu_seconds: float):
+            req = _parse(DiscoverRequest, request)
             req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
             return discover(req)
 
@@ -35,13 +35,21 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
     return runners
 
 
-def run_task(kind: str, request: dict, cpu_seconds: float = 600.0) -> dict:
-    """{'status': 'succeeded', 'result': {...}} or {'status': 'failed', 'error': {type, field, detail}}."""
+def _parse(model, request: dict | str):
+    return model.model_validate_json(request) if isinstance(request, str) else model.model_validate(request)
+
+
+def run_task(kind: str, request: dict | str, cpu_seconds: float = 600.0) -> dict:
+    """{'status': 'succeeded', 'result_json': '...'} or {'status': 'failed', 'error': {type, field, detail}}.
+
+    The request may be the JSON text itself, and the result comes back as JSON text: the server
+    stores and returns both without parsing them again.
+    """
     from solvers.errors import FitError
     try:
         runner = _runners()[kind]
         result = runner(request, cpu_seconds)
-        return {"status": "succeeded", "result": result.model_dump(mode="json")}
+        return {"status": "succeeded", "result_json": result.model_dump_json()}
     except FitError as exc:
         return {"status": "failed", "error": {"type": type(exc).__name__, "field": exc.field,
                                               "detail": exc.message}}

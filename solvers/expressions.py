@@ -247,3 +247,47 @@ def to_casadi(node: Node, env: Mapping[str, object], where: str):
 def compile_expression(text: str, env: Mapping[str, object], where: str):
     """Parse and compile in one go."""
     return to_casadi(parse(text, where), env, where)
+
+
+_PRECEDENCE = {"cmp": 1, "+": 2, "-": 2, "*": 3, "/": 3, "neg": 4, "^": 5}
+
+
+def unparse(node: Node) -> str:
+    """AST back to grammar text (parenthesised where precedence needs it)."""
+    kind = node[0]
+    if kind == "num":
+        return repr(node[1]) if node[1] != int(node[1]) or abs(node[1]) >= 1e15 else str(int(node[1]))
+    if kind == "name":
+        return node[1]
+    if kind == "neg":
+        return f"-{_wrap(node[1], _PRECEDENCE['neg'])}"
+    if kind == "call":
+        return f"{node[1]}({', '.join(unparse(a) for a in node[2])})"
+    op = node[1]
+    prec = _PRECEDENCE["cmp" if kind == "cmp" else op]
+    if op == "^":   # right associative
+        return f"{_wrap(node[2], prec + 1)}^{_wrap(node[3], prec)}"
+    right_prec = prec + 1 if op in ("-", "/") or kind == "cmp" else prec
+    return f"{_wrap(node[2], prec)} {op} {_wrap(node[3], right_prec)}"
+
+
+def _wrap(node: Node, prec: int) -> str:
+    kind = node[0]
+    mine = _PRECEDENCE["cmp" if kind == "cmp" else node[1]] if kind in ("bin", "cmp") else \
+        _PRECEDENCE["neg"] if kind == "neg" else 99
+    text = unparse(node)
+    return f"({text})" if mine < prec else text
+
+
+def substitute(node: Node, name: str, replacement: Node) -> Node:
+    """Replace every occurrence of the name `name` by the AST `replacement`."""
+    kind = node[0]
+    if kind == "name":
+        return replacement if node[1] == name else node
+    if kind == "num":
+        return node
+    if kind == "neg":
+        return ("neg", substitute(node[1], name, replacement))
+    if kind in ("bin", "cmp"):
+        return (kind, node[1], substitute(node[2], name, replacement), substitute(node[3], name, replacement))
+    return ("call", node[1], [substitute(a, name, replacement) for a in node[2]], node[3])

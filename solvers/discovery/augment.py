@@ -1,0 +1,61 @@
+"""Rewrite a model with a new effect: a term added to an equation, or a parameter made variable."""
+from __future__ import annotations
+
+from schemas.model import Model
+from solvers.expressions import parse, substitute, unparse
+
+
+def add_term(model: Model, equation: str, term: str, sign: str = "+") -> Model:
+    """Add `sign term` to d(equation)/dt.
+
+    When the equation is a quotient `(forces)/m`, the term goes inside the numerator, so that its
+    parameter keeps physical units (a force, not a force per mass).
+    """
+    node = parse(model.equations[equation], f"equations.{equation}")
+    if node[0] == "bin" and node[1] == "/":
+        numerator = unparse(node[2])
+        denominator = unparse(node[3])
+        new = f"({numerator} {sign} {term}) / ({denominator})"
+    elif node[0] == "neg" and node[1][0] == "bin" and node[1][1] == "/":
+        inner = node[1]
+        flipped = "-" if sign == "+" else "+"
+        new = f"-({unparse(inner[2])} {flipped} {term}) / ({unparse(inner[3])})"
+    else:
+        new = f"{unparse(node)} {sign} {term}"
+    equations = dict(model.equations)
+    equations[equation] = new
+    return model.model_copy(update={"equations": equations})
+
+
+def replace_parameter(model: Model, name: str, replacement: str) -> Model:
+    """Replace parameter `name` by an expression everywhere it is used (equations, definitions, outputs)."""
+    rep = parse(replacement, "replacement")
+
+    def rewrite(text: str, where: str) -> str:
+        return unparse(substitute(parse(text, where), name, rep))
+
+    return model.model_copy(update={
+        "equations": {k: rewrite(v, f"equations.{k}") for k, v in model.equations.items()},
+        "definitions": {k: rewrite(v, f"definitions.{k}") for k, v in model.definitions.items()},
+        "outputs": None if model.outputs is None else {k: rewrite(v, f"outputs.{k}")
+                                                       for k, v in model.outputs.items()},
+    })
+
+
+def with_parameter(model: Model, name: str, value: float, lower=None, upper=None, unit=None,
+                   per_experiment: bool = False) -> Model:
+    from schemas.model import Parameter
+    params = list(model.parameters) + [Parameter(name=name, value=value, lower=lower, upper=upper,
+                                                 unit=unit, per_experiment=per_experiment)]
+    return model.model_copy(update={"parameters": params})
+
+
+def fresh_name(model: Model, stem: str) -> str:
+    used = set(model.states) | set(model.inputs) | {p.name for p in model.parameters} | \
+        set(model.constants) | set(model.definitions)
+    if stem not in used:
+        return stem
+    i = 2
+    while f"{stem}_{i}" in used:
+        i += 1
+    return f"{stem}_{i}"

@@ -1,0 +1,265 @@
+"""The library of named physical effects, each a candidate term with its regressor and model rewrite."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from schemas.discovery import CustomCandidate
+from schemas.model import Model
+from solvers.discovery.augment import add_term, fresh_name, replace_parameter, with_parameter
+from solvers.discovery.trace import TraceData
+from solvers.expressions import compile_expression, parse
+
+import casadi as ca
+
+
+@dataclass
+class Candidate:
+    effect: str
+    equations: dict[int, list[np.ndarray]]   # equation index -> regressor per experiment
+    term: str                                 # the term as it enters the model (for the report)
+    description: str
+    apply: Callable[[Model], tuple[Model, list[str]]]   # -> augmented model, new parameter names
+    sign: float = 0.0          # +1/-1: the coefficient must have this sign to be physical; 0: any
+    family: str = ""           # scanned variants of one candidate share a family (Bonferroni counts them)
+    stiffness: float = 0.0     # |∂(term)/∂x| per unit coefficient: tanh(v/ε) adds |β|/ε to the Jacobian
+    refit_variants: bool = False   # let the confirming refit choose among the family's variants
+
+
+def _fmt(v: float) -> str:
+    return f"{v:.6g}"
+
+
+def structure(model: Model) -> tuple[dict[str, str], dict[str, str]]:
+    """(velocity -> its position, position -> its velocity) from kinematic equations dx/dt = v."""
+    vel_of, pos_of = {}, {}
+    for s, text in model.equations.items():
+        node = parse(text, f"equations.{s}")
+        if node[0] == "name" and node[1] in model.states and node[1] != s:
+            pos_of[node[1]] = s
+            vel_of[s] = node[1]
+    return pos_of, vel_of
+
+
+def _additive(trace: TraceData, eq: int, values: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
+    return {eq: values}
+
+
+def library(model: Model, trace: TraceData, effects: list[str], custom: list[CustomCandidate],
+            epsilon: float | None) -> list[Candidate]:
+    cm = trace.cm
+    states = cm.states
+    pos_of, vel_of = structure(model)
+    velocities = [s for s in states if s in pos_of] or states
+    traced = set(trace.traced)
+    out: list[Candidate] = []
+
+    def state_values(s: str) -> list[np.ndarray]:
+        return [x[states.index(s)] for x in trace.x]
+
+    def term_candidate(effect: str, eq_state: str, regressor: list[np.ndarray], term_text: str,
+                       pname: str, sign: str, lower, description: str, phys_sign: float,
+                       stiffness: float = 0.0, refit_variants: bool = False):
+        eq = states.index(eq_state)
+        if eq not in traced:
+            return
+
+        def apply(m: Model, term_text=term_text, pname=pname) -> tuple[Model, list[str]]:
+            name = fresh_name(m, pname)
+            m = with_parameter(m, name, 0.0 if lower is None else 1e-6, lower=lower)
+            return add_term(m, eq_state, f"{name}*{term_text}", sign), [name]
+        # a '-' term with a positive parameter contributes -g: the regression coefficient is on +g
+        out.append(Candidate(effect, {eq: regressor}, f"{sign} {pname}*{term_text}", description, apply,
+                             sign=phys_sign, family=f"{effect}:{eq_state}", stiffness=stiffness,
+                             refit_variants=refit_variants))
+
+    if "coulomb" in effects:
+        for v in velocities:
+            vals = state_values(v)
+            rms = float(np.sqrt(np.mean(np.concatenate(vals) ** 2))) or 1.0
+            # the smoothing width matters: one far from the data's own leaves a misfit near v = 0
+            # (stick-slip) that the loop would chase with spurious terms. The screening cannot tell
+            # the widths apart (the smoothed derivative blurs the jump), so the refit chooses.
+            for eps in ([epsilon] if epsilon else [f * rms for f in (0.001, 0.003, 0.01, 0.03)]):
+                term = f"tanh({v}/{_fmt(eps)})"
+                term_candidate("coulomb", v, [np.tanh(x / eps) for x in vals], term, f"Fc_{v}", "-", 0.0,
+                               f"Coulomb friction on {v}: sign({v}) smoothed as {term}", -1.0, 1.0 / eps,
+                               refit_variants=True)
+    if "quadratic_drag" in effects:
+        for v in velocities:
+            vals = state_values(v)
+            term_candidate("quadratic_drag", v, [x * np.abs(x) for x in vals], f"{v}*abs({v})", f"Cd_{v}",
+                           "-", 0.0, f"quadratic drag on {v}", -1.0)
+    if "cubic_stiffness" in effects:
+        for v, x_name in pos_of.items():
+            vals = state_values(x_name)
+            term_candidate("cubic_stiffness", v, [x ** 3 for x in vals], f"{x_name}^3", f"k3_{x_name}", "-",
+                           None, f"cubic (hardening or softening) stiffness on {x_name}", 0.0)
+    if "offset" in effects:
+        for i in sorted(traced):
+            s = states[i]
+            term_candidate("offset", s, [np.ones_like(t) for t in trace.t], "1", f"f0_{s}", "+", None,
+                           f"constant offset in d{s}/dt", 0.0)
+    if "sqrt_flow" in effects:
+        for s in states:
+            vals = state_values(s)
+            allv = np.concatenate(vals)
+            if s in pos_of or s in vel_of or np.mean(allv > 0) < 0.9:
+                continue   # Torricelli outflow is for levels: positive, non-mechanical states
+            term_candidate("sqrt_flow", s, [np.sqrt(np.maximum(x, 0)) for x in vals], f"sqrt(max({s}, 0))",
+                           f"a_{s}", "-", 0.0, f"Torricelli outflow sqrt({s})", -1.0)
+    for cand in custom:
+        if cand.equation not in states or states.index(cand.equation) not in traced:
+            continue
+        env = _numeric_env(trace)
+        vals = [np.asarray(v, dtype=float) for v in _evaluate(cand.term, env, len(trace.t))]
+
+        def apply_custom(m: Model, cand=cand) -> tuple[Model, list[str]]:
+            name = fresh_name(m, cand.parameter)
+            m = with_parameter(m, name, cand.value, cand.lower, cand.upper)
+            return add_term(m, cand.equation, f"{name}*({cand.term})", "+"), [name]
+        out.append(Candidate("custom", {states.index(cand.equation): vals}, f"+ {cand.parameter}*({cand.term})",
+                             f"user candidate {cand.parameter}*({cand.term}) in d{cand.equation}/dt",
+                             apply_custom, family=f"custom:{cand.parameter}"))
+    out += _parameter_effects(model, trace, effects)
+    out += _input_effects(model, trace, effects)
+    return out
+
+
+def _numeric_env(trace: TraceData) -> dict:
+    cm = trace.cm
+    env = {"t": trace.t}
+    for i, s in enumerate(cm.states):
+        env[s] = [x[i] for x in trace.x]
+    for i, u in enumerate(cm.inputs):
+        env[u] = [uu[i] for uu in trace.u]
+    for j, p in enumerate(cm.parameters):
+        env[p] = [np.full(t.size, pv[j]) for t, pv in zip(trace.t, trace.p)]
+    env.update({k: [np.full(t.size, v) for t in trace.t] for k, v in cm.model.constants.items()})
+    return env
+
+
+def _evaluate(text: str, env: dict, n_exp: int) -> list[np.ndarray]:
+    names = list(env)
+    syms = [ca.SX.sym(n) for n in names]
+    expr = compile_expression(text, dict(zip(names, syms)), "discovery.candidates.term")
+    fn = ca.Function("term", syms, [expr])
+    out = []
+    for e in range(n_exp):
+        n = env["t"][e].size
+        out.append(np.array(fn.map(n)(*[np.asarray(env[k][e])[None, :] for k in names])).ravel())
+    return out
+
+
+def _param_regressor(trace: TraceData, j: int, shape: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
+    """∂f_i/∂p_j · shape(t) for every traced equation where p_j appears."""
+    reg = {}
+    for i in trace.traced:
+        cols = [jp[:, i, j] * s for jp, s in zip(trace.jp, shape)]
+        if any(np.any(c != 0) for c in cols):
+            reg[i] = cols
+    return reg
+
+
+def _scan_grid(values: np.ndarray, count: int) -> np.ndarray:
+    return np.unique(values[np.linspace(0, values.size - 1, min(count, values.size)).astype(int)])
+
+
+def _parameter_effects(model: Model, trace: TraceData, effects: list[str]) -> list[Candidate]:
+    cm = trace.cm
+    out: list[Candidate] = []
+    shared_free = [p.name for p in model.parameters if not p.fixed and not p.per_experiment]
+    t_all = np.concatenate(trace.t)
+    t_lo, t_hi = np.quantile(t_all, 0.03), np.quantile(t_all, 0.97)
+    for name in shared_free:
+        j = cm.parameters.index(name)
+        if not _param_regressor(trace, j, [np.ones_like(t) for t in trace.t]):
+            continue
+        if "parameter_step" in effects:
+            times = _scan_grid(np.unique(t_all[(t_all >= t_lo) & (t_all <= t_hi)]), 400)
+            for tau in times:
+                reg = _param_regressor(trace, j, [(t >= tau).astype(float) for t in trace.t])
+
+                def apply(m: Model, name=name, tau=tau) -> tuple[Model, list[str]]:
+                    d = fresh_name(m, f"d{name}_step")
+                    m = with_parameter(m, d, 0.0)
+                    return replace_parameter(m, name, f"({name} + {d}*if_else(t >= {_fmt(tau)}, 1, 0))"), [d]
+                out.append(Candidate("parameter_step", reg, f"{name} -> {name} + d{name}_step*[t >= {_fmt(tau)}]",
+                                     f"{name} changes value at t = {_fmt(tau)} s", apply,
+                                     family=f"parameter_step:{name}"))
+        if "parameter_drift" in effects:
+            t_mid = float(np.mean(t_all))
+            reg = _param_regressor(trace, j, [t - t_mid for t in trace.t])
+
+            def apply_drift(m: Model, name=name, t_mid=t_mid) -> tuple[Model, list[str]]:
+                d = fresh_name(m, f"d{name}_dt")
+                m = with_parameter(m, d, 0.0)
+                return replace_parameter(m, name, f"({name} + {d}*(t - {_fmt(t_mid)}))"), [d]
+            out.append(Candidate("parameter_drift", reg, f"{name} -> {name} + d{name}_dt*(t - {_fmt(t_mid)})",
+                                 f"{name} drifts linearly in time", apply_drift, family=f"parameter_drift:{name}"))
+        if "state_dependent" in effects:
+            for s_idx, s in enumerate(cm.states):
+                mags = np.abs(np.concatenate([x[s_idx] for x in trace.x]))
+                for thr in np.unique(np.quantile(mags, np.linspace(0.1, 0.9, 17))):
+                    if thr <= 0:
+                        continue
+                    reg = _param_regressor(trace, j, [(np.abs(x[s_idx]) > thr).astype(float) for x in trace.x])
+
+                    def apply_sd(m: Model, name=name, s=s, thr=thr) -> tuple[Model, list[str]]:
+                        d = fresh_name(m, f"d{name}_{s}")
+                        m = with_parameter(m, d, 0.0)
+                        return replace_parameter(
+                            m, name, f"({name} + {d}*if_else(abs({s}) > {_fmt(thr)}, 1, 0))"), [d]
+                    out.append(Candidate("state_dependent", reg,
+                                         f"{name} -> {name} + d{name}_{s}*[|{s}| > {_fmt(thr)}]",
+                                         f"{name} switches when |{s}| exceeds {_fmt(thr)}", apply_sd,
+                                         family=f"state_dependent:{name}:{s}"))
+    return out
+
+
+def _input_effects(model: Model, trace: TraceData, effects: list[str]) -> list[Candidate]:
+    cm = trace.cm
+    out: list[Candidate] = []
+    for k, u in enumerate(cm.inputs):
+        def input_reg(change: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
+            reg = {}
+            for i in trace.traced:
+                cols = [ju[:, i, k] * c for ju, c in zip(trace.ju, change)]
+                if any(np.any(c != 0) for c in cols):
+                    reg[i] = cols
+            return reg
+        mags = np.abs(np.concatenate([uu[k] for uu in trace.u]))
+        if "saturation" in effects and mags.max() > 0:
+            for level in np.unique(np.quantile(mags, np.linspace(0.5, 0.98, 13))):
+                if level <= 0:
+                    continue
+                change = [np.clip(uu[k], -level, level) - uu[k] for uu in trace.u]
+                reg = input_reg(change)
+                if not reg:
+                    continue
+
+                def apply_sat(m: Model, u=u, level=level) -> tuple[Model, list[str]]:
+                    name = fresh_name(m, f"{u}_max")
+                    m = with_parameter(m, name, float(level), lower=0.0)
+                    return _replace_input(m, u, f"min(max({u}, -{name}), {name})"), [name]
+                out.append(Candidate("saturation", reg, f"{u} -> min(max({u}, -{u}_max), {u}_max)",
+                                     f"input {u} saturates near ±{_fmt(level)}", apply_sat, sign=1.0,
+                                     family=f"saturation:{u}"))
+        if "input_delay" in effects:
+            for lag in range(1, 21):
+                change = [np.concatenate([np.full(lag, uu[k][0]), uu[k][:-lag]]) - uu[k] for uu in trace.u]
+                reg = input_reg(change)
+                if not reg:
+                    continue
+                dt = float(np.median(np.diff(trace.t[0])))
+                out.append(Candidate("input_delay", reg, f"{u}(t) -> {u}(t - {_fmt(lag * dt)})",
+                                     f"input {u} acts {lag} sample(s) ({_fmt(lag * dt)} s) late", None,
+                                     sign=1.0, family=f"input_delay:{u}"))
+    return out
+
+
+def _replace_input(model: Model, u: str, replacement: str) -> Model:
+    """Like replace_parameter, for an input (saturation)."""
+    return replace_parameter(model, u, replacement)

@@ -34,7 +34,8 @@ class BandLimitedNoise:
 def seat_k4_step(t, low=0.9e5, high=1.8e5, switches=(0.25, 0.5, 0.75)):
     """Seed 000 Case 1: k4 alternates low/high at the switch times."""
     n = np.sum(np.greater_equal.outer(np.atleast_1d(t), np.array(switches)), axis=-1)
-    return np.where(n % 2 == 0, low, high)
+    out = np.where(n % 2 == 0, low, high)
+    return out if np.ndim(t) else float(out[0])
 
 
 def seat_rhs(t, x, p, w, wd, k4_of_t=None):

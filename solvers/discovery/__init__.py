@@ -76,21 +76,26 @@ def _screen(request: FitRequest, fit: FitResult, opts, exclude: set[str]):
     trace = _trace_for(request, fit)
     if not trace.traced:
         return [], 0, trace
-    cands = [c for c in library(request.model, trace, opts.effects, opts.candidates, opts.coulomb_epsilon)
-             if c.family not in exclude]
     scorers: dict[tuple, EquationScorer] = {}
+
+    def scorer_for(equations) -> EquationScorer:
+        key = tuple(sorted(equations))
+        if key not in scorers:
+            scorers[key] = EquationScorer(trace, list(key))
+        return scorers[key]
+
+    cands = [c for c in library(request.model, trace, opts.effects, opts.candidates, opts.coulomb_epsilon,
+                                scorer_for, opts.significance, opts.min_explained)
+             if c.family not in exclude]
     scored: list[tuple[Candidate, object]] = []
     for c in cands:
-        eqs = tuple(sorted(c.equations))
-        if not eqs:
+        if not c.equations:
             continue
-        if eqs not in scorers:
-            scorers[eqs] = EquationScorer(trace, list(eqs))
-        sc = scorers[eqs]
+        sc = scorer_for(c.equations)
         s = sc.score(sc.stack(c.equations))
         if s is not None:
             scored.append((c, s))
-    return scored, len(cands), trace
+    return scored, sum(c.tries for c in cands), trace
 
 
 def discover(request: DiscoverRequest) -> DiscoveryResult:
@@ -105,6 +110,7 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
     rejected: list[str] = []
     screened_first: list[CandidateScore] = []
     tried_families: set[str] = set()
+    unexpressed: list[str] = []
     model = fit_req.model
 
     for round_no in range(opts.max_terms):
@@ -127,14 +133,14 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                                              p_value=s.p_value, significant=significant(c, s))
                               for c, s in list(best_per_family.values())[:15]]
         winners = [(c, s) for c, s in scored if significant(c, s)]
+        # effects greyfit cannot write into a model yet are reported if still significant at the end
+        unexpressed = [f"{c.description}: significant (p = {s.p_value:.2g}) but not added: greyfit cannot "
+                       "express it in the model yet; supply the delayed input as data"
+                       for c, s in winners if c.apply is None]
+        winners = [(c, s) for c, s in winners if c.apply is not None]
         if not winners:
             break
         cand, score = winners[0]
-        if cand.apply is None:
-            rejected.append(f"{cand.description}: significant (p = {score.p_value:.2g}) but not added: "
-                            f"greyfit cannot yet express it in the model; supply the delayed input as data")
-            tried_families.add(cand.family)
-            continue
         variants = [(c, s) for c, s in winners if c.family == cand.family] if cand.refit_variants else [winners[0]]
         best = None
         for c, s in variants:
@@ -170,10 +176,12 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                               residual_correlation_before=score.corr_before,
                               residual_correlation_after=after_corr),
             after=summarize(new_fit)))
-        if cand.effect not in ("parameter_step",):
-            tried_families.add(cand.family)   # a parameter may step more than once
+        tried_families.add(cand.family)
+        tried_families.update(f"{kind}:{n}" for n in new_params for kind in
+                              ("parameter_step", "parameter_drift"))   # no steps of a step
         model, fit, fit_req = new_model, new_fit, new_req
 
+    rejected += unexpressed
     conclusion = ("no significant missing effect" if not steps else
                   "added " + "; ".join(f"{s.effect} ({s.description})" for s in steps))
     return DiscoveryResult(conclusion=conclusion, before=before, after=summarize(fit), steps=steps,

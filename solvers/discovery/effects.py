@@ -26,6 +26,7 @@ class Candidate:
     family: str = ""           # scanned variants of one candidate share a family (Bonferroni counts them)
     stiffness: float = 0.0     # |∂(term)/∂x| per unit coefficient: tanh(v/ε) adds |β|/ε to the Jacobian
     refit_variants: bool = False   # let the confirming refit choose among the family's variants
+    tries: int = 1             # alternatives this candidate was selected from (counts for Bonferroni)
 
 
 def _fmt(v: float) -> str:
@@ -48,7 +49,8 @@ def _additive(trace: TraceData, eq: int, values: list[np.ndarray]) -> dict[int, 
 
 
 def library(model: Model, trace: TraceData, effects: list[str], custom: list[CustomCandidate],
-            epsilon: float | None) -> list[Candidate]:
+            epsilon: float | None, scorer_for: Callable | None = None, significance: float = 0.01,
+            min_explained: float = 0.05) -> list[Candidate]:
     cm = trace.cm
     states = cm.states
     pos_of, vel_of = structure(model)
@@ -123,7 +125,7 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
         out.append(Candidate("custom", {states.index(cand.equation): vals}, f"+ {cand.parameter}*({cand.term})",
                              f"user candidate {cand.parameter}*({cand.term}) in d{cand.equation}/dt",
                              apply_custom, family=f"custom:{cand.parameter}"))
-    out += _parameter_effects(model, trace, effects)
+    out += _parameter_effects(model, trace, effects, scorer_for, significance, min_explained)
     out += _input_effects(model, trace, effects)
     return out
 
@@ -167,7 +169,61 @@ def _scan_grid(values: np.ndarray, count: int) -> np.ndarray:
     return np.unique(values[np.linspace(0, values.size - 1, min(count, values.size)).astype(int)])
 
 
-def _parameter_effects(model: Model, trace: TraceData, effects: list[str]) -> list[Candidate]:
+def _step_candidate(trace: TraceData, name: str, j: int, scorer_for, significance: float,
+                    min_explained: float, t_lo: float, t_hi: float) -> Candidate | None:
+    """Switch times of a piecewise-constant parameter by forward selection over a time grid.
+
+    One step rarely explains a parameter that switches back and forth (seed 000's k4 alternates
+    at 0.25/0.5/0.75 s), so the switch times are chosen jointly, each kept while its partial
+    F-test passes at `significance` divided by the grid size.
+    """
+    t_all = np.concatenate(trace.t)
+    grid = np.unique(t_all[(t_all >= t_lo) & (t_all <= t_hi)])
+    if grid.size > 600:
+        grid = grid[np.linspace(0, grid.size - 1, 600).astype(int)]
+    base = _param_regressor(trace, j, [np.ones_like(t) for t in trace.t])
+    if not base or scorer_for is None:
+        return None
+    scorer = scorer_for(sorted(base))
+    steps = {i: [c[:, None] * (t[:, None] >= grid[None, :]) for c, t in zip(cols, trace.t)]
+             for i, cols in base.items()}
+    columns = scorer.stack(steps)
+    # forward selection by gain alone (a single switch of a parameter that switches back and forth
+    # explains little, so no per-step test), then drop switches that add too little jointly;
+    # the joint significance test and the confirming refit judge the result
+    min_gain = min_explained / 2.5
+    chosen = scorer.forward_select(columns, max_columns=6, alpha=1.0, min_gain=min_gain)
+    chosen = scorer.prune(columns, chosen, min_gain)
+    # a value held for a few samples is a patch for a slightly misplaced switch, not a parameter change
+    dwell = max(5 * float(np.median(np.diff(grid))), 0.01 * float(t_all.max() - t_all.min()))
+    kept: list[int] = []
+    for c in chosen:   # in order of selection: the stronger switch of a close pair stays
+        if all(abs(grid[c] - grid[k]) >= dwell for k in kept):
+            kept.append(c)
+    chosen = scorer.prune(columns, kept, min_gain)
+    if not chosen:
+        return None
+    taus = sorted(float(grid[c]) for c in chosen)
+    grid_size = int(grid.size)
+    final = {i: [np.column_stack([c * (t >= tau) for tau in taus]) for c, t in zip(cols, trace.t)]
+             for i, cols in base.items()}
+
+    def apply(m: Model, name=name, taus=taus) -> tuple[Model, list[str]]:
+        names, terms = [], []
+        for tau in taus:
+            d = fresh_name(m, f"d{name}_step")
+            m = with_parameter(m, d, 0.0)
+            names.append(d)
+            terms.append(f"{d}*if_else(t >= {_fmt(tau)}, 1, 0)")
+        return replace_parameter(m, name, f"({name} + {' + '.join(terms)})"), names
+    when = ", ".join(_fmt(tau) for tau in taus)
+    return Candidate("parameter_step", final, f"{name} -> {name} + steps at t = {when}",
+                     f"{name} changes value at t = {when} s", apply, family=f"parameter_step:{name}",
+                     tries=grid_size * len(taus))
+
+
+def _parameter_effects(model: Model, trace: TraceData, effects: list[str], scorer_for=None,
+                       significance: float = 0.01, min_explained: float = 0.05) -> list[Candidate]:
     cm = trace.cm
     out: list[Candidate] = []
     shared_free = [p.name for p in model.parameters if not p.fixed and not p.per_experiment]
@@ -178,17 +234,9 @@ def _parameter_effects(model: Model, trace: TraceData, effects: list[str]) -> li
         if not _param_regressor(trace, j, [np.ones_like(t) for t in trace.t]):
             continue
         if "parameter_step" in effects:
-            times = _scan_grid(np.unique(t_all[(t_all >= t_lo) & (t_all <= t_hi)]), 400)
-            for tau in times:
-                reg = _param_regressor(trace, j, [(t >= tau).astype(float) for t in trace.t])
-
-                def apply(m: Model, name=name, tau=tau) -> tuple[Model, list[str]]:
-                    d = fresh_name(m, f"d{name}_step")
-                    m = with_parameter(m, d, 0.0)
-                    return replace_parameter(m, name, f"({name} + {d}*if_else(t >= {_fmt(tau)}, 1, 0))"), [d]
-                out.append(Candidate("parameter_step", reg, f"{name} -> {name} + d{name}_step*[t >= {_fmt(tau)}]",
-                                     f"{name} changes value at t = {_fmt(tau)} s", apply,
-                                     family=f"parameter_step:{name}"))
+            cand = _step_candidate(trace, name, j, scorer_for, significance, min_explained, t_lo, t_hi)
+            if cand is not None:
+                out.append(cand)
         if "parameter_drift" in effects:
             t_mid = float(np.mean(t_all))
             reg = _param_regressor(trace, j, [t - t_mid for t in trace.t])

@@ -47,7 +47,7 @@ def build_trace(cm: CompiledModel, data: list[ExperimentData], params: list[np.n
                        [f, ca.jacobian(f, p_sym), ca.jacobian(f, u_sym)])
     state_of_output = {s: o for o, s in cm.direct_outputs.items()}
     measured = {cm.states.index(s) for s in state_of_output}
-    xs, res, jps, jus = [], [], [], []
+    xs, us, res, jps, jus = [], [], [], [], []
     for e, d in enumerate(data):
         x = np.array(simulated[e], dtype=float)
         dx = np.full((cm.nx, d.n), np.nan)
@@ -61,7 +61,15 @@ def build_trace(cm: CompiledModel, data: list[ExperimentData], params: list[np.n
             dx[i] = np.where(ok, deriv, np.nan)
             if i in d.derivatives:
                 dx[i] = d.derivatives[i]
-        fv, jp, ju = sens.map(d.n)(x, d.u, np.repeat(params[e][:, None], d.n, 1), d.t[None, :])
+        # the inputs go through the same smoother as the states: filtering one side of the equation
+        # only leaves a residual that looks like an input delay (the point of seed 004's prefilter)
+        u = d.u.copy()
+        for k in range(cm.nu):
+            smooth, _, _ = smooth_and_differentiate(d.u[k], d.t, options.derivative_window,
+                                                    options.derivative_order)
+            u[k] = np.where(np.isfinite(smooth), smooth, d.u[k])
+        fv, jp, ju = sens.map(d.n)(x, u, np.repeat(params[e][:, None], d.n, 1), d.t[None, :])
+        us.append(u)
         xs.append(x)
         res.append(dx - np.array(fv))
         jps.append(np.array(jp).reshape(cm.nx, d.n, cm.np).transpose(1, 0, 2))
@@ -69,7 +77,7 @@ def build_trace(cm: CompiledModel, data: list[ExperimentData], params: list[np.n
                    np.zeros((d.n, cm.nx, 0)))
     deps = cm.equation_parameters()
     traced = [i for i in sorted(measured) if deps[cm.states[i]] & set(free)]
-    return TraceData(cm, [d.t for d in data], xs, [d.u for d in data], res, jps, jus, params, traced,
+    return TraceData(cm, [d.t for d in data], xs, us, res, jps, jus, params, traced,
                      free, measured)
 
 
@@ -115,12 +123,11 @@ def effective_n(resid: np.ndarray, max_lag: int = 100) -> float:
     denom = float(r @ r)
     if denom == 0:
         return float(n)
-    total = 0.0
-    for k in range(1, min(max_lag, n // 4)):
-        rho = float(r[k:] @ r[:-k]) / denom
-        if rho < 0.05:
-            break
-        total += rho
+    lags = min(max_lag, n // 4)
+    spec = np.fft.rfft(r, 2 * n)
+    acf = np.fft.irfft(spec * np.conj(spec))[1:lags] / denom
+    below = np.flatnonzero(acf < 0.05)
+    total = float(acf[:below[0]].sum()) if below.size else float(acf.sum())
     return n / (1 + 2 * total)
 
 
@@ -141,36 +148,155 @@ class EquationScorer:
             self.q = np.zeros((self.r.size, 0))
             self.r0 = self.r
         self.rss0 = float(self.r0 @ self.r0)
-        self.n_eff = max(effective_n(self.r0), self.jac.shape[1] + 10.0)
+        self.n_eff = self._n_eff(self.r0)
 
-    def stack(self, regressor: dict[int, list[np.ndarray]]) -> np.ndarray:
+    def _n_eff(self, resid: np.ndarray) -> float:
+        return max(effective_n(resid), self.jac.shape[1] + 10.0)
+
+    def stack(self, regressor: dict[int, list[np.ndarray]], weighted: bool = True) -> np.ndarray:
+        """Rows of the candidate's column(s) in the scorer's order; (rows,) or (rows, m)."""
         parts = []
+        width = None
+        for cols in regressor.values():
+            width = None if np.ndim(cols[0]) == 1 else cols[0].shape[1]
         for e in range(len(self.trace.t)):
+            n = self.trace.t[e].size
             for i in self.equations:
                 if i in regressor:
-                    parts.append(regressor[i][e] * self.weights[i])
+                    parts.append(regressor[i][e] * (self.weights[i] if weighted else 1.0))
                 else:
-                    parts.append(np.zeros(self.trace.t[e].size))
+                    parts.append(np.zeros(n) if width is None else np.zeros((n, width)))
         return np.concatenate(parts)[self.ok]
 
+    def project(self, g: np.ndarray) -> np.ndarray:
+        """Column(s) with the linearised free parameters regressed out."""
+        return g - self.q @ (self.q.T @ g)
+
     def score(self, g: np.ndarray) -> Score | None:
-        """g: the stacked candidate column (already restricted to usable rows)."""
+        """g: the stacked candidate column(s), (rows,) or (rows, m), restricted to usable rows."""
         if not np.all(np.isfinite(g)):
             return None
-        g0 = g - self.q @ (self.q.T @ g)
-        gg = float(g0 @ g0)
-        if gg <= 1e-12 * max(float(g @ g), 1e-300):
+        g = g.reshape(g.shape[0], -1)
+        g0 = self.project(g)
+        if np.linalg.norm(g0) <= 1e-6 * max(np.linalg.norm(g), 1e-300):
             return None   # the term is (nearly) a combination of existing ones
-        beta = float(g0 @ self.r0) / gg
-        resid1 = self.r0 - beta * g0
+        coef, *_ = np.linalg.lstsq(g0, self.r0, rcond=None)
+        fitted = g0 @ coef
+        resid1 = self.r0 - fitted
         rss1 = float(resid1 @ resid1)
+        m = g.shape[1]
         n, p = self.r.size, self.jac.shape[1]
         explained = (self.rss0 - rss1) / self.rss0 if self.rss0 > 0 else 0.0
-        dof = max(self.n_eff - p - 1, 1.0)
-        f_stat = (self.rss0 - rss1) / max(rss1 / dof, 1e-300)
-        p_value = math.erfc(math.sqrt(max(f_stat, 0.0) / 2))   # F(1, large) ≈ χ²(1)
-        bic_drop = self.n_eff * math.log(self.rss0 / max(rss1, 1e-300)) - math.log(self.n_eff)
-        corr_before = float(np.corrcoef(self.r0, g0)[0, 1]) if np.std(g0) > 0 else 0.0
-        corr_after = float(np.corrcoef(resid1, g0)[0, 1]) if np.std(resid1) > 0 else 0.0
-        return Score(self.rss0, rss1, n, self.n_eff, explained, f_stat, p_value, bic_drop, beta,
+        # the effective size comes from what the candidate leaves: a real effect leaves noise,
+        # while the residual before it is correlated by the very effect being tested
+        n_eff = self._n_eff(resid1)
+        dof = max(n_eff - p - m, 1.0)
+        f_stat = (self.rss0 - rss1) / m / max(rss1 / dof, 1e-300)
+        p_value = chi2_sf(m * f_stat, m)   # F(m, large) ≈ χ²(m)/m
+        bic_drop = n_eff * math.log(self.rss0 / max(rss1, 1e-300)) - m * math.log(n_eff)
+        corr_before = float(np.corrcoef(self.r0, fitted)[0, 1]) if np.std(fitted) > 0 else 0.0
+        corr_after = float(np.corrcoef(resid1, fitted)[0, 1]) if np.std(resid1) > 0 and np.std(fitted) > 0 else 0.0
+        return Score(self.rss0, rss1, n, n_eff, explained, f_stat, p_value, bic_drop, float(coef[0]),
                      corr_before, corr_after)
+
+    def forward_select(self, columns: np.ndarray, max_columns: int, alpha: float, min_gain: float) -> list[int]:
+        """Greedy forward selection among `columns` (rows × k), e.g. step times of a parameter.
+
+        A column is added while its partial F-test (against the columns chosen so far) has
+        p < alpha and it explains at least `min_gain` more of the residual variance.
+        """
+        c0 = self.project(columns)
+        chosen: list[int] = []
+        resid = self.r0.copy()
+        basis = np.zeros((c0.shape[0], 0))
+        for _ in range(max_columns):
+            cand = c0 - basis @ (basis.T @ c0) if basis.shape[1] else c0
+            norms = np.einsum("ij,ij->j", cand, cand)
+            norms[norms <= 1e-12 * max(norms.max(), 1e-300)] = np.inf
+            gains = (cand.T @ resid) ** 2 / norms
+            if chosen:
+                gains[chosen] = -1
+            best = int(np.argmax(gains))
+            rss = float(resid @ resid)
+            new_rss = rss - gains[best]
+            unit = cand[:, best] / np.sqrt(norms[best])
+            dof = max(self._n_eff(resid - unit * (unit @ resid)) - self.jac.shape[1] - len(chosen) - 1, 1.0)
+            f_stat = gains[best] / max(new_rss / dof, 1e-300)
+            if chi2_sf(f_stat, 1) >= alpha or gains[best] < min_gain * self.rss0:
+                break
+            basis = np.column_stack([basis, unit])
+            resid = resid - unit * (unit @ resid)
+            chosen.append(best)
+        return chosen
+
+
+    def prune(self, columns: np.ndarray, chosen: list[int], min_gain: float) -> list[int]:
+        """Backward elimination: drop the column whose removal costs least while that is < min_gain."""
+        chosen = list(chosen)
+        while chosen:
+            full = self._rss(columns[:, chosen])
+            losses = [self._rss(columns[:, [c for c in chosen if c != k]]) - full for k in chosen]
+            worst = int(np.argmin(losses))
+            if losses[worst] >= min_gain * self.rss0:
+                break
+            chosen.pop(worst)
+        return chosen
+
+    def _rss(self, g: np.ndarray) -> float:
+        if g.shape[1] == 0:
+            return self.rss0
+        g0 = self.project(g)
+        coef, *_ = np.linalg.lstsq(g0, self.r0, rcond=None)
+        e = self.r0 - g0 @ coef
+        return float(e @ e)
+
+    def segment(self, h: np.ndarray, times: np.ndarray, max_splits: int, min_gain: float) -> list[float]:
+        """Switch times of a piecewise-constant coefficient on regressor h, by binary segmentation.
+
+        Greedy single steps cannot find a parameter that switches back and forth (each step alone
+        explains little); splitting segments recursively can. A split is kept while it explains
+        at least `min_gain` of the residual variance; the joint test comes after, in `score`.
+        """
+        # levels are fitted on the raw regressor against the residual that the linearised
+        # parameters leave (projecting h as well would mix the segments through the projection)
+        h0 = h
+        order = np.argsort(times, kind="stable")
+        t_sorted = times[order]
+        starts = np.flatnonzero(np.r_[True, np.diff(t_sorted) > 0])
+        ut = t_sorted[starts]
+        hr = np.add.reduceat((h0 * self.r0)[order], starts)
+        hh = np.add.reduceat((h0 * h0)[order], starts)
+        chr_, chh = np.r_[0.0, np.cumsum(hr)], np.r_[0.0, np.cumsum(hh)]
+
+        def level_gain(a: int, b: int) -> float:
+            s_hh = chh[b] - chh[a]
+            return (chr_[b] - chr_[a]) ** 2 / s_hh if s_hh > 0 else 0.0
+
+        margin = max(2, ut.size // 50)        # no switch in the first and last 2 % of the record
+        segments = [(0, ut.size)]
+        cuts: list[int] = []
+        for _ in range(max_splits):
+            best = (0.0, None, None)
+            for a, b in segments:
+                whole = level_gain(a, b)
+                for k in range(max(a + margin, margin), min(b - margin, ut.size - margin)):
+                    gain = level_gain(a, k) + level_gain(k, b) - whole
+                    if gain > best[0]:
+                        best = (gain, (a, b), k)
+            gain, seg, k = best
+            if seg is None or gain < min_gain * self.rss0:
+                break
+            segments.remove(seg)
+            segments += [(seg[0], k), (k, seg[1])]
+            cuts.append(k)
+        return sorted(float(ut[k]) for k in cuts)
+
+
+def chi2_sf(x: float, k: int) -> float:
+    """Survival function of χ²(k): exact for k = 1, Wilson-Hilferty above."""
+    if x <= 0:
+        return 1.0
+    if k == 1:
+        return math.erfc(math.sqrt(x / 2))
+    z = ((x / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
+    return 0.5 * math.erfc(z / math.sqrt(2))

@@ -31,6 +31,34 @@ def cmd_fit(args) -> int:
     return 0
 
 
+def cmd_discover(args) -> int:
+    from schemas.discovery import DiscoverRequest
+    from solvers.discovery import discover
+    request = DiscoverRequest.model_validate(_read_json(args.request))
+    result = discover(request)
+    print(result.model_dump_json(indent=2 if args.pretty else None))
+    if args.summary:
+        print(format_discovery(result), file=sys.stderr)
+    return 0
+
+
+def format_discovery(result) -> str:
+    """A before/after table for people."""
+    lines = [f"conclusion: {result.conclusion}", "",
+             f"{'output':12s} {'RMSE before':>12s} {'RMSE after':>12s} {'fit % before':>13s} {'fit % after':>12s}"]
+    for name in result.before.rmse:
+        lines.append(f"{name:12s} {result.before.rmse[name]:12.4g} {result.after.rmse[name]:12.4g} "
+                     f"{result.before.fit_percent[name]:13.2f} {result.after.fit_percent[name]:12.2f}")
+    lines.append(f"{'BIC':12s} {result.before.bic:12.1f} {result.after.bic:12.1f}")
+    for step in result.steps:
+        params = ", ".join(f"{p.name} = {p.value:.4g} ± {p.stderr:.2g}" if p.stderr else f"{p.name} = {p.value:.4g}"
+                           for p in step.parameters)
+        lines.append(f"+ {step.effect} in d{step.equation}/dt: {step.term}  [{params}]  "
+                     f"explains {100 * step.evidence.explained_variance:.0f} % of the equation residual, "
+                     f"BIC -{step.evidence.bic_drop:.0f}")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="greyfit", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
@@ -38,6 +66,11 @@ def main(argv: list[str] | None = None) -> int:
     p_fit.add_argument("request")
     p_fit.add_argument("--pretty", action="store_true")
     p_fit.set_defaults(func=cmd_fit)
+    p_disc = sub.add_parser("discover", help="fit, find missing effects, refit; result JSON on stdout")
+    p_disc.add_argument("request")
+    p_disc.add_argument("--pretty", action="store_true")
+    p_disc.add_argument("--summary", action="store_true", help="also print a before/after table on stderr")
+    p_disc.set_defaults(func=cmd_discover)
     for extra in _extra_commands():
         extra(sub)
     args = parser.parse_args(argv)

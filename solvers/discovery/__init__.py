@@ -24,6 +24,8 @@ from schemas.discovery import (
 from schemas.fit import FitRequest, FitResult
 from schemas.model import Model
 from solvers.data import prepare_experiments
+from solvers.errors import ModelDefinitionError
+from solvers.expressions import compile_expression
 from solvers.discovery.effects import Candidate, library
 from solvers.discovery.trace import EquationScorer, build_trace
 from solvers.fit import fit_model
@@ -32,6 +34,13 @@ from solvers.parameters import build_layout
 from solvers.shooting import OutputErrorModel
 
 __all__ = ["discover"]
+
+
+def _symbol_env(model: Model) -> dict:
+    import casadi as ca
+    env = {n: ca.SX.sym(n) for n in [*model.states, *model.inputs, *(p.name for p in model.parameters),
+                                     *model.constants, "t"]}
+    return env
 
 
 def summarize(fit: FitResult) -> FitSummary:
@@ -102,6 +111,15 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
     """Fit, find and add missing effects, refit; see the module docstring for the tests used."""
     started = time.perf_counter()
     opts = request.discovery
+    names = set(request.model.states) | set(request.model.inputs) | {p.name for p in request.model.parameters}
+    for i, cand in enumerate(opts.candidates):
+        if cand.equation not in request.model.states:
+            raise ModelDefinitionError(f"'{cand.equation}' is not a state (states: {request.model.states})",
+                                       f"discovery.candidates[{i}].equation")
+        if cand.parameter in names:
+            raise ModelDefinitionError(f"'{cand.parameter}' is already a name in the model; choose a new one",
+                                       f"discovery.candidates[{i}].parameter")
+        compile_expression(cand.term, _symbol_env(request.model), f"discovery.candidates[{i}].term")
     fit_req = FitRequest(model=request.model, experiments=request.experiments, method=request.method,
                          options=request.options)
     fit = fit_model(fit_req)

@@ -112,11 +112,12 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
                 continue   # Torricelli outflow is for levels: positive, non-mechanical states
             term_candidate("sqrt_flow", s, [np.sqrt(np.maximum(x, 0)) for x in vals], f"sqrt(max({s}, 0))",
                            f"a_{s}", "-", 0.0, f"Torricelli outflow sqrt({s})", -1.0)
-    for cand in custom:
-        if cand.equation not in states or states.index(cand.equation) not in traced:
+    for ci, cand in enumerate(custom):
+        if states.index(cand.equation) not in traced:
             continue
         env = _numeric_env(trace)
-        vals = [np.asarray(v, dtype=float) for v in _evaluate(cand.term, env, len(trace.t))]
+        vals = [np.asarray(v, dtype=float) for v in
+                _evaluate(cand.term, env, len(trace.t), f"discovery.candidates[{ci}].term")]
 
         def apply_custom(m: Model, cand=cand) -> tuple[Model, list[str]]:
             name = fresh_name(m, cand.parameter)
@@ -143,10 +144,10 @@ def _numeric_env(trace: TraceData) -> dict:
     return env
 
 
-def _evaluate(text: str, env: dict, n_exp: int) -> list[np.ndarray]:
+def _evaluate(text: str, env: dict, n_exp: int, where: str) -> list[np.ndarray]:
     names = list(env)
     syms = [ca.SX.sym(n) for n in names]
-    expr = compile_expression(text, dict(zip(names, syms)), "discovery.candidates.term")
+    expr = compile_expression(text, dict(zip(names, syms)), where)
     fn = ca.Function("term", syms, [expr])
     out = []
     for e in range(n_exp):

@@ -1,0 +1,38 @@
+from fastapi import APIRouter, Depends, Request, Response
+from pydantic import BaseModel, ConfigDict, Field
+from typing import Optional
+
+from schemas.discovery import DiscoverRequest, DiscoveryResult
+from schemas.jobs import JobPublic
+from service.deps import require_api_key
+from service.limits import check_limits, data_values
+from service.problems import RequestTooLarge
+from service.routes.fits import run_sync
+from service.routes.jobs import submit_job
+
+router = APIRouter(prefix="/v1", tags=["discovery"], dependencies=[Depends(require_api_key)])
+
+
+class DiscoverJobCreate(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    requests: list[DiscoverRequest] = Field(min_length=1)
+    label: Optional[str] = Field(default=None, max_length=200)
+
+
+@router.post("/discover", response_model=DiscoveryResult)
+async def create_discovery(body: DiscoverRequest, request: Request):
+    """Fit, trace the residual to a missing physical effect, add it, refit: before/after and evidence."""
+    settings = request.app.state.settings
+    check_limits(body, settings)
+    values = data_values(body)
+    if values > settings.sync_max_values:
+        raise RequestTooLarge(f"the experiments carry {values} numbers; synchronous requests take at most "
+                              f"{settings.sync_max_values}. Submit it as a job: POST /v1/discover/jobs")
+    return await run_sync(request, "discover", body.model_dump(mode="json"))
+
+
+@router.post("/discover/jobs", response_model=JobPublic, status_code=202)
+def create_discovery_job(body: DiscoverJobCreate, request: Request, response: Response) -> JobPublic:
+    """Discovery requests as a batch job; results at /v1/jobs/{id}/results."""
+    return submit_job(request, response, "discover", body.requests, body.label)

@@ -59,7 +59,7 @@ class Dispatcher:
         self.executor.shutdown()
         # tasks we were running go back to the queue at once; another server (or our restart) runs them
         self.store.requeue_owned(self.owner)
-        for key, item in list(self.running.items()):
+        for item in list(self.running.values()):
             if item[0] == "sync" and not item[1].done():
                 item[1].set_exception(RuntimeError("the server is shutting down"))
 

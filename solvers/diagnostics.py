@@ -49,7 +49,7 @@ def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, 
     bound = Z99 / np.sqrt(max(n_total, 1))
     acf = np.zeros(lags + 1)
     xc: dict[str, np.ndarray] = {}
-    for m, r, u in usable:
+    for _, r, u in usable:
         ok = np.isfinite(r)
         rr = r[ok]
         weight = rr.size / n_total

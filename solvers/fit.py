@@ -4,7 +4,6 @@ from __future__ import annotations
 import time
 from dataclasses import dataclass
 
-import casadi as ca
 import numpy as np
 
 from schemas.fit import (
@@ -13,7 +12,7 @@ from schemas.fit import (
 )
 from solvers.covariance import correlation_from, estimate_covariance
 from solvers.data import ExperimentData, prepare_experiments
-from solvers.diagnostics import residual_analysis, rmse_and_fit
+from solvers.diagnostics import residual_analysis
 from solvers.equation_error import EquationErrorProblem, build_equation_error
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel, compile_model

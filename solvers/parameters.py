@@ -49,7 +49,7 @@ class ParameterLayout:
 
 def build_layout(model: Model, experiment_names: list[str]) -> ParameterLayout:
     names = [p.name for p in model.parameters]
-    labels, base, exps, scale, init, lo, hi = [], [], [], [], [], [], [], 
+    labels, base, exps, scale, init, lo, hi = [], [], [], [], [], [], [],
     offset = np.zeros(len(names))
     cols: list[tuple[int, int | None]] = []  # (parameter index, experiment index or None=all)
     fixed = {}

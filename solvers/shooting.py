@@ -91,7 +91,7 @@ class OutputErrorModel:
         theta = ca.MX.sym("theta", self.layout.size)
         x0_free = ca.MX.sym("x0", sum(len(f) for f in self.free_x0))
         res, k = [], 0
-        for e, d in enumerate(self.data):
+        for e in range(len(self.data)):
             n_free = len(self.free_x0[e])
             x0 = self.assemble_x0(e, x0_free[k:k + n_free])
             k += n_free
@@ -103,7 +103,7 @@ class OutputErrorModel:
         """Numeric (states, outputs) per experiment for physical θ and full initial states."""
         out = []
         theta_s = theta_phys / self.layout.scale
-        for e, d in enumerate(self.data):
+        for e in range(len(self.data)):
             p = self.layout.full(e, theta_s)
             xs = np.array(self.trajectory(e, x0s[e], p))
             ys = np.array(self.outputs_of(e, xs, p))

@@ -30,5 +30,5 @@ async def run_sync(request: Request, kind: str, payload: dict):
     try:
         outcome = await asyncio.wait_for(asyncio.wrap_future(fut), timeout=state.settings.task_wall_seconds + 30)
     except asyncio.TimeoutError:
-        raise HTTPException(504, "the fit did not finish in time; submit it as a job")
+        raise HTTPException(504, "the fit did not finish in time; submit it as a job") from None
     return outcome_or_raise(outcome)

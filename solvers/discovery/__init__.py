@@ -137,7 +137,7 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
             break
         alpha = opts.significance / max(n_tried, 1)
 
-        def significant(c: Candidate, s) -> bool:
+        def significant(c: Candidate, s, alpha=alpha) -> bool:
             physical = c.sign == 0 or np.sign(s.beta) == np.sign(c.sign)
             return s.p_value < alpha and s.explained >= opts.min_explained and physical
 
@@ -179,8 +179,9 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
         t_value = _t_value(new_fit, new_params)
         bic_drop = fit.metrics.bic - new_fit.metrics.bic
         if not new_fit.success or bic_drop < opts.min_bic_drop or (t_value is not None and t_value < opts.min_t_value):
+            t_text = "n/a" if t_value is None else round(t_value, 1)
             rejected.append(f"{cand.description}: the refit did not confirm it (BIC drop {bic_drop:.1f}, "
-                            f"t = {t_value if t_value is None else round(t_value, 1)}, solver {new_fit.solver.return_status})")
+                            f"t = {t_text}, solver {new_fit.solver.return_status})")
             tried_families.add(cand.family)
             break
         after_corr = _correlation_after(new_req, new_fit, cand, trace)

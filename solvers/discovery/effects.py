@@ -1,7 +1,7 @@
 """The library of named physical effects, each a candidate term with its regressor and model rewrite."""
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Callable
 
 import numpy as np
@@ -156,18 +156,19 @@ def _evaluate(text: str, env: dict, n_exp: int, where: str) -> list[np.ndarray]:
     return out
 
 
-def _param_regressor(trace: TraceData, j: int, shape: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
-    """∂f_i/∂p_j · shape(t) for every traced equation where p_j appears."""
+def _sensitivity_regressor(trace: TraceData, jacobians: list[np.ndarray], j: int,
+                           change: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
+    """∂f_i/∂z_j · change(t) for every traced equation that depends on z_j (a parameter or input)."""
     reg = {}
     for i in trace.traced:
-        cols = [jp[:, i, j] * s for jp, s in zip(trace.jp, shape)]
+        cols = [jac[:, i, j] * c for jac, c in zip(jacobians, change)]
         if any(np.any(c != 0) for c in cols):
             reg[i] = cols
     return reg
 
 
-def _scan_grid(values: np.ndarray, count: int) -> np.ndarray:
-    return np.unique(values[np.linspace(0, values.size - 1, min(count, values.size)).astype(int)])
+def _param_regressor(trace: TraceData, j: int, shape: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
+    return _sensitivity_regressor(trace, trace.jp, j, shape)
 
 
 def _step_candidate(trace: TraceData, name: str, j: int, scorer_for, significance: float,
@@ -272,13 +273,8 @@ def _input_effects(model: Model, trace: TraceData, effects: list[str]) -> list[C
     cm = trace.cm
     out: list[Candidate] = []
     for k, u in enumerate(cm.inputs):
-        def input_reg(change: list[np.ndarray]) -> dict[int, list[np.ndarray]]:
-            reg = {}
-            for i in trace.traced:
-                cols = [ju[:, i, k] * c for ju, c in zip(trace.ju, change)]
-                if any(np.any(c != 0) for c in cols):
-                    reg[i] = cols
-            return reg
+        def input_reg(change: list[np.ndarray], k=k) -> dict[int, list[np.ndarray]]:
+            return _sensitivity_regressor(trace, trace.ju, k, change)
         mags = np.abs(np.concatenate([uu[k] for uu in trace.u]))
         if "saturation" in effects and mags.max() > 0:
             for level in np.unique(np.quantile(mags, np.linspace(0.5, 0.98, 13))):

@@ -250,47 +250,6 @@ class EquationScorer:
         e = self.r0 - g0 @ coef
         return float(e @ e)
 
-    def segment(self, h: np.ndarray, times: np.ndarray, max_splits: int, min_gain: float) -> list[float]:
-        """Switch times of a piecewise-constant coefficient on regressor h, by binary segmentation.
-
-        Greedy single steps cannot find a parameter that switches back and forth (each step alone
-        explains little); splitting segments recursively can. A split is kept while it explains
-        at least `min_gain` of the residual variance; the joint test comes after, in `score`.
-        """
-        # levels are fitted on the raw regressor against the residual that the linearised
-        # parameters leave (projecting h as well would mix the segments through the projection)
-        h0 = h
-        order = np.argsort(times, kind="stable")
-        t_sorted = times[order]
-        starts = np.flatnonzero(np.r_[True, np.diff(t_sorted) > 0])
-        ut = t_sorted[starts]
-        hr = np.add.reduceat((h0 * self.r0)[order], starts)
-        hh = np.add.reduceat((h0 * h0)[order], starts)
-        chr_, chh = np.r_[0.0, np.cumsum(hr)], np.r_[0.0, np.cumsum(hh)]
-
-        def level_gain(a: int, b: int) -> float:
-            s_hh = chh[b] - chh[a]
-            return (chr_[b] - chr_[a]) ** 2 / s_hh if s_hh > 0 else 0.0
-
-        margin = max(2, ut.size // 50)        # no switch in the first and last 2 % of the record
-        segments = [(0, ut.size)]
-        cuts: list[int] = []
-        for _ in range(max_splits):
-            best = (0.0, None, None)
-            for a, b in segments:
-                whole = level_gain(a, b)
-                for k in range(max(a + margin, margin), min(b - margin, ut.size - margin)):
-                    gain = level_gain(a, k) + level_gain(k, b) - whole
-                    if gain > best[0]:
-                        best = (gain, (a, b), k)
-            gain, seg, k = best
-            if seg is None or gain < min_gain * self.rss0:
-                break
-            segments.remove(seg)
-            segments += [(seg[0], k), (k, seg[1])]
-            cuts.append(k)
-        return sorted(float(ut[k]) for k in cuts)
-
 
 def chi2_sf(x: float, k: int) -> float:
     """Survival function of χ²(k): exact for k = 1, Wilson-Hilferty above."""

@@ -1,5 +1,4 @@
 """Batch jobs through the HTTP stack: mixed outcomes, order, cancel, paging, limits, API key."""
-import copy
 import os
 import signal
 import time

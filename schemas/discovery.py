@@ -105,5 +105,8 @@ class DiscoveryResult(BaseModel):
     rejected: list[str] = Field(default_factory=list, description="candidates that failed the confirming refit")
     screened: list[CandidateScore] = Field(description="the best-scoring candidates of the first round")
     model: Model = Field(description="the augmented model, ready to be sent again")
+    added_inputs: dict[str, dict[str, list[Optional[float]]]] = Field(
+        default_factory=dict, description="per experiment, input series the augmented model needs "
+                                          "(an input delayed by whole samples); send them with the data")
     fit: FitResult = Field(description="the final fit")
     wall_time_s: float

@@ -128,7 +128,6 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
     rejected: list[str] = []
     screened_first: list[CandidateScore] = []
     tried_families: set[str] = set()
-    unexpressed: list[str] = []
     model = fit_req.model
 
     for round_no in range(opts.max_terms):
@@ -151,19 +150,17 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                                              p_value=s.p_value, significant=significant(c, s))
                               for c, s in list(best_per_family.values())[:15]]
         winners = [(c, s) for c, s in scored if significant(c, s)]
-        # effects greyfit cannot write into a model yet are reported if still significant at the end
-        unexpressed = [f"{c.description}: significant (p = {s.p_value:.2g}) but not added: greyfit cannot "
-                       "express it in the model yet; supply the delayed input as data"
-                       for c, s in winners if c.apply is None]
-        winners = [(c, s) for c, s in winners if c.apply is not None]
         if not winners:
             break
         cand, score = winners[0]
-        variants = [(c, s) for c, s in winners if c.family == cand.family] if cand.refit_variants else [winners[0]]
+        variants = ([(c, s) for c, s in winners if c.family == cand.family][:4] if cand.refit_variants
+                    else [winners[0]])
         best = None
         for c, s in variants:
             new_model, new_params = c.apply(_with_estimates(model, fit))
-            new_req = fit_req.model_copy(update={"model": new_model,
+            experiments = (c.transform_experiments(fit_req.experiments) if c.transform_experiments
+                           else fit_req.experiments)
+            new_req = fit_req.model_copy(update={"model": new_model, "experiments": experiments,
                                                  "options": _stable_options(fit_req, c, s.beta)})
             try:
                 new_fit = fit_model(new_req)
@@ -200,10 +197,16 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                               ("parameter_step", "parameter_drift"))   # no steps of a step
         model, fit, fit_req = new_model, new_fit, new_req
 
-    rejected += unexpressed
     conclusion = ("no significant missing effect" if not steps else
                   "added " + "; ".join(f"{s.effect} ({s.description})" for s in steps))
+    added_inputs = {}
+    original = {e.name: set(e.inputs) for e in request.experiments}
+    for exp in fit_req.experiments:
+        extra = {k: v for k, v in exp.inputs.items() if k not in original[exp.name]}
+        if extra:
+            added_inputs[exp.name] = extra
     return DiscoveryResult(conclusion=conclusion, before=before, after=summarize(fit), steps=steps,
+                           added_inputs=added_inputs,
                            rejected=rejected, screened=screened_first, model=model, fit=fit,
                            wall_time_s=time.perf_counter() - started)
 
@@ -226,6 +229,8 @@ def _eq_names(trace, cand: Candidate) -> str:
 
 
 def _t_value(fit: FitResult, names: list[str]) -> float | None:
+    if not names:
+        return None
     vals = []
     for n in names:
         p = fit.parameters[n]

@@ -27,6 +27,7 @@ class Candidate:
     stiffness: float = 0.0     # |∂(term)/∂x| per unit coefficient: tanh(v/ε) adds |β|/ε to the Jacobian
     refit_variants: bool = False   # let the confirming refit choose among the family's variants
     tries: int = 1             # alternatives this candidate was selected from (counts for Bonferroni)
+    transform_experiments: Callable | None = None   # data the new model needs (a delayed input)
 
 
 def _fmt(v: float) -> str:
@@ -299,9 +300,25 @@ def _input_effects(model: Model, trace: TraceData, effects: list[str]) -> list[C
                 if not reg:
                     continue
                 dt = float(np.median(np.diff(trace.t[0])))
-                out.append(Candidate("input_delay", reg, f"{u}(t) -> {u}(t - {_fmt(lag * dt)})",
-                                     f"input {u} acts {lag} sample(s) ({_fmt(lag * dt)} s) late", None,
-                                     sign=1.0, family=f"input_delay:{u}"))
+                delayed = fresh_name(model, f"{u}_delayed")
+
+                def apply_delay(m: Model, u=u, delayed=delayed) -> tuple[Model, list[str]]:
+                    m = m.model_copy(update={"inputs": [*m.inputs, delayed]})
+                    return _replace_input(m, u, delayed), []
+
+                def delay_data(experiments, u=u, delayed=delayed, lag=lag):
+                    out_exps = []
+                    for exp in experiments:
+                        series = list(exp.inputs[u])
+                        shifted = [series[0]] * lag + series[:-lag]
+                        out_exps.append(exp.model_copy(update={"inputs": {**exp.inputs, delayed: shifted}}))
+                    return out_exps
+                # the delay is a whole number of samples: the model language has no delay operator,
+                # so the delayed input enters as data (returned in `added_inputs`)
+                out.append(Candidate("input_delay", reg, f"{u}(t) -> {delayed} = {u}(t - {_fmt(lag * dt)})",
+                                     f"input {u} acts {lag} sample(s) ({_fmt(lag * dt)} s) late", apply_delay,
+                                     sign=1.0, family=f"input_delay:{u}", refit_variants=True,
+                                     transform_experiments=delay_data))
     return out
 
 

@@ -109,3 +109,27 @@ def test_user_candidate_and_round_trip_of_the_augmented_model():
         T, simulate_msd(T, extra_force=lambda x, v: 20.0 * x ** 3), noise=0.002, seed=1)],
         method="multiple_shooting"))
     assert again.parameters["kc"].value == pytest.approx(kc, rel=1e-3)
+
+
+@pytest.mark.slow
+def test_input_delay_is_found_and_the_delayed_input_is_returned():
+    from scipy.integrate import solve_ivp
+
+    from tests.systems import msd_input
+    lag = 3
+    tau = lag * (T[1] - T[0])
+    sol = solve_ivp(lambda tt, s: [s[1], (msd_input(tt - tau) - 0.8 * s[1] - 5.0 * s[0]) / 2.0], (0, T[-1]),
+                    [0.1, 0.0], t_eval=T, rtol=1e-11, atol=1e-13, max_step=0.01)
+    rng = np.random.default_rng(1)
+    exp = {"name": "e1", "time": T.tolist(), "inputs": {"u": msd_input(T).tolist()},
+           "outputs": {"x": (sol.y[0] + 0.002 * rng.standard_normal(T.size)).tolist(),
+                       "v": (sol.y[1] + 0.002 * rng.standard_normal(T.size)).tolist()}}
+    res = discover(DiscoverRequest.model_validate({"model": msd_model(), "experiments": [exp],
+                                                   "method": "multiple_shooting"}))
+    assert [s.effect for s in res.steps] == ["input_delay"]
+    assert "3 sample(s)" in res.steps[0].description
+    assert res.model.inputs == ["u", "u_delayed"]
+    delayed = res.added_inputs["e1"]["u_delayed"]
+    assert delayed[lag:] == exp["inputs"]["u"][:-lag]
+    assert res.fit.parameters["k"].value == pytest.approx(5.0, rel=0.01)
+    assert res.after.rmse["v"] < 0.2 * res.before.rmse["v"]

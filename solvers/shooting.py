@@ -30,6 +30,23 @@ class OutputErrorModel:
         self.xscale = state_scales(cm, data)
         self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
         self._sims: dict[int, ca.Function] = {}
+        self._sensitivities: tuple[ca.Function, ca.Function] | None = None
+
+    def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
+        """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once."""
+        if self._sensitivities is None:
+            cm = self.cm
+            x, u0, u1 = ca.MX.sym("x", cm.nx), ca.MX.sym("u0", cm.nu), ca.MX.sym("u1", cm.nu)
+            p, t0, dt = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
+            xn = self.step(x, u0, u1, p, t0, dt)
+            step_sens = ca.Function("step_sens", [x, u0, u1, p, t0, dt],
+                                    [xn, ca.jacobian(xn, x), ca.jacobian(xn, p)])
+            xs, us = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu)
+            ps, ts = ca.SX.sym("p", cm.np), ca.SX.sym("t")
+            y = cm.output(xs, us, ps, ts)
+            out_sens = ca.Function("out_sens", [xs, us, ps, ts], [y, ca.jacobian(y, xs), ca.jacobian(y, ps)])
+            self._sensitivities = (step_sens, out_sens)
+        return self._sensitivities
 
     def simulator(self, n: int) -> ca.Function:
         if n not in self._sims:
@@ -241,15 +258,7 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
     same quantity (the constrained multiple-shooting problem reduced to θ and x0).
     """
     cm, layout = oem.cm, oem.layout
-    if not hasattr(oem, "_step_sens"):
-        x, u0, u1 = ca.MX.sym("x", cm.nx), ca.MX.sym("u0", cm.nu), ca.MX.sym("u1", cm.nu)
-        p, t0, dt = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
-        xn = oem.step(x, u0, u1, p, t0, dt)
-        oem._step_sens = ca.Function("step_sens", [x, u0, u1, p, t0, dt],
-                                     [xn, ca.jacobian(xn, x), ca.jacobian(xn, p)])
-        xs, us, ps, ts = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
-        y = cm.output(xs, us, ps, ts)
-        oem._out_sens = ca.Function("out_sens", [xs, us, ps, ts], [y, ca.jacobian(y, xs), ca.jacobian(y, ps)])
+    step_sens, out_sens = oem.sensitivity_functions()
     n_theta = layout.size
     n_free = sum(len(f) for f in oem.free_x0)
     blocks, resids, col = [], [], n_theta
@@ -259,10 +268,10 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
         states = np.array(oem.trajectory(e, x0, p))
         n = d.n
         u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
-        _, a, b = oem._step_sens.map(n - 1)(states[:, :-1], u0, u1, np.repeat(p[:, None], n - 1, 1), t0, dt)
+        _, a, b = step_sens.map(n - 1)(states[:, :-1], u0, u1, np.repeat(p[:, None], n - 1, 1), t0, dt)
         a = np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2)
         b = np.array(b).reshape(cm.nx, n - 1, cm.np).transpose(1, 0, 2) @ layout.matrix[e]
-        y, hx, hp = oem._out_sens.map(n)(states, d.u, np.repeat(p[:, None], n, 1), d.t[None, :])
+        y, hx, hp = out_sens.map(n)(states, d.u, np.repeat(p[:, None], n, 1), d.t[None, :])
         y = np.array(y)
         hx = np.array(hx).reshape(cm.ny, n, cm.nx).transpose(1, 0, 2)
         hp = np.array(hp).reshape(cm.ny, n, cm.np).transpose(1, 0, 2) @ layout.matrix[e]

@@ -29,11 +29,10 @@ def _xcorr(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
     if denom == 0:
         return np.zeros(2 * lags + 1)
     n = a.size
-    full = np.correlate(a, b, mode="full")   # index n-1+k holds Σ a(t+k) b(t)
-    lo, hi = n - 1 - lags, n + lags
-    out = np.zeros(2 * lags + 1)
-    seg = full[max(lo, 0):min(hi, 2 * n - 1)]
-    out[max(0, -lo):max(0, -lo) + seg.size] = seg
+    size = 1 << int(np.ceil(np.log2(2 * n)))
+    cross = np.fft.irfft(np.fft.rfft(a, size) * np.conj(np.fft.rfft(b, size)), size)  # [k] = Σ a(t+k) b(t)
+    ks = np.arange(-lags, lags + 1)
+    out = np.where(np.abs(ks) < n, cross[ks % size], 0.0)
     return out / denom
 
 

@@ -136,7 +136,7 @@ def fit_model(request: FitRequest) -> FitResult:
     nvarys = int(keep.sum())
     cost = 0.5 * float(res @ res)
     aic, bic = information_criteria(2 * cost, ndata, nvarys)
-    channels = _residuals(cm, data, layout, eep, oem, theta, x0s)
+    channels = _residuals(cm, data, eep, oem, theta, x0s, res)
     rmse, fitp, analyses = {}, {}, []
     for c, name in enumerate(channels.channels):
         segments = []
@@ -196,22 +196,24 @@ def _message(status: str) -> str:
     }.get(status, f"Ipopt returned {status}")
 
 
-def _residuals(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout, eep, oem,
-               theta, x0s) -> Residuals:
-    """Unweighted residuals: simulated outputs for output error, derivatives for equation error."""
+def _residuals(cm: CompiledModel, data: list[ExperimentData], eep, oem, theta, x0s,
+               weighted_residual: np.ndarray) -> Residuals:
+    """Unweighted residuals: simulated outputs for output error, derivatives for equation error.
+
+    For equation error they are the solver's own weighted residual (measured − model), unweighted.
+    """
     if eep is not None:
-        per = []
+        per, start = [], 0
+        neq = len(eep.equations)
+        w = eep.weights[eep.equations][:, None]
         for e, d in enumerate(data):
             ed = eep.per_experiment[e]
-            pe = layout.full(e, theta / layout.scale)
-            f = np.array(cm.rhs.map(d.n)(np.nan_to_num(ed.x), d.u, np.repeat(pe[:, None], d.n, 1),
-                                         d.t[None, :]))
-            meas = ed.dx[eep.equations].copy()
-            resid = f[eep.equations] - meas
-            mask = np.zeros(d.n, dtype=bool)
-            mask[ed.rows] = True
-            meas[:, ~mask] = np.nan
-            resid[:, ~mask] = np.nan
+            block = weighted_residual[start:start + neq * ed.rows.size].reshape(ed.rows.size, neq).T
+            start += neq * ed.rows.size
+            meas = np.full((neq, d.n), np.nan)
+            resid = np.full((neq, d.n), np.nan)
+            meas[:, ed.rows] = ed.dx[eep.equations][:, ed.rows]
+            resid[:, ed.rows] = -block / w
             per.append((meas, resid))
         return Residuals([f"der({cm.states[i]})" for i in eep.equations], per)
     sims = oem.simulate(theta, [np.array([x0s[e][s] for s in cm.states]) for e in range(len(data))])

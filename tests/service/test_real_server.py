@@ -83,3 +83,34 @@ def test_kill_9_mid_job_restart_and_every_task_finishes_exactly_once(tmp_path):
             server.wait(timeout=20)
         except subprocess.TimeoutExpired:
             os.killpg(server.pid, signal.SIGKILL)
+
+
+@pytest.mark.slow
+def test_two_replicas_share_one_store_and_run_each_task_once(tmp_path):
+    """Two servers on one job store: both take tasks, none is run twice."""
+    import sqlite3
+    ports = [free_port(), free_port()]
+    servers = [start_server(tmp_path, port) for port in ports]
+    try:
+        resp = httpx.post(f"http://127.0.0.1:{ports[0]}/v1/jobs",
+                          json={"requests": [msd_request(i, n=1001) for i in range(16)]}, timeout=30)
+        job_id = resp.json()["id"]
+        deadline = time.monotonic() + 180
+        while time.monotonic() < deadline:
+            job = httpx.get(f"http://127.0.0.1:{ports[1]}/v1/jobs/{job_id}").json()
+            if job["status"] not in ("queued", "running"):
+                break
+            time.sleep(0.2)
+        assert job["status"] == "succeeded" and job["progress"]["succeeded"] == 16
+        assert all(t["attempts"] == 1 for t in job["tasks"])       # nobody ran a task twice
+        with sqlite3.connect(tmp_path / "greyfit.db") as db:
+            owners = {row[0] for row in db.execute("SELECT owner FROM tasks WHERE job_id = ?", (job_id,))}
+        assert len(owners) == 2, owners                           # both replicas worked
+    finally:
+        for server in servers:
+            server.send_signal(signal.SIGTERM)
+        for server in servers:
+            try:
+                server.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                os.killpg(server.pid, signal.SIGKILL)

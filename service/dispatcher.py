@@ -25,6 +25,7 @@ class Dispatcher:
         self.owner = str(uuid.uuid4())
         self.sync: "queue.Queue[tuple[str, str, dict, cf.Future]]" = queue.Queue()
         self.running: dict[str, tuple] = {}   # key -> ("job", job_id, idx, kind, t0) | ("sync", future, kind, t0)
+        self._cancels: "queue.Queue[cf.Future]" = queue.Queue()
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._thread: Optional[threading.Thread] = None
@@ -35,6 +36,12 @@ class Dispatcher:
         self.sync.put((f"sync-{uuid.uuid4()}", kind, request, fut))
         self.wake()
         return fut
+
+    def cancel_sync(self, fut: cf.Future) -> None:
+        """The caller gave up (timeout, disconnect): free the worker instead of finishing the fit."""
+        if not fut.cancel():          # already running: the dispatcher thread stops it
+            self._cancels.put(fut)
+            self.wake()
 
     def wake(self) -> None:
         self._wake.set()
@@ -70,6 +77,7 @@ class Dispatcher:
             try:
                 now = time.monotonic()
                 self._collect()
+                self._cancel_abandoned()
                 if now - last_lease > self.settings.lease_seconds / 3:
                     self.store.renew(self.owner, self.settings.lease_seconds)
                     self.store.requeue_expired()
@@ -118,6 +126,18 @@ class Dispatcher:
             else:
                 self.store.finish(item[1], item[2], self.owner, outcome["status"],
                                   outcome.get("result_json"), outcome.get("error"))
+
+    def _cancel_abandoned(self) -> None:
+        while True:
+            try:
+                fut = self._cancels.get_nowait()
+            except queue.Empty:
+                return
+            for key, item in list(self.running.items()):
+                if item[0] == "sync" and item[1] is fut:
+                    self.executor.cancel(key)
+                    self.running.pop(key)
+                    self.metrics.count_fit(item[2], "abandoned", None)
 
     def _stop_cancelled(self) -> None:
         jobs = {item[1] for item in self.running.values() if item[0] == "job"}

@@ -28,7 +28,13 @@ async def run_sync(request: Request, kind: str, payload: dict):
     state = request.app.state
     fut = state.dispatcher.submit_sync(kind, payload)
     try:
-        outcome = await asyncio.wait_for(asyncio.wrap_future(fut), timeout=state.settings.task_wall_seconds + 30)
+        # shield: a cancelled wait must not cancel the future before the dispatcher can stop the worker
+        outcome = await asyncio.wait_for(asyncio.shield(asyncio.wrap_future(fut)),
+                                         timeout=state.settings.task_wall_seconds + 30)
     except asyncio.TimeoutError:
+        state.dispatcher.cancel_sync(fut)
         raise HTTPException(504, "the fit did not finish in time; submit it as a job") from None
+    except asyncio.CancelledError:   # the client went away: free the worker
+        state.dispatcher.cancel_sync(fut)
+        raise
     return outcome_or_raise(outcome)

@@ -182,3 +182,20 @@ def test_a_crashed_worker_fails_only_its_task():
         assert done[0][0] == "b" and done[0][1]["status"] == "succeeded"
     finally:
         pool.shutdown()
+
+
+def test_an_abandoned_sync_fit_frees_its_worker(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
+        dispatcher = c.app.state.dispatcher
+        slow = slow_request()
+        slow["options"]["multistart"] = 30          # tens of seconds of work
+        fut = dispatcher.submit_sync("fit", slow)
+        deadline = time.monotonic() + 30
+        while not fut.running() and time.monotonic() < deadline:
+            time.sleep(0.02)
+        dispatcher.cancel_sync(fut)
+        started = time.monotonic()
+        resp = c.post("/v1/fits", json=msd_request(0))   # the only worker must be free again
+        assert resp.status_code == 200
+        assert time.monotonic() - started < 10
+        assert 'status="abandoned"' in c.get("/metrics").text

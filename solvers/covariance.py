@@ -29,7 +29,7 @@ def _combination(vector: np.ndarray, labels: list[str]) -> str:
 
 def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str], values: np.ndarray,
                         scale: np.ndarray, keep: np.ndarray, n_params: int,
-                        level: float = 0.95) -> CovarianceEstimate:
+                        level: float = 0.95, groups: np.ndarray | None = None) -> CovarianceEstimate:
     """Covariance from the residual Jacobian in scaled variables.
 
     Parameters
@@ -39,6 +39,10 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     residual : weighted residual at the solution.
     labels, values, scale : per column; values in physical units, physical = scale * scaled.
     keep : columns to include (parameters on an active bound are left out, reported as such).
+    groups : the output (or equation) of each residual row. Each group gets its own noise variance
+        s_g² = r_gᵀr_g / (n_g (1 - p/n)) and the covariance is the sandwich (JᵀJ)⁻¹ JᵀSJ (JᵀJ)⁻¹,
+        S = diag(s_g²): the fit's weights (1/std of each output by default) need not match the
+        noise levels. With one group this is the usual σ²(JᵀJ)⁻¹.
     """
     cols = np.flatnonzero(keep)
     j = jac[:, cols]
@@ -59,9 +63,16 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
             names, None, {}, {},
             f"information matrix is {kind} (condition {eigval[-1] / max(eigval[0], 1e-300):.1e}); "
             f"not identifiable from these data: {_combination(eigvec[:, 0], lab)}")
-    sigma2 = float(residual @ residual) / dof
     inv = np.linalg.inv(normed) / np.outer(d, d)
-    cov_scaled = sigma2 * inv
+    if groups is not None and np.unique(groups).size > 1:
+        row_var = np.empty(ndata)
+        for g in np.unique(groups):
+            rows = groups == g
+            row_var[rows] = float(residual[rows] @ residual[rows]) / (rows.sum() * dof / ndata)
+        meat = j.T @ (j * row_var[:, None])
+        cov_scaled = inv @ meat @ inv
+    else:
+        cov_scaled = float(residual @ residual) / dof * inv
     sc = scale[cols]
     cov = cov_scaled * np.outer(sc, sc)
     npar = len(names)

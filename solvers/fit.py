@@ -119,6 +119,8 @@ def fit_model(request: FitRequest) -> FitResult:
     # by using the single-shooting residual at the solution (gaps are zero there).
     if eep is not None:
         jac, res = problem.evaluate_jacobian(outcome.w)
+        groups = np.concatenate([np.tile(np.arange(len(eep.equations)), ed.rows.size)
+                                 for ed in eep.per_experiment])
         labels, values, scale = list(layout.labels), theta, layout.scale
         n_extra = 0
     else:
@@ -128,9 +130,10 @@ def fit_model(request: FitRequest) -> FitResult:
         scale = np.concatenate([layout.scale, x0_scale])
         values = np.concatenate([theta, np.array(x0_free) * np.array(x0_scale, dtype=float)])
         n_extra = len(x0_free)
-        jac, res = sensitivity_jacobian(oem, theta_s, x0s)
+        jac, res, groups = sensitivity_jacobian(oem, theta_s, x0s)
     keep = np.array([b is None for b in bounds] + [True] * n_extra)
-    cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level)
+    cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level,
+                              groups=groups)
 
     ndata = res.size
     nvarys = int(keep.sum())

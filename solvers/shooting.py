@@ -251,7 +251,7 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
 
 
 def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]):
-    """(J, r) of the single-shooting residual w.r.t. [θ (scaled), free x0 (scaled)] at a point.
+    """(J, r, output index of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled).
 
     Forward sensitivities S_{k+1} = A_k S_k + B_k are propagated in numpy from per-step Jacobians
     evaluated by one mapped call: much cheaper than differentiating the whole MX graph, and the
@@ -261,7 +261,7 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
     step_sens, out_sens = oem.sensitivity_functions()
     n_theta = layout.size
     n_free = sum(len(f) for f in oem.free_x0)
-    blocks, resids, col = [], [], n_theta
+    blocks, resids, groups, col = [], [], [], n_theta
     for e, d in enumerate(oem.data):
         p = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
         x0 = np.array([x0s[e][s] for s in cm.states])
@@ -288,4 +288,5 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
         wts = np.broadcast_to(oem.weights, (n, cm.ny))
         blocks.append((jy * wts[:, :, None])[mask])
         resids.append((wts * (y.T - d.y.T))[mask])
-    return np.vstack(blocks), np.concatenate(resids)
+        groups.append(np.broadcast_to(np.arange(cm.ny), (n, cm.ny))[mask])
+    return np.vstack(blocks), np.concatenate(resids), np.concatenate(groups)

@@ -122,3 +122,23 @@ def test_student_t_quantile_against_tables():
     assert student_t_quantile(0.975, 5) == pytest.approx(2.571, rel=1e-3)
     assert student_t_quantile(0.975, 30) == pytest.approx(2.0423, rel=1e-4)
     assert student_t_quantile(0.975, 10 ** 6) == pytest.approx(1.95996, rel=1e-5)
+
+
+@pytest.mark.slow
+def test_stderr_holds_when_outputs_have_very_different_noise():
+    """Default weights (1/std of each output) do not match the noise here (x 100x cleaner than v):
+    the per-output sandwich covariance must still match the Monte Carlo spread of the estimates."""
+    rng = np.random.default_rng(7)
+    values, reported = {"c": [], "k": []}, {"c": [], "k": []}
+    for _ in range(150):
+        exp = msd_experiment(T, STATES, noise=0.0, seed=0)
+        exp["outputs"]["x"] = (STATES[0] + 0.0005 * rng.standard_normal(T.size)).tolist()
+        exp["outputs"]["v"] = (STATES[1] + 0.05 * rng.standard_normal(T.size)).tolist()
+        res = fit_model(FitRequest.model_validate({"model": msd_model(c=0.8, k=5.0), "experiments": [exp],
+                                                   "method": "single_shooting", "options": {"substeps": 2}}))
+        for name in values:
+            values[name].append(res.parameters[name].value)
+            reported[name].append(res.parameters[name].stderr)
+    for name in values:
+        ratio = np.mean(reported[name]) / np.std(values[name], ddof=1)
+        assert abs(ratio - 1) < 0.3, (name, ratio)

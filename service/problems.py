@@ -59,20 +59,15 @@ def install_handlers(app: FastAPI) -> None:
         detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
         return problem(422, "Invalid request", detail, "validation-error", errors=errors)
 
-    @app.exception_handler(ModelDefinitionError)
-    async def _model(_: Request, exc: ModelDefinitionError):
-        return problem(422, "Invalid model", str(exc), "model-definition-error",
-                       errors=[{"loc": exc.field or "model", "msg": exc.message}])
-
-    @app.exception_handler(DataError)
-    async def _data(_: Request, exc: DataError):
-        return problem(422, "Invalid data", str(exc), "data-error",
-                       errors=[{"loc": exc.field or "experiments", "msg": exc.message}])
+    # the solver's error tree: one problem type per class, 422 for all (the input must change)
+    kinds = {ModelDefinitionError: ("Invalid model", "model-definition-error", "model"),
+             DataError: ("Invalid data", "data-error", "experiments"),
+             FitError: ("Cannot fit", "fit-error", "body")}
 
     @app.exception_handler(FitError)
     async def _fit(_: Request, exc: FitError):
-        return problem(422, "Cannot fit", str(exc), "fit-error",
-                       errors=[{"loc": exc.field or "body", "msg": exc.message}])
+        title, kind, default_loc = next(v for cls, v in kinds.items() if isinstance(exc, cls))
+        return problem(422, title, str(exc), kind, errors=[{"loc": exc.field or default_loc, "msg": exc.message}])
 
     @app.exception_handler(LimitExceeded)
     async def _limit(_: Request, exc: LimitExceeded):

@@ -49,6 +49,9 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     ndata, nvar = j.shape
     dof = ndata - nvar
     names = [labels[c] for c in cols if c < n_params]
+    if not (np.all(np.isfinite(j)) and np.all(np.isfinite(residual))):
+        return CovarianceEstimate(names, None, {}, {}, "the residual or its Jacobian is not finite at the "
+                                  "solution (the simulation diverged); no covariance")
     if dof <= 0:
         return CovarianceEstimate(names, None, {}, {}, f"{ndata} residuals for {nvar} free variables: "
                                   "no degree of freedom left to estimate the noise")

@@ -142,3 +142,17 @@ def test_stderr_holds_when_outputs_have_very_different_noise():
     for name in values:
         ratio = np.mean(reported[name]) / np.std(values[name], ddof=1)
         assert abs(ratio - 1) < 0.3, (name, ratio)
+
+
+def test_non_converged_fit_is_a_result_and_non_finite_jacobian_gives_a_note():
+    from solvers.covariance import estimate_covariance
+    r = msd_fit(0, method="multiple_shooting")
+    body = {"model": msd_model(c=0.1, k=1.0), "method": "single_shooting", "options": {"max_iter": 1},
+            "experiments": [msd_experiment(T, STATES, noise=NOISE, seed=0)]}
+    res = fit_model(FitRequest.model_validate(body))
+    assert res.success is False and res.status == "failed"
+    assert res.solver.return_status == "Maximum_Iterations_Exceeded" and "max_iter" in res.message
+    assert r.success
+    jac = np.array([[1.0, 0.0], [0.0, np.nan], [1.0, 1.0]])
+    cov = estimate_covariance(jac, np.zeros(3), ["a", "b"], np.ones(2), np.ones(2), np.array([True, True]), 2)
+    assert cov.matrix is None and "not finite" in cov.note

@@ -35,7 +35,7 @@ def submit_job(request: Request, response: Response, kind: str, requests: list, 
         raise LimitExceeded("requests", f"{len(requests)} requests, the limit is {settings.max_batch_requests}; "
                             "split the batch")
     for i, req in enumerate(requests):
-        check_limits(getattr(req, "fit", req), settings, prefix=f"requests[{i}].")
+        check_limits(req, settings, prefix=f"requests[{i}].")
     job_id = state.store.create_job(kind, [r.model_dump(mode="json") for r in requests], label)
     state.dispatcher.wake()
     response.status_code = 202

@@ -93,7 +93,6 @@ class Score:
     bic_drop: float
     beta: float
     corr_before: float
-    corr_after: float
 
 
 def _design(trace: TraceData, equations: list[int]):
@@ -195,9 +194,8 @@ class EquationScorer:
         p_value = chi2_sf(m * f_stat, m)   # F(m, large) ≈ χ²(m)/m
         bic_drop = n_eff * math.log(self.rss0 / max(rss1, 1e-300)) - m * math.log(n_eff)
         corr_before = float(np.corrcoef(self.r0, fitted)[0, 1]) if np.std(fitted) > 0 else 0.0
-        corr_after = float(np.corrcoef(resid1, fitted)[0, 1]) if np.std(resid1) > 0 and np.std(fitted) > 0 else 0.0
         return Score(self.rss0, rss1, n, n_eff, explained, f_stat, p_value, bic_drop, float(coef[0]),
-                     corr_before, corr_after)
+                     corr_before)
 
     def forward_select(self, columns: np.ndarray, max_columns: int, alpha: float, min_gain: float) -> list[int]:
         """Greedy forward selection among `columns` (rows × k), e.g. step times of a parameter.

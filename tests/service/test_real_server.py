@@ -41,6 +41,24 @@ def start_server(data_dir: Path, port: int) -> subprocess.Popen:
     raise AssertionError("server did not become ready")
 
 
+def wait_until_finished(base: str, job_id: str, timeout: float = 180) -> dict:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        job = httpx.get(f"{base}/v1/jobs/{job_id}").json()
+        if job["status"] not in ("queued", "running"):
+            return job
+        time.sleep(0.2)
+    raise AssertionError(f"job {job_id} did not finish in {timeout} s: {job}")
+
+
+def stop_server(server: subprocess.Popen) -> None:
+    server.send_signal(signal.SIGTERM)
+    try:
+        server.wait(timeout=20)
+    except subprocess.TimeoutExpired:
+        os.killpg(server.pid, signal.SIGKILL)
+
+
 @pytest.mark.slow
 def test_kill_9_mid_job_restart_and_every_task_finishes_exactly_once(tmp_path):
     port = free_port()
@@ -63,12 +81,7 @@ def test_kill_9_mid_job_restart_and_every_task_finishes_exactly_once(tmp_path):
         server.wait(timeout=10)
 
         server = start_server(tmp_path, port)
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            job = httpx.get(f"{base}/v1/jobs/{job_id}").json()
-            if job["status"] not in ("queued", "running"):
-                break
-            time.sleep(0.2)
+        job = wait_until_finished(base, job_id)
         assert job["status"] == "succeeded", job
         assert job["progress"] == {"done": 8, "total": 8, "succeeded": 8, "failed": 0}
         assert any(t["attempts"] == 2 for t in job["tasks"]), "no task was re-run after the kill"
@@ -78,11 +91,7 @@ def test_kill_9_mid_job_restart_and_every_task_finishes_exactly_once(tmp_path):
         # and the restarted server serves new work
         assert httpx.post(f"{base}/v1/fits", json=msd_request(1), timeout=60).status_code == 200
     finally:
-        server.send_signal(signal.SIGTERM)
-        try:
-            server.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            os.killpg(server.pid, signal.SIGKILL)
+        stop_server(server)
 
 
 @pytest.mark.slow
@@ -94,13 +103,8 @@ def test_two_replicas_share_one_store_and_run_each_task_once(tmp_path):
     try:
         resp = httpx.post(f"http://127.0.0.1:{ports[0]}/v1/jobs",
                           json={"requests": [msd_request(i, n=1001) for i in range(16)]}, timeout=30)
-        job_id = resp.json()["id"]
-        deadline = time.monotonic() + 180
-        while time.monotonic() < deadline:
-            job = httpx.get(f"http://127.0.0.1:{ports[1]}/v1/jobs/{job_id}").json()
-            if job["status"] not in ("queued", "running"):
-                break
-            time.sleep(0.2)
+        job = wait_until_finished(f"http://127.0.0.1:{ports[1]}", resp.json()["id"])
+        job_id = job["id"]
         assert job["status"] == "succeeded" and job["progress"]["succeeded"] == 16
         assert all(t["attempts"] == 1 for t in job["tasks"])       # nobody ran a task twice
         with sqlite3.connect(tmp_path / "greyfit.db") as db:
@@ -108,9 +112,4 @@ def test_two_replicas_share_one_store_and_run_each_task_once(tmp_path):
         assert len(owners) == 2, owners                           # both replicas worked
     finally:
         for server in servers:
-            server.send_signal(signal.SIGTERM)
-        for server in servers:
-            try:
-                server.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                os.killpg(server.pid, signal.SIGKILL)
+            stop_server(server)

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import argparse
 import os
-import signal
 import subprocess
 import sys
 import tempfile
@@ -24,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from tests.service.conftest import msd_request  # noqa: E402
-from tests.service.test_real_server import free_port  # noqa: E402
+from tests.service.test_real_server import free_port, stop_server as stop  # noqa: E402
 
 
 def serve(workers: int, data_dir: str, port: int) -> subprocess.Popen:
@@ -39,14 +38,6 @@ def serve(workers: int, data_dir: str, port: int) -> subprocess.Popen:
         except httpx.HTTPError:
             time.sleep(0.1)
     raise RuntimeError("server did not start")
-
-
-def stop(proc: subprocess.Popen) -> None:
-    proc.send_signal(signal.SIGTERM)
-    try:
-        proc.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        os.killpg(proc.pid, signal.SIGKILL)
 
 
 def latency(n: int) -> tuple[float, float, float]:

@@ -1,0 +1,96 @@
+"""Simulation and validation: simulated trajectories, k-step-ahead predictions, validation metrics."""
+from __future__ import annotations
+
+from typing import Literal, Optional, Union
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from schemas.discovery import DiscoveryResult
+from schemas.experiment import Experiment
+from schemas.fit import FitOptions, FitResult
+from schemas.limits import MAX_EXPERIMENTS
+from schemas.model import Model, Name
+
+# where an experiment's initial state came from
+InitialStateSource = Literal[
+    "experiment",     # the experiment's own `initial_state` (every state)
+    "provided",       # `initial_states[experiment]` of the request (or of a previous fit's result)
+    "contiguous",     # the state the estimation fit reached at the end of the record this one continues
+    "estimated",      # the free states fitted on a short leading window, parameters fixed
+]
+
+
+class OutputMetrics(BaseModel):
+    """Per output, over the measured (non-null) samples."""
+
+    rmse: dict[str, float] = Field(default_factory=dict)
+    fit_percent: dict[str, float] = Field(
+        default_factory=dict, description="MATLAB compare: 100 (1 - |y - ŷ| / |y - mean(y)|)")
+    nrmse: dict[str, float] = Field(
+        default_factory=dict, description="|y - ŷ| / |y - mean(y)| = 1 - fit_percent/100 (RMSE over std)")
+
+
+class ExperimentValidation(OutputMetrics):
+    name: str
+    initial_state: dict[str, float]
+    initial_state_source: InitialStateSource
+    estimated_states: list[str] = Field(
+        default_factory=list, description="states fitted on the leading window (source 'estimated')")
+    estimate_window: Optional[int] = Field(
+        default=None, description="samples of the leading window the free initial states were fitted on")
+    note: Optional[str] = None
+
+
+class ValidationResult(OutputMetrics):
+    """Simulation metrics on records (pooled over experiments), and per experiment."""
+
+    experiments: list[ExperimentValidation]
+
+
+class SimulatedExperiment(BaseModel):
+    name: str
+    time: list[float]
+    states: dict[str, list[float]]
+    outputs: dict[str, list[float]]
+    initial_state: dict[str, float]
+    initial_state_source: InitialStateSource
+    estimated_states: list[str] = Field(default_factory=list)
+    estimate_window: Optional[int] = None
+    horizon: Optional[int] = Field(
+        default=None, description="k of the k-step-ahead prediction in `predicted`")
+    predicted: Optional[dict[str, list[float]]] = Field(
+        default=None, description="ŷ(t | t-k): the model restarted k samples earlier from the measured "
+                                  "states (unmeasured states from the simulation); the free simulation "
+                                  "for the first k samples")
+    note: Optional[str] = None
+
+
+class SimulateRequest(BaseModel):
+    """A model, parameter values, experiments (outputs optional) -> simulated states and outputs.
+
+    Parameter values: the model's declared `value`s, overridden by `fit_result` (a FitResult or a
+    DiscoveryResult, whose augmented model is used when `model` is omitted), overridden by
+    `parameters`. A per-experiment estimate `k[exp]` applies to the experiment named `exp`.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    model: Optional[Model] = None
+    parameters: dict[str, float] = Field(default_factory=dict)
+    fit_result: Optional[Union[DiscoveryResult, FitResult]] = None
+    experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
+    initial_states: dict[Name, dict[Name, float]] = Field(
+        default_factory=dict, description="per experiment name; default: the experiment's initial_state, "
+                                          "then fit_result's, else estimated on a leading window")
+    options: FitOptions = Field(default_factory=FitOptions)
+    horizon: Optional[int] = Field(default=None, ge=1, description="also return k-step-ahead predictions")
+    estimate_window: Optional[int] = Field(
+        default=None, ge=2, description="samples of the leading window for initial-state estimation")
+
+
+class SimulateResult(BaseModel):
+    parameters: dict[str, float]
+    experiments: list[SimulatedExperiment]
+    validation: Optional[ValidationResult] = Field(
+        default=None, description="metrics against the measured outputs, where given")
+    wall_time_s: float

@@ -9,10 +9,12 @@ from schemas.fit import FitRequest, FitResult
 from schemas.model import Expression, Model, Name
 
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "saturation",
-                 "parameter_step", "parameter_drift", "state_dependent", "input_delay"]
+                 "parameter_step", "parameter_drift", "state_dependent", "input_delay",
+                 "output_offset", "output_gain", "output_abs", "output_saturation"]
 ALL_EFFECTS: tuple[str, ...] = ("coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
                                 "saturation", "parameter_step", "parameter_drift", "state_dependent",
-                                "input_delay")
+                                "input_delay", "output_offset", "output_gain", "output_abs",
+                                "output_saturation")
 
 
 class CustomCandidate(BaseModel):
@@ -42,34 +44,60 @@ class DiscoveryOptions(BaseModel):
     min_bic_drop: float = Field(default=10.0, ge=0, description="least BIC drop of the confirming refit")
     min_t_value: float = Field(default=4.0, ge=0, description="least |value|/stderr of the new parameter")
     coulomb_epsilon: Optional[float] = Field(
-        default=None, gt=0, description="tanh(v/ε) smoothing of sign(v); default 1 % of the RMS of v")
+        default=None, gt=0, description="tanh(v/ε) smoothing of sign(v); default: the refit chooses among "
+                                        "0.1, 0.3, 1 and 3 % of the RMS of v")
+    max_refits: int = Field(default=8, ge=1, le=50,
+                            description="budget of confirming refits: rejected candidates count too")
+    validation_tolerance: float = Field(
+        default=0.01, ge=0, le=1,
+        description="an effect is not kept if it raises the validation NRMSE of an output by more than this "
+                    "(relative); only with validation experiments")
 
 
 class DiscoverRequest(FitRequest):
     discovery: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
 
 
+class ValidationSummary(BaseModel):
+    rmse: dict[str, float]
+    fit_percent: dict[str, float]
+    nrmse: dict[str, float]
+
+
 class FitSummary(BaseModel):
+    success: bool = True
+    status: str = "success"
     rmse: dict[str, float]
     fit_percent: dict[str, float]
     cost: float
     aic: float
     bic: float
     white: dict[str, bool] = Field(description="residual whiteness test passed, per output")
+    validation: Optional[ValidationSummary] = Field(
+        default=None, description="simulation on the validation experiments (not used to fit)")
 
 
 class CandidateScore(BaseModel):
     effect: str
-    equation: str
+    equation: str = Field(description="the state equations the term enters, or 'output y' for the output path")
     term: str
     explained_variance: float
     bic_drop: float
     p_value: float
     significant: bool
+    scored_on: Literal["equations", "outputs", "refit"] = Field(
+        description="equation residuals of measured states, output residuals through the sensitivities, or "
+                    "'refit': the linearisation at this fit is blind to it (e.g. |h| where the fitted h keeps "
+                    "its sign), so only a refit can judge it")
+    record_specific: bool = Field(
+        default=False, description="a change in time (step, drift): true of this record, it does not carry "
+                                   "over to new data")
 
 
 class Evidence(BaseModel):
-    explained_variance: float = Field(description="fraction of the equation residual variance the term explains")
+    scored_on: Literal["equations", "outputs", "refit"] = "equations"
+    explained_variance: float = Field(description="fraction of the residual variance (equations or outputs) "
+                                                  "the term explains at screening")
     screening_bic_drop: float
     p_value: float
     bic_before: float
@@ -95,6 +123,20 @@ class DiscoveryStep(BaseModel):
     parameters: list[NewParameter]
     evidence: Evidence
     after: FitSummary
+    record_specific: bool = Field(default=False, description="a change in time found in this record "
+                                                             "(step, drift): it does not carry over to new data")
+
+
+class RejectedCandidate(BaseModel):
+    effect: str
+    equation: str
+    term: str
+    reason: Literal["evidence", "validation", "cpu_limit", "solver_failed", "refit_error", "superseded"] = Field(
+        description="evidence: the refit did not confirm it (BIC, t-value); validation: it made the "
+                    "validation records worse; cpu_limit: the refit ran out of time (no verdict); "
+                    "solver_failed / refit_error: the refit did not converge or could not be built; "
+                    "superseded: kept at first, then explained by an effect added later and dropped")
+    detail: str
 
 
 class DiscoveryResult(BaseModel):
@@ -102,8 +144,11 @@ class DiscoveryResult(BaseModel):
     before: FitSummary
     after: FitSummary
     steps: list[DiscoveryStep]
-    rejected: list[str] = Field(default_factory=list, description="candidates that failed the confirming refit")
+    rejected: list[RejectedCandidate] = Field(default_factory=list,
+                                              description="candidates refitted and not kept, with the reason")
     screened: list[CandidateScore] = Field(description="the best-scoring candidates of the first round")
+    notes: list[str] = Field(default_factory=list,
+                             description="what was not tried and why (e.g. Coulomb on a state that keeps its sign)")
     model: Model = Field(description="the augmented model, ready to be sent again")
     added_inputs: dict[str, dict[str, list[Optional[float]]]] = Field(
         default_factory=dict, description="per experiment, input series the augmented model needs "

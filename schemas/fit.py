@@ -52,6 +52,9 @@ class FitRequest(BaseModel):
     experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
     method: FitMethod = FitMethod.multiple_shooting
     options: FitOptions = Field(default_factory=FitOptions)
+    validation: list[Experiment] = Field(
+        default_factory=list, max_length=MAX_EXPERIMENTS,
+        description="records of the same system not used to fit: the model is simulated on them")
 
 
 class ParameterEstimate(BaseModel):

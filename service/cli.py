@@ -44,18 +44,30 @@ def cmd_discover(args) -> int:
 
 def format_discovery(result) -> str:
     """A before/after table for people."""
-    lines = [f"conclusion: {result.conclusion}", "",
-             f"{'output':12s} {'RMSE before':>12s} {'RMSE after':>12s} {'fit % before':>13s} {'fit % after':>12s}"]
+    lines = [f"conclusion: {result.conclusion}", ""]
+    if not result.before.success:
+        lines += [f"the declared model's fit did not succeed (status: {result.before.status})", ""]
+    lines.append(f"{'output':12s} {'data':10s} {'RMSE before':>12s} {'RMSE after':>12s} {'fit % before':>13s} "
+                 f"{'fit % after':>12s}")
+    rows = [("estimation", result.before, result.after)]
+    if result.before.validation is not None and result.after.validation is not None:
+        rows.append(("validation", result.before.validation, result.after.validation))
     for name in result.before.rmse:
-        lines.append(f"{name:12s} {result.before.rmse[name]:12.4g} {result.after.rmse[name]:12.4g} "
-                     f"{result.before.fit_percent[name]:13.2f} {result.after.fit_percent[name]:12.2f}")
-    lines.append(f"{'BIC':12s} {result.before.bic:12.1f} {result.after.bic:12.1f}")
+        for label, b, a in rows:
+            if name in b.rmse and name in a.rmse:
+                lines.append(f"{name:12s} {label:10s} {b.rmse[name]:12.4g} {a.rmse[name]:12.4g} "
+                             f"{b.fit_percent[name]:13.2f} {a.fit_percent[name]:12.2f}")
+    lines.append(f"{'BIC':23s} {result.before.bic:12.1f} {result.after.bic:12.1f}")
     for step in result.steps:
         params = ", ".join(f"{p.name} = {p.value:.4g} ± {p.stderr:.2g}" if p.stderr else f"{p.name} = {p.value:.4g}"
                            for p in step.parameters)
-        lines.append(f"+ {step.effect} in d{step.equation}/dt: {step.term}  [{params}]  "
-                     f"explains {100 * step.evidence.explained_variance:.0f} % of the equation residual, "
-                     f"BIC -{step.evidence.bic_drop:.0f}")
+        where = step.equation if step.equation.startswith("output") else f"d{step.equation}/dt"
+        lines.append(f"+ {step.effect} in {where}: {step.term}  [{params}]  "
+                     f"explains {100 * step.evidence.explained_variance:.0f} % of the "
+                     f"{'output' if step.evidence.scored_on != 'equations' else 'equation'} residual, "
+                     f"BIC -{step.evidence.bic_drop:.0f}" + ("  (specific to this record)" if step.record_specific else ""))
+    for rej in result.rejected:
+        lines.append(f"- not kept: {rej.effect} ({rej.term}): {rej.reason}: {rej.detail}")
     return "\n".join(lines)
 
 

@@ -59,3 +59,26 @@ def fresh_name(model: Model, stem: str) -> str:
     while f"{stem}_{i}" in used:
         i += 1
     return f"{stem}_{i}"
+
+
+def replace_in_equations(model: Model, name: str, replacement: str) -> Model:
+    """Replace a state (or any name) by an expression in the state equations and definitions only.
+
+    The output equations keep measuring the state itself (a level sensor still reads the level).
+    """
+    rep = parse(replacement, "replacement")
+
+    def rewrite(text: str, where: str) -> str:
+        return unparse(substitute(parse(text, where), name, rep))
+
+    return model.model_copy(update={
+        "equations": {k: rewrite(v, f"equations.{k}") for k, v in model.equations.items()},
+        "definitions": {k: rewrite(v, f"definitions.{k}") for k, v in model.definitions.items()},
+    })
+
+
+def rewrite_output(model: Model, output: str, template: str) -> Model:
+    """Output `output` becomes `template` with `{h}` standing for its declared expression."""
+    outputs = model.measured_outputs()
+    outputs[output] = template.format(h=f"({outputs[output]})")
+    return model.model_copy(update={"outputs": outputs})

@@ -8,8 +8,8 @@ import numpy as np
 
 from schemas.discovery import CustomCandidate
 from schemas.model import Model
-from solvers.discovery.augment import add_term, fresh_name, replace_parameter, with_parameter
-from solvers.discovery.trace import TraceData
+from solvers.discovery.augment import add_term, fresh_name, replace_in_equations, replace_parameter, with_parameter
+from solvers.discovery.scoring_equations import TraceData
 from solvers.expressions import compile_expression, parse
 
 import casadi as ca
@@ -28,6 +28,15 @@ class Candidate:
     refit_variants: bool = False   # let the confirming refit choose among the family's variants
     tries: int = 1             # alternatives this candidate was selected from (counts for Bonferroni)
     transform_experiments: Callable | None = None   # data the new model needs (a delayed input)
+    outputs: dict[int, list[np.ndarray]] | None = None   # direct effect on outputs (output-path effects)
+    record_specific: bool = False   # a step or drift in time: true of this record, not of new data
+    key: str = ""              # identifies the same term found by either scorer
+    refit_only: bool = False   # its linearisation at this fit says nothing (e.g. |h| where h > 0): refit decides
+    fresh_start: bool = False  # refit from the declared initial values, not from the fit it replaces
+    generic: bool = False      # a catch-all shape (a coefficient switching at a threshold), not a named law
+
+    def __post_init__(self):
+        self.key = self.key or f"{self.family}|{self.term}"
 
 
 def _fmt(v: float) -> str:
@@ -58,6 +67,7 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
     velocities = [s for s in states if s in pos_of] or states
     traced = set(trace.traced)
     out: list[Candidate] = []
+    notes: list[str] = []
 
     def state_values(s: str) -> list[np.ndarray]:
         return [x[states.index(s)] for x in trace.x]
@@ -81,7 +91,12 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
     if "coulomb" in effects:
         for v in velocities:
             vals = state_values(v)
-            rms = float(np.sqrt(np.mean(np.concatenate(vals) ** 2))) or 1.0
+            allv = np.concatenate(vals)
+            if min(np.mean(allv > 0), np.mean(allv < 0)) < 0.02:
+                # on a quantity that keeps its sign, sign(v) is a constant: an offset, not friction
+                notes.append(f"coulomb on {v} not tried: {v} does not change sign (that would be an offset)")
+                continue
+            rms = float(np.sqrt(np.mean(allv ** 2))) or 1.0
             # the smoothing width matters: one far from the data's own leaves a misfit near v = 0
             # (stick-slip) that the loop would chase with spurious terms. The screening cannot tell
             # the widths apart (the smoothed derivative blurs the jump), so the refit chooses.
@@ -103,16 +118,15 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
     if "offset" in effects:
         for i in sorted(traced):
             s = states[i]
+            if s in vel_of:
+                continue   # a kinematic identity dx/dt = v has no force to be offset
             term_candidate("offset", s, [np.ones_like(t) for t in trace.t], "1", f"f0_{s}", "+", None,
                            f"constant offset in d{s}/dt", 0.0)
     if "sqrt_flow" in effects:
         for s in states:
-            vals = state_values(s)
-            allv = np.concatenate(vals)
-            if s in pos_of or s in vel_of or np.mean(allv > 0) < 0.9:
-                continue   # Torricelli outflow is for levels: positive, non-mechanical states
-            term_candidate("sqrt_flow", s, [np.sqrt(np.maximum(x, 0)) for x in vals], f"sqrt(max({s}, 0))",
-                           f"a_{s}", "-", 0.0, f"Torricelli outflow sqrt({s})", -1.0)
+            cand = _sqrt_flow(trace, s, pos_of, vel_of)
+            if cand is not None:
+                out.append(cand)
     for ci, cand in enumerate(custom):
         if states.index(cand.equation) not in traced:
             continue
@@ -129,7 +143,37 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
                              apply_custom, family=f"custom:{cand.parameter}"))
     out += _parameter_effects(model, trace, effects, scorer_for, significance, min_explained)
     out += _input_effects(model, trace, effects)
-    return out
+    return out, notes
+
+
+def _sqrt_flow(trace: TraceData, s: str, pos_of: dict, vel_of: dict) -> Candidate | None:
+    """Torricelli's law: every flow the model computes from level s follows sqrt(s), not s.
+
+    The declared flows through s (say k1*h1, out of tank 1 and into tank 2) change law together,
+    so mass stays conserved: s -> sqrt(max(s, 0)) in the equations. Scored as the family
+    s -> s + β (sqrt(s) − s): forcing ∂f/∂s · (sqrt(s) − s); the flow coefficients absorb the
+    linear part, so the score does not depend on the units of s.
+    """
+    cm = trace.cm
+    k = cm.states.index(s)
+    allv = np.concatenate([x[k] for x in trace.x])
+    if s in pos_of or s in vel_of or np.mean(allv > 0) < 0.9:
+        return None   # Torricelli outflow is for levels: positive, non-mechanical states
+    change = [np.sqrt(np.maximum(x[k], 0)) - x[k] for x in trace.x]
+    reg = _sensitivity_regressor(trace, trace.jx, k, change)
+    if not reg:
+        return None
+    flows_into = sorted(cm.states[i] for i in reg if cm.states[i] != s)
+
+    # a floor far below the levels seen keeps sqrt's slope finite where a level starts at 0
+    floor = _fmt(1e-6 * float(np.sqrt(np.mean(allv ** 2))))
+
+    def apply(m: Model, s=s) -> tuple[Model, list[str]]:
+        return replace_in_equations(m, s, f"sqrt(max({s}, {floor}))"), []
+    where = f"d{s}/dt" + "".join(f", d{o}/dt" for o in flows_into)
+    return Candidate("sqrt_flow", reg, f"{s} -> sqrt(max({s}, 0)) in the flows of {where}",
+                     f"Torricelli outflow: the flows through {s} follow sqrt({s})", apply, sign=1.0,
+                     family=f"sqrt_flow:{s}")
 
 
 def _numeric_env(trace: TraceData) -> dict:
@@ -222,7 +266,7 @@ def _step_candidate(trace: TraceData, name: str, j: int, scorer_for, significanc
     when = ", ".join(_fmt(tau) for tau in taus)
     return Candidate("parameter_step", final, f"{name} -> {name} + steps at t = {when}",
                      f"{name} changes value at t = {when} s", apply, family=f"parameter_step:{name}",
-                     tries=grid_size * len(taus))
+                     tries=grid_size * len(taus), record_specific=True)
 
 
 def _parameter_effects(model: Model, trace: TraceData, effects: list[str], scorer_for=None,
@@ -249,7 +293,8 @@ def _parameter_effects(model: Model, trace: TraceData, effects: list[str], score
                 m = with_parameter(m, d, 0.0)
                 return replace_parameter(m, name, f"({name} + {d}*(t - {_fmt(t_mid)}))"), [d]
             out.append(Candidate("parameter_drift", reg, f"{name} -> {name} + d{name}_dt*(t - {_fmt(t_mid)})",
-                                 f"{name} drifts linearly in time", apply_drift, family=f"parameter_drift:{name}"))
+                                 f"{name} drifts linearly in time", apply_drift, family=f"parameter_drift:{name}",
+                                 record_specific=True))
         if "state_dependent" in effects:
             for s_idx, s in enumerate(cm.states):
                 mags = np.abs(np.concatenate([x[s_idx] for x in trace.x]))
@@ -261,12 +306,15 @@ def _parameter_effects(model: Model, trace: TraceData, effects: list[str], score
                     def apply_sd(m: Model, name=name, s=s, thr=thr) -> tuple[Model, list[str]]:
                         d = fresh_name(m, f"d{name}_{s}")
                         m = with_parameter(m, d, 0.0)
+                        # a switch smoothed over ±5 % of the threshold: a hard if_else makes the
+                        # simulation discontinuous in the state and the refit crawl
+                        width = _fmt(0.05 * thr)
                         return replace_parameter(
-                            m, name, f"({name} + {d}*if_else(abs({s}) > {_fmt(thr)}, 1, 0))"), [d]
+                            m, name, f"({name} + {d}*0.5*(1 + tanh((abs({s}) - {_fmt(thr)})/{width})))"), [d]
                     out.append(Candidate("state_dependent", reg,
                                          f"{name} -> {name} + d{name}_{s}*[|{s}| > {_fmt(thr)}]",
                                          f"{name} switches when |{s}| exceeds {_fmt(thr)}", apply_sd,
-                                         family=f"state_dependent:{name}:{s}"))
+                                         family=f"state_dependent:{name}:{s}", generic=True))
     return out
 
 

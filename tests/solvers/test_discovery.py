@@ -55,7 +55,7 @@ def test_complete_model_gets_nothing_added_over_ten_noise_seeds():
     for seed in range(10):
         res = msd_discover(None, seed=seed)
         assert res.steps == [], (seed, res.conclusion)
-        assert res.conclusion == "no significant missing effect"
+        assert res.conclusion.startswith("no significant missing effect"), res.conclusion
         assert res.model.equations == msd_model()["equations"]
         assert res.after.bic == res.before.bic
 
@@ -85,7 +85,9 @@ def test_seed000_case1_k4_step_is_found_with_its_switch_times():
 def test_real_emps_data_coulomb_friction_is_found():
     body = emps_request()
     before = fit_model(FitRequest.model_validate(body))
-    res = discover(DiscoverRequest.model_validate(body))
+    # one term: the loop goes on to confirm a second, smaller one on this real record (the offset
+    # changes with |v|: the friction is not exactly Coulomb + viscous), which splits the offset in two
+    res = discover(DiscoverRequest.model_validate({**body, "discovery": {"max_terms": 1}}))
     assert res.steps and res.steps[0].effect == "coulomb" and res.steps[0].equation == "v"
     fitted = res.fit.parameters
     fc = res.steps[0].parameters[0].value

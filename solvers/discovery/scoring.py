@@ -1,0 +1,161 @@
+"""Score-test regression shared by both scorers: a residual r, the linearised existing parameters J,
+and candidate columns g. Regressing r on g with J projected out is one Gauss-Newton step of the fit
+augmented by the candidate's parameter (a score / Lagrange-multiplier test at β = 0).
+
+The evidence is an F-test on an effective sample size: smoothing (equation residuals) and coloured
+noise (output residuals) correlate neighbouring residuals, so n overstates the evidence.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass
+class Score:
+    rss0: float
+    rss1: float
+    n: int
+    n_eff: float
+    explained: float
+    f_stat: float
+    p_value: float
+    bic_drop: float
+    beta: float
+    corr_before: float
+
+
+def chi2_sf(x: float, k: int) -> float:
+    """Survival function of χ²(k): exact for k = 1, Wilson-Hilferty above."""
+    if x <= 0:
+        return 1.0
+    if k == 1:
+        return math.erfc(math.sqrt(x / 2))
+    z = ((x / k) ** (1 / 3) - (1 - 2 / (9 * k))) / math.sqrt(2 / (9 * k))
+    return 0.5 * math.erfc(z / math.sqrt(2))
+
+
+def effective_n(resid: np.ndarray, max_lag: int = 100) -> float:
+    """n / (1 + 2 Σ ρ_k) over the lags before the autocorrelation first drops below 0.05."""
+    r = resid - resid.mean()
+    n = r.size
+    denom = float(r @ r)
+    if denom == 0 or n < 8:
+        return float(n)
+    lags = min(max_lag, n // 4)
+    spec = np.fft.rfft(r, 2 * n)
+    acf = np.fft.irfft(spec * np.conj(spec))[1:lags] / denom
+    below = np.flatnonzero(acf < 0.05)
+    total = float(acf[:below[0]].sum()) if below.size else float(acf.sum())
+    return n / (1 + 2 * total)
+
+
+class RegressionScorer:
+    """Scores many candidate columns against one residual with one factorisation of J.
+
+    Subclasses provide `stack(regressor)`: the candidate's column(s) in the residual's row order.
+    """
+
+    def __init__(self, r: np.ndarray, jac: np.ndarray):
+        self.r = r
+        self.jac = jac
+        keep = np.any(jac != 0, axis=0) if jac.size else np.zeros(0, dtype=bool)
+        jac = jac[:, keep]
+        if jac.shape[1]:
+            # an orthonormal basis of J's range: rank-revealing so unidentifiable columns drop out
+            u, s, _ = np.linalg.svd(jac, full_matrices=False)
+            self.q = u[:, s > s[0] * 1e-10]
+            self.r0 = self.r - self.q @ (self.q.T @ self.r)
+        else:
+            self.q = np.zeros((self.r.size, 0))
+            self.r0 = self.r.copy()
+        self.rss0 = float(self.r0 @ self.r0)
+        self.n_eff = self._n_eff(self.r0)
+
+    @property
+    def n_base(self) -> int:
+        return self.q.shape[1]
+
+    def _n_eff(self, resid: np.ndarray) -> float:
+        return max(effective_n(resid), self.n_base + 10.0)
+
+    def project(self, g: np.ndarray) -> np.ndarray:
+        """Column(s) with the linearised free parameters regressed out."""
+        return g - self.q @ (self.q.T @ g)
+
+    def score(self, g: np.ndarray) -> Score | None:
+        """g: the stacked candidate column(s), (rows,) or (rows, m)."""
+        if g is None or not np.all(np.isfinite(g)):
+            return None
+        g = g.reshape(g.shape[0], -1)
+        g0 = self.project(g)
+        if np.linalg.norm(g0) <= 1e-6 * max(np.linalg.norm(g), 1e-300) or self.rss0 <= 0:
+            return None   # the term is (nearly) a combination of existing ones, or nothing to explain
+        coef, *_ = np.linalg.lstsq(g0, self.r0, rcond=None)
+        fitted = g0 @ coef
+        resid1 = self.r0 - fitted
+        rss1 = float(resid1 @ resid1)
+        m = g.shape[1]
+        explained = (self.rss0 - rss1) / self.rss0
+        # the effective size comes from what the candidate leaves: a real effect leaves noise,
+        # while the residual before it is correlated by the very effect being tested
+        n_eff = self._n_eff(resid1)
+        dof = max(n_eff - self.n_base - m, 1.0)
+        f_stat = (self.rss0 - rss1) / m / max(rss1 / dof, 1e-300)
+        p_value = chi2_sf(m * f_stat, m)   # F(m, large) ≈ χ²(m)/m
+        bic_drop = n_eff * math.log(self.rss0 / max(rss1, 1e-300)) - m * math.log(n_eff)
+        corr_before = float(np.corrcoef(self.r0, fitted)[0, 1]) if np.std(fitted) > 0 else 0.0
+        return Score(self.rss0, rss1, self.r.size, n_eff, explained, f_stat, p_value, bic_drop,
+                     float(coef[0]), corr_before)
+
+    def forward_select(self, columns: np.ndarray, max_columns: int, alpha: float, min_gain: float) -> list[int]:
+        """Greedy forward selection among `columns` (rows × k), e.g. switch times of a parameter.
+
+        A column is added while its partial F-test (against the columns chosen so far) has
+        p < alpha and it explains at least `min_gain` more of the residual variance.
+        """
+        c0 = self.project(columns)
+        chosen: list[int] = []
+        resid = self.r0.copy()
+        basis = np.zeros((c0.shape[0], 0))
+        for _ in range(max_columns):
+            cand = c0 - basis @ (basis.T @ c0) if basis.shape[1] else c0
+            norms = np.einsum("ij,ij->j", cand, cand)
+            norms[norms <= 1e-12 * max(norms.max(), 1e-300)] = np.inf
+            gains = (cand.T @ resid) ** 2 / norms
+            if chosen:
+                gains[chosen] = -1
+            best = int(np.argmax(gains))
+            rss = float(resid @ resid)
+            new_rss = rss - gains[best]
+            unit = cand[:, best] / np.sqrt(norms[best])
+            dof = max(self._n_eff(resid - unit * (unit @ resid)) - self.n_base - len(chosen) - 1, 1.0)
+            f_stat = gains[best] / max(new_rss / dof, 1e-300)
+            if chi2_sf(f_stat, 1) >= alpha or gains[best] < min_gain * self.rss0:
+                break
+            basis = np.column_stack([basis, unit])
+            resid = resid - unit * (unit @ resid)
+            chosen.append(best)
+        return chosen
+
+    def prune(self, columns: np.ndarray, chosen: list[int], min_gain: float) -> list[int]:
+        """Backward elimination: drop the column whose removal costs least while that is < min_gain."""
+        chosen = list(chosen)
+        while chosen:
+            full = self._rss(columns[:, chosen])
+            losses = [self._rss(columns[:, [c for c in chosen if c != k]]) - full for k in chosen]
+            worst = int(np.argmin(losses))
+            if losses[worst] >= min_gain * self.rss0:
+                break
+            chosen.pop(worst)
+        return chosen
+
+    def _rss(self, g: np.ndarray) -> float:
+        if g.shape[1] == 0:
+            return self.rss0
+        g0 = self.project(g)
+        coef, *_ = np.linalg.lstsq(g0, self.r0, rcond=None)
+        e = self.r0 - g0 @ coef
+        return float(e @ e)

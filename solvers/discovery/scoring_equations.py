@@ -1,0 +1,149 @@
+"""Equation residuals of a fitted model, and the scorer that regresses them on candidate terms.
+
+For each state whose values are measured, the equation residual is the Savitzky-Golay derivative of
+the smoothed measurement minus the model's right-hand side at the fitted parameters. A candidate
+enters as one more regressor next to the linearised free parameters of the equations it touches
+(∂f/∂θ). This is the fast screen where states are measured; `scoring_outputs` covers the rest.
+
+The same `TraceData` also describes the fitted trajectory itself (`simulated=True`): every state
+from the model's simulation, raw inputs. The effect library computes candidate terms from it.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from schemas.fit import FitOptions
+from solvers.data import ExperimentData
+from solvers.derivatives import savgol_coefficients, smooth_and_differentiate
+from solvers.discovery.scoring import RegressionScorer
+from solvers.model_compiler import CompiledModel
+
+
+@dataclass
+class TraceData:
+    """Everything a candidate regressor is computed from, per experiment."""
+
+    cm: CompiledModel
+    t: list[np.ndarray]
+    x: list[np.ndarray]          # (nx, n): smoothed measurements, else simulated states
+    u: list[np.ndarray]          # (nu, n)
+    residual: list[np.ndarray]   # (nx, n): dx_estimated - f; NaN where unknown
+    jp: list[np.ndarray]         # (n, nx, np): ∂f/∂p
+    ju: list[np.ndarray]         # (n, nx, nu): ∂f/∂u
+    jx: list[np.ndarray]         # (n, nx, nx): ∂f/∂x
+    p: list[np.ndarray]          # full parameter vector per experiment
+    traced: list[int]            # equations a candidate may enter
+    free: list[str]              # free parameter names
+    measured: set[int]           # states with a direct measurement
+
+
+def _smooth(series: np.ndarray, t: np.ndarray, options: FitOptions) -> np.ndarray:
+    """The smoother the derivatives went through, applied to a series given as it is."""
+    smooth, _, _ = smooth_and_differentiate(series, t, options.derivative_window, options.derivative_order)
+    return np.where(np.isfinite(smooth), smooth, series)
+
+
+def _smooth_supplied(derivative: np.ndarray, t: np.ndarray, options: FitOptions) -> np.ndarray:
+    """A supplied derivative through the same Savitzky-Golay smoothing as the states beside it."""
+    window = options.derivative_window if options.derivative_window % 2 else options.derivative_window + 1
+    ok = np.isfinite(derivative)
+    dt = np.diff(t)
+    if not ok.any() or derivative.size < window or not np.allclose(dt, dt.mean(), rtol=1e-6, atol=0):
+        return derivative
+    filled = np.interp(t, t[ok], derivative[ok])
+    half = window // 2
+    out = np.full_like(filled, np.nan)
+    out[half:-half] = np.convolve(filled, savgol_coefficients(window, options.derivative_order, 0)[::-1], "valid")
+    return np.where(ok, out, np.nan)
+
+
+def build_trace(cm: CompiledModel, data: list[ExperimentData], params: list[np.ndarray],
+                simulated: list[np.ndarray], free: list[str], options: FitOptions,
+                use_measurements: bool = True) -> TraceData:
+    """Equation residuals from the measurements (`use_measurements`), or the bare fitted trajectory."""
+    x_sym, u_sym = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu)
+    p_sym, t_sym = ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    f = cm.rhs(x_sym, u_sym, p_sym, t_sym)
+    sens = ca.Function("sens", [x_sym, u_sym, p_sym, t_sym],
+                       [f, ca.jacobian(f, p_sym), ca.jacobian(f, u_sym), ca.jacobian(f, x_sym)])
+    state_of_output = {s: o for o, s in cm.direct_outputs.items()}
+    measured = {cm.states.index(s) for s in state_of_output} if use_measurements else set()
+    xs, us, res, jps, jus, jxs = [], [], [], [], [], []
+    for e, d in enumerate(data):
+        x = np.array(simulated[e], dtype=float)
+        dx = np.full((cm.nx, d.n), np.nan)
+        for i in measured:
+            raw = d.y[cm.outputs.index(state_of_output[cm.states[i]])]
+            ok = np.isfinite(raw)
+            filled = np.interp(d.t, d.t[ok], raw[ok])
+            smooth, deriv, _ = smooth_and_differentiate(filled, d.t, options.derivative_window,
+                                                        options.derivative_order)
+            x[i] = np.where(np.isfinite(smooth), smooth, filled)
+            dx[i] = np.where(ok, deriv, np.nan)
+            if i in d.derivatives:
+                dx[i] = _smooth_supplied(d.derivatives[i], d.t, options)
+        u = d.u.copy()
+        if use_measurements:
+            # the inputs go through the same smoother as the states: filtering one side of the
+            # equation only leaves a residual that looks like an input delay (seed 004's point)
+            for k in range(cm.nu):
+                u[k] = _smooth(d.u[k], d.t, options)
+        fv, jp, ju, jx = sens.map(d.n)(x, u, np.repeat(params[e][:, None], d.n, 1), d.t[None, :])
+        us.append(u)
+        xs.append(x)
+        res.append(dx - np.array(fv))
+        jps.append(np.array(jp).reshape(cm.nx, d.n, cm.np).transpose(1, 0, 2))
+        jus.append(np.array(ju).reshape(cm.nx, d.n, cm.nu).transpose(1, 0, 2) if cm.nu else
+                   np.zeros((d.n, cm.nx, 0)))
+        jxs.append(np.array(jx).reshape(cm.nx, d.n, cm.nx).transpose(1, 0, 2))
+    deps = cm.equation_parameters()
+    if use_measurements:
+        traced = [i for i in sorted(measured) if deps[cm.states[i]] & set(free)]
+    else:
+        traced = list(range(cm.nx))
+    return TraceData(cm, [d.t for d in data], xs, us, res, jps, jus, jxs, params, traced, free, measured)
+
+
+class EquationScorer(RegressionScorer):
+    """Regression of the equation residuals of `equations` on candidate terms."""
+
+    def __init__(self, trace: TraceData, equations: list[int]):
+        self.trace, self.equations = trace, equations
+        cm = trace.cm
+        free_idx = [cm.parameters.index(name) for name in trace.free]
+        rows_r, rows_j, self.weights = [], [], {}
+        for i in equations:
+            r_all = np.concatenate([r[i] for r in trace.residual])
+            sd = np.nanstd(r_all)
+            self.weights[i] = 1.0 / sd if sd > 0 else 1.0
+        for e in range(len(trace.t)):
+            for i in equations:
+                rows_r.append(trace.residual[e][i] * self.weights[i])
+                rows_j.append(trace.jp[e][:, i, free_idx] * self.weights[i])
+        r = np.concatenate(rows_r)
+        jac = np.vstack(rows_j)
+        self.ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
+        super().__init__(r[self.ok], jac[self.ok])
+
+    def stack(self, regressor: dict[int, list[np.ndarray]], outputs=None) -> np.ndarray | None:
+        """Rows of the candidate's column(s) in the scorer's order; (rows,) or (rows, m).
+
+        Output-path columns (`outputs`) have no equation residual to enter: None.
+        """
+        if outputs or not regressor:
+            return None
+        parts = []
+        width = None
+        for cols in regressor.values():
+            width = None if np.ndim(cols[0]) == 1 else cols[0].shape[1]
+        for e in range(len(self.trace.t)):
+            n = self.trace.t[e].size
+            for i in self.equations:
+                if i in regressor:
+                    parts.append(regressor[i][e] * self.weights[i])
+                else:
+                    parts.append(np.zeros(n) if width is None else np.zeros((n, width)))
+        return np.concatenate(parts)[self.ok]

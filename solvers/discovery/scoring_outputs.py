@@ -1,0 +1,126 @@
+"""Output-error scoring: trace the residual of the *outputs* to a term in any state equation.
+
+A candidate term g(t) added with a new parameter β to the equations of some states (measured or
+not) changes the outputs, to first order, by the output sensitivity ∂y/∂β along the fitted
+trajectory: S_{k+1} = A_k S_k + D0_k g_k + D1_k g_{k+1}, ∂y_k/∂β = H_k S_k, where A is the step's
+Jacobian in the state and D0/D1 its Jacobians in a disturbance added to the right-hand side (held
+or linear between samples like the inputs). The unmeasured states come from the model. Effects in
+the output path (offset, gain, a sign-blind sensor, clipping) enter the outputs directly.
+
+Regressing the weighted output residual on ∂y/∂β with the sensitivities of the existing parameters
+and free initial states projected out is one Gauss-Newton step of the augmented output-error fit:
+the score (Lagrange-multiplier) test of β = 0. A parameter that may vary in time is scored the same
+way with g = ∂f/∂θ · shape(t); forward selection over switch times is the discrete form of asking
+where the cost's gradient with respect to θ(t) wants a change.
+"""
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import casadi as ca
+import numpy as np
+
+from solvers.discovery.scoring import RegressionScorer
+from solvers.integration import make_step
+from solvers.shooting import OutputErrorModel, sensitivity_jacobian
+
+
+def _disturbed_step(oem: OutputErrorModel) -> ca.Function:
+    """(x, u0, u1, p, t0, dt) -> x+, ∂x+/∂x, ∂x+/∂[u0; d0], ∂x+/∂[u1; d1] with a disturbance d on ẋ."""
+    cm = oem.cm
+    x, u, d = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("d", cm.nx)
+    p, t = ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    ud = ca.vertcat(u, d)
+    rhs = ca.Function("rhs_d", [x, ud, p, t], [cm.rhs(x, u, p, t) + d])
+    disturbed = SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np)
+    step = make_step(disturbed, oem.options)
+    xm = ca.MX.sym("x", cm.nx)
+    u0m, u1m = ca.MX.sym("u0", cm.nu + cm.nx), ca.MX.sym("u1", cm.nu + cm.nx)
+    pm, t0m, dtm = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
+    xn = step(xm, u0m, u1m, pm, t0m, dtm)
+    return ca.Function("disturbed_sens", [xm, u0m, u1m, pm, t0m, dtm],
+                       [ca.jacobian(xn, xm), ca.jacobian(xn, u0m), ca.jacobian(xn, u1m)])
+
+
+class OutputScorer(RegressionScorer):
+    """Regression of the weighted output residual on candidate output sensitivities."""
+
+    def __init__(self, oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+        self.oem = oem
+        cm = oem.cm
+        jac, r, self.groups = sensitivity_jacobian(oem, theta_s, x0s)
+        self.states, self.a, self.d0, self.d1, self.hx, self.y = [], [], [], [], [], []
+        sens = _disturbed_step(oem).map
+        _, out_sens = oem.sensitivity_functions()
+        for e, d in enumerate(oem.data):
+            p = np.asarray(oem.layout.full(e, theta_s), dtype=float).ravel()
+            x0 = np.array([x0s[e][s] for s in cm.states])
+            states = np.array(oem.trajectory(e, x0, p))
+            n = d.n
+            u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
+            zero = np.zeros((cm.nx, n - 1))
+            a, j0, j1 = sens(n - 1)(states[:, :-1], np.vstack([u0, zero]), np.vstack([u1, zero]),
+                                   np.repeat(p[:, None], n - 1, 1), t0, dt)
+            nud = cm.nu + cm.nx
+            self.a.append(np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2))
+            self.d0.append(np.array(j0).reshape(cm.nx, n - 1, nud).transpose(1, 0, 2)[:, :, cm.nu:])
+            self.d1.append(np.array(j1).reshape(cm.nx, n - 1, nud).transpose(1, 0, 2)[:, :, cm.nu:])
+            y, hx, _ = out_sens.map(n)(states, d.u, np.repeat(p[:, None], n, 1), d.t[None, :])
+            self.hx.append(np.array(hx).reshape(cm.ny, n, cm.nx).transpose(1, 0, 2))
+            self.y.append(np.array(y))
+            self.states.append(states)
+        ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
+        self.ok = ok
+        # measured − model, as the equation residual: β > 0 then means "add +β·g to the model"
+        super().__init__(-r[ok], jac[ok])
+
+    def stack(self, regressor: dict[int, list[np.ndarray]] | None,
+              outputs: dict[int, list[np.ndarray]] | None = None) -> np.ndarray | None:
+        """Output sensitivity column(s) of a term: forcing on equations and/or direct on outputs."""
+        return self.stack_many([(regressor, outputs)])[0]
+
+    def stack_many(self, items: list[tuple[dict | None, dict | None]]) -> list[np.ndarray | None]:
+        """`stack` for many candidates with one propagation (the loop over samples is the cost)."""
+        oem, cm = self.oem, self.oem.cm
+        widths, vectors = [], []
+        for regressor, outputs in items:
+            merged = {**(regressor or {}), **(outputs or {})}
+            if not merged:
+                widths.append(0)
+                vectors.append(True)
+                continue
+            sample = next(iter(merged.values()))[0]
+            widths.append(1 if np.ndim(sample) == 1 else sample.shape[1])
+            vectors.append(np.ndim(sample) == 1)
+        offsets = np.concatenate([[0], np.cumsum(widths)]).astype(int)
+        total = int(offsets[-1])
+        if total == 0:
+            return [None] * len(items)
+        blocks = []
+        for e, d in enumerate(oem.data):
+            n = d.n
+            forcing = np.zeros((n, cm.nx, total))
+            direct = np.zeros((n, cm.ny, total))
+            for (regressor, outputs), lo, hi in zip(items, offsets[:-1], offsets[1:]):
+                for i, cols in (regressor or {}).items():
+                    forcing[:, i, lo:hi] = np.reshape(cols[e], (n, hi - lo))
+                for j, cols in (outputs or {}).items():
+                    direct[:, j, lo:hi] += np.reshape(cols[e], (n, hi - lo))
+            jy = direct
+            active = np.flatnonzero(np.any(forcing != 0, axis=(0, 1)))
+            if active.size:
+                f = forcing[:, :, active]
+                s = np.zeros((cm.nx, active.size))
+                a, d0, d1, hx = self.a[e], self.d0[e], self.d1[e], self.hx[e]
+                prop = np.empty((n, cm.ny, active.size))
+                for k in range(n):
+                    prop[k] = hx[k] @ s
+                    if k < n - 1:
+                        s = a[k] @ s + d0[k] @ f[k] + d1[k] @ f[k + 1]
+                jy[:, :, active] += prop
+            blocks.append((jy * oem.weights[None, :, None])[d.mask.T])
+        g = np.concatenate(blocks)[self.ok]
+        out = []
+        for w, vec, lo, hi in zip(widths, vectors, offsets[:-1], offsets[1:]):
+            out.append(None if w == 0 else (g[:, lo] if vec else g[:, lo:hi]))
+        return out

@@ -1,0 +1,150 @@
+"""One screening round: every library candidate scored on the equation residuals of the measured
+states and on the output residuals (through the sensitivities), in one ranking."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from schemas.discovery import DiscoveryOptions
+from schemas.fit import FitMethod, FitRequest, FitResult
+from solvers.data import prepare_experiments
+from solvers.discovery.effects import Candidate, library
+from solvers.discovery.output_effects import output_effects
+from solvers.discovery.scoring import Score
+from solvers.discovery.scoring_equations import EquationScorer, build_trace
+from solvers.discovery.scoring_outputs import OutputScorer
+from solvers.model_compiler import compile_model
+from solvers.parameters import build_layout
+from solvers.shooting import OutputErrorModel
+
+
+@dataclass
+class Scored:
+    candidate: Candidate
+    score: Score
+    scored_on: str            # "equations" | "outputs"
+    significant: bool = False
+
+
+
+@dataclass
+class Screening:
+    scored: list[Scored] = field(default_factory=list)
+    tries: int = 0
+    notes: list[str] = field(default_factory=list)
+    equations_scored: list[str] = field(default_factory=list)
+    outputs_scored: list[str] = field(default_factory=list)
+    white: bool = False       # every output residual passed the whiteness test
+    output_scorer: OutputScorer | None = None
+    states: list[str] = field(default_factory=list)
+    significance: float = 0.01
+    outputs: list[str] = field(default_factory=list)
+
+
+def fitted_values(request: FitRequest, fit: FitResult):
+    """(compiled model, data, layout, scaled θ, initial states) of a fit."""
+    cm = compile_model(request.model)
+    data = prepare_experiments(request.experiments, cm)
+    layout = build_layout(request.model, [d.name for d in data])
+    theta = np.array([fit.parameters[label].value for label in layout.labels])
+    x0s = []
+    for d in data:
+        known = fit.initial_states.get(d.name, {})
+        x0s.append({s: float(known.get(s, 0.0)) for s in cm.states})
+    return cm, data, layout, theta / layout.scale, x0s
+
+
+def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude: set[str]) -> Screening:
+    """Score every candidate whose family is not in `exclude`; see the module docstring."""
+    cm, data, layout, theta_s, x0s = fitted_values(request, fit)
+    oem = OutputErrorModel(cm, data, layout, request.options)
+    params = [np.asarray(layout.full(e, theta_s), dtype=float).ravel() for e in range(len(data))]
+    try:
+        simulated = [np.array(oem.trajectory(e, np.array([x0s[e][s] for s in cm.states]), params[e]))
+                     for e in range(len(data))]
+    except RuntimeError:
+        simulated = [np.zeros((cm.nx, d.n)) for d in data]
+    free = [p.name for p in request.model.parameters if not p.fixed]
+    out = Screening(white=all(a.whiteness.passed for a in fit.residual_analysis), states=list(cm.states),
+                    outputs=list(cm.outputs), significance=opts.significance)
+    effects = list(opts.effects)
+
+    def keep(c: Candidate) -> bool:
+        return c.family not in exclude and (bool(c.equations) or bool(c.outputs))
+
+    # equation residuals where states are measured: the fast screen
+    eq_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=True)
+    if eq_trace.traced:
+        scorers: dict[tuple, EquationScorer] = {}
+
+        def scorer_for(equations) -> EquationScorer:
+            key = tuple(sorted(equations))
+            if key not in scorers:
+                scorers[key] = EquationScorer(eq_trace, list(key))
+            return scorers[key]
+        cands, notes = library(request.model, eq_trace, effects, opts.candidates, opts.coulomb_epsilon,
+                               scorer_for, opts.significance, opts.min_explained)
+        out.notes += notes
+        for c in filter(keep, cands):
+            sc = scorer_for(c.equations)
+            s = sc.score(sc.stack(c.equations))
+            out.tries += c.tries
+            if s is not None:
+                out.scored.append(Scored(c, s, "equations"))
+        out.equations_scored = [cm.states[i] for i in eq_trace.traced]
+
+    # output residuals through the sensitivities: any state equation, measured or not, and the outputs
+    if request.method != FitMethod.equation_error and np.all([np.all(np.isfinite(s)) for s in simulated]):
+        scorer = OutputScorer(oem, theta_s, x0s)
+        out.output_scorer = scorer
+        sim_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=False)
+        cands, notes = library(request.model, sim_trace, effects, opts.candidates, opts.coulomb_epsilon,
+                               lambda equations: scorer, opts.significance, opts.min_explained)
+        out_cands, out_notes = output_effects(request.model, cm.outputs, scorer.y, data, effects)
+        out.notes += [n for n in notes + out_notes if n not in out.notes]
+        cands = [c for c in cands + out_cands if keep(c)]
+        columns = scorer.stack_many([(c.equations, c.outputs) for c in cands])
+        for c, g in zip(cands, columns):
+            out.tries += c.tries
+            if c.refit_only:
+                # no linear evidence at this fit: tried by refit when the residual is not white
+                out.scored.append(Scored(c, Score(scorer.rss0, scorer.rss0, scorer.r.size, scorer.n_eff, 0.0, 0.0,
+                                                  1.0, 0.0, 0.0, 0.0), "refit", significant=not out.white))
+                continue
+            s = scorer.score(g) if g is not None else None
+            if s is not None:
+                out.scored.append(Scored(c, s, "outputs"))
+        out.outputs_scored = list(cm.outputs)
+
+    alpha = opts.significance / max(out.tries, 1)
+    for sc in out.scored:
+        c, s = sc.candidate, sc.score
+        if c.refit_only:
+            continue
+        physical = c.sign == 0 or np.sign(s.beta) == np.sign(c.sign)
+        sc.significant = bool(s.p_value < alpha and s.explained >= opts.min_explained and physical)
+    out.scored = rank(out.scored)
+    return out
+
+
+def rank(scored: list[Scored]) -> list[Scored]:
+    """Largest BIC drop first; a change in time (step, drift) goes behind the significant structural
+    effects when one of them explains at least half as much (a change in time is true of this record
+    only, and the linearised score understates a nonlinear term such as a sharp tanh more than a
+    step), and behind any structural effect only a refit can judge. A catch-all coefficient that
+    switches at a threshold goes behind a named law that explains at least half as much."""
+    structural = [sc.score.explained for sc in scored if sc.significant and not sc.candidate.record_specific
+                  and not sc.candidate.refit_only and not sc.candidate.generic]
+    best = max(structural, default=0.0)
+    refit_pending = any(sc.significant and sc.candidate.refit_only for sc in scored)
+
+    def level(sc: Scored) -> int:
+        if sc.candidate.refit_only:
+            return 1
+        if sc.candidate.record_specific and (refit_pending or best >= 0.5 * sc.score.explained):
+            return 0
+        if sc.candidate.generic and best >= 0.5 * sc.score.explained:
+            return 0   # a named physical law before a catch-all switching coefficient
+        return 2
+    return sorted(scored, key=lambda sc: (level(sc), sc.score.bic_drop), reverse=True)

@@ -337,3 +337,38 @@ def validation_metrics(model: Model, parameters: dict[str, float], experiments: 
 
 __all__ = ["simulate_experiments", "validation_metrics", "simulate_arrays", "validation_from",
            "estimate_initial_state", "k_step_ahead", "parameter_vector"]
+
+
+def simulate_request(request) -> "SimulateResult":
+    """Run a `schemas.simulate.SimulateRequest`: parameter values and initial states from the model,
+    then a previous result (`fit_result`), then the request's own `parameters`/`initial_states`."""
+    import time
+
+    from schemas.discovery import DiscoveryResult
+    from schemas.simulate import SimulateResult
+    from solvers.preprocess import prepare_request
+
+    started = time.perf_counter()
+    fit = request.fit_result.fit if isinstance(request.fit_result, DiscoveryResult) else request.fit_result
+    model = request.model
+    if model is None:
+        if not isinstance(request.fit_result, DiscoveryResult):
+            raise DataError("give the model (a FitResult does not carry it; a discovery result does)", "model")
+        model = request.fit_result.model
+    params = {k: v.value for k, v in fit.parameters.items()} if fit is not None else {}
+    params.update(request.parameters)
+    states = {k: dict(v) for k, v in fit.initial_states.items()} if fit is not None else {}
+    names = {e.name for e in request.experiments}
+    states = {k: v for k, v in states.items() if k in names}   # a previous fit may have had other records
+    for name, values in request.initial_states.items():
+        states.setdefault(name, {}).update(values)
+    prepared, _ = prepare_request(request)
+    cm = compile_model(model)
+    sims = simulate_arrays(model, params, prepared.experiments, request.options, states,
+                           request.estimate_window, request.horizon, cm=cm)
+    measured = any(np.isfinite(s.data.y).any() for s in sims)
+    used = {p.name: float(p.value) for p in model.parameters}
+    used.update(params)
+    return SimulateResult(parameters=used, experiments=[to_public(cm, s) for s in sims],
+                          validation=validation_from(cm, sims) if measured else None,
+                          wall_time_s=time.perf_counter() - started)

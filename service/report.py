@@ -178,7 +178,7 @@ def correlation_figure(plt, fit: FitResult) -> Figure | None:
         return None
     names, m = fit.correlation.names, np.array(fit.correlation.matrix)
     n = len(names)
-    fig, ax = plt.subplots(figsize=(1.0 + 0.55 * n, 0.8 + 0.5 * n))
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.0 + 0.55 * n), max(3.5, 0.8 + 0.5 * n)))
     im = ax.imshow(m, cmap="RdBu_r", vmin=-1, vmax=1)
     ax.set_xticks(range(n), names, rotation=60, ha="right", fontsize=8)
     ax.set_yticks(range(n), names, fontsize=8)

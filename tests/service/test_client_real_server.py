@@ -23,6 +23,8 @@ def test_client_round_trips_against_a_real_server(tmp_path):
 
         found = client.discover(duffing_body())
         assert found.steps[0].effect == "cubic_stiffness"
+        page = client.report(found, duffing_body())     # before/after overlay with the added term
+        assert 'id="fig-discovery_overlay"' in page and 'id="fig-discovery_metrics"' in page
 
         sim = client.simulate({"model": body["model"], "fit_result": fit.model_dump(mode="json"),
                                "experiments": body["experiments"]})

@@ -128,8 +128,8 @@ def residual_figure(plt, fit: FitResult) -> Figure | None:
     if not analyses:
         return None
     inputs = sorted({u for a in analyses for u in a.cross_correlation})
-    fig, axes = plt.subplots(len(analyses), 1 + len(inputs), figsize=(4.2 * (1 + len(inputs)), 2.3 * len(analyses) + 0.5),
-                             squeeze=False)
+    fig, axes = plt.subplots(len(analyses), 1 + len(inputs), squeeze=False,
+                             figsize=(4.2 * (1 + len(inputs)), 2.3 * len(analyses) + 0.5))
     for r, a in enumerate(analyses):
         ax = axes[r][0]
         lags = np.arange(len(a.autocorrelation))
@@ -248,6 +248,10 @@ def build_report(req: ReportRequest) -> Report:
     fit = result.fit if discovery else result
     model = result.model if discovery else (request.model if request is not None else None)
     report = Report(title=req.title or ("greyfit discovery report" if discovery else "greyfit fit report"))
+    if discovery and request is not None and result.added_inputs:   # series the augmented model needs
+        request = request.model_copy(update={"experiments": [
+            e.model_copy(update={"inputs": {**e.inputs, **result.added_inputs.get(e.name, {})}})
+            for e in request.experiments]})
     est, val = estimation_series(fit, request, model)
     if est:
         report.figures.append(compare_figure(plt, est, "estimation"))

@@ -12,7 +12,7 @@ import numpy as np
 from schemas.experiment import Experiment
 from schemas.fit import FitOptions
 from schemas.model import Model
-from schemas.simulate import SimulatedExperiment
+from schemas.simulate import SimulatedExperiment, SimulateRequest, SimulateResult
 from schemas.validation import ExperimentValidation, OutputMetrics, ValidationResult
 from solvers.data import ExperimentData, prepare_experiment
 from solvers.errors import DataError
@@ -339,13 +339,12 @@ __all__ = ["simulate_experiments", "validation_metrics", "simulate_arrays", "val
            "estimate_initial_state", "k_step_ahead", "parameter_vector"]
 
 
-def simulate_request(request) -> "SimulateResult":
+def simulate_request(request: SimulateRequest) -> SimulateResult:
     """Run a `schemas.simulate.SimulateRequest`: parameter values and initial states from the model,
     then a previous result (`fit_result`), then the request's own `parameters`/`initial_states`."""
     import time
 
     from schemas.discovery import DiscoveryResult
-    from schemas.simulate import SimulateResult
     from solvers.preprocess import prepare_request
 
     started = time.perf_counter()

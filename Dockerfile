@@ -10,14 +10,15 @@ USER greyfit
 # empty package stubs, the same scripts/install.sh the README and CI use.
 COPY --chown=greyfit pyproject.toml README.md ./
 COPY --chown=greyfit scripts/install.sh scripts/install.sh
-RUN mkdir schemas solvers service \
- && touch schemas/__init__.py solvers/__init__.py service/__init__.py \
- && bash scripts/install.sh
+RUN mkdir schemas solvers service greyfit \
+ && touch schemas/__init__.py solvers/__init__.py service/__init__.py greyfit/__init__.py \
+ && bash scripts/install.sh report
 
 # The source; the editable install above already points at /app.
 COPY --chown=greyfit schemas schemas
 COPY --chown=greyfit solvers solvers
 COPY --chown=greyfit service service
+COPY --chown=greyfit greyfit greyfit
 COPY --chown=greyfit examples examples
 
 ENV GREYFIT_DATA_DIR=/data PYTHONUNBUFFERED=1

@@ -13,9 +13,13 @@ from schemas.fit import (
     ExperimentTrace,
     ResidualAnalysis,
 )
+from schemas.preprocess import Preprocess
+from schemas.simulate import SimulateRequest, SimulateResult
+from schemas.validation import ValidationResult
 
 __all__ = [
     "Model", "Parameter", "Experiment", "CovariancePublic", "FitMethod", "FitOptions",
     "FitRequest", "FitResult", "ParameterEstimate", "FitMetrics", "SolverInfo",
-    "ExperimentTrace", "ResidualAnalysis",
+    "ExperimentTrace", "ResidualAnalysis", "Preprocess", "SimulateRequest", "SimulateResult",
+    "ValidationResult",
 ]

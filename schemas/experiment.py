@@ -7,6 +7,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.limits import MAX_SAMPLES
 from schemas.model import Name
+from schemas.preprocess import Preprocess
 
 # null marks a missing sample; NaN/inf are rejected with a named field later (JSON has no NaN).
 Series = list[Optional[float]]
@@ -23,3 +24,5 @@ class Experiment(BaseModel):
     outputs: dict[Name, Series] = Field(default_factory=dict)
     initial_state: dict[Name, float] = Field(default_factory=dict)
     derivatives: dict[Name, Series] = Field(default_factory=dict)
+    preprocess: Optional[Preprocess] = Field(
+        default=None, description="window, detrend, decimate: applied to every series before use")

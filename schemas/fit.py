@@ -9,6 +9,8 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas.experiment import Experiment
 from schemas.limits import MAX_EXPERIMENTS
 from schemas.model import Model, Name
+from schemas.preprocess import PreprocessingReport
+from schemas.validation import ValidationResult
 
 
 class FitMethod(str, Enum):
@@ -54,7 +56,7 @@ class FitRequest(BaseModel):
     options: FitOptions = Field(default_factory=FitOptions)
     validation: list[Experiment] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
-        description="records of the same system not used to fit: the model is simulated on them")
+        description="records not used to fit; the result's `validation` has their simulation metrics")
 
 
 class ParameterEstimate(BaseModel):
@@ -134,3 +136,7 @@ class FitResult(BaseModel):
     solver: SolverInfo
     residual_analysis: list[ResidualAnalysis] = Field(default_factory=list)
     traces: Optional[list[ExperimentTrace]] = None
+    validation: Optional[ValidationResult] = Field(
+        default=None, description="simulation metrics on the request's validation records")
+    preprocessing: Optional[PreprocessingReport] = Field(
+        default=None, description="what each experiment's `preprocess` did, and hints about the data")

@@ -6,6 +6,7 @@ from typing import Annotated, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
+from schemas.templates import LinearStateSpace, expand_linear_state_space
 from schemas.limits import (
     MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
 )
@@ -58,6 +59,25 @@ class Model(BaseModel):
     equations: dict[Name, Expression]
     outputs: Optional[dict[Name, Expression]] = None
     constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS)
+    linear_state_space: Optional[LinearStateSpace] = Field(
+        default=None, description="ẋ = Ax + Bu, y = Cx + Du with entries numbers, parameter names or "
+                                  "expressions; expanded into equations and outputs")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _expand_linear_template(cls, data):
+        """Fill equations/outputs from linear_state_space; a round trip (both given) must agree."""
+        if not isinstance(data, dict) or data.get("linear_state_space") is None:
+            return data
+        lss = LinearStateSpace.model_validate(data["linear_state_space"])
+        equations, outputs = expand_linear_state_space(lss, list(data.get("states") or []),
+                                                       list(data.get("inputs") or []))
+        given = data.get("equations")
+        if given is not None and dict(given) != equations:
+            raise ValueError("give either equations or linear_state_space, not both")
+        if data.get("outputs") is not None and outputs is not None and dict(data["outputs"]) != outputs:
+            raise ValueError("give either outputs or linear_state_space.C/D, not both")
+        return {**data, "equations": equations, "outputs": outputs if outputs is not None else data.get("outputs")}
 
     @model_validator(mode="after")
     def _names_are_consistent(self) -> "Model":

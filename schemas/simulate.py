@@ -1,7 +1,7 @@
 """Simulation and validation: simulated trajectories, k-step-ahead predictions, validation metrics."""
 from __future__ import annotations
 
-from typing import Literal, Optional, Union
+from typing import Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -10,42 +10,7 @@ from schemas.experiment import Experiment
 from schemas.fit import FitOptions, FitResult
 from schemas.limits import MAX_EXPERIMENTS
 from schemas.model import Model, Name
-
-# where an experiment's initial state came from
-InitialStateSource = Literal[
-    "experiment",     # the experiment's own `initial_state` (every state)
-    "provided",       # `initial_states[experiment]` of the request (or of a previous fit's result)
-    "contiguous",     # the state the estimation fit reached at the end of the record this one continues
-    "estimated",      # the free states fitted on a short leading window, parameters fixed
-]
-
-
-class OutputMetrics(BaseModel):
-    """Per output, over the measured (non-null) samples."""
-
-    rmse: dict[str, float] = Field(default_factory=dict)
-    fit_percent: dict[str, float] = Field(
-        default_factory=dict, description="MATLAB compare: 100 (1 - |y - ŷ| / |y - mean(y)|)")
-    nrmse: dict[str, float] = Field(
-        default_factory=dict, description="|y - ŷ| / |y - mean(y)| = 1 - fit_percent/100 (RMSE over std)")
-
-
-class ExperimentValidation(OutputMetrics):
-    name: str
-    initial_state: dict[str, float]
-    initial_state_source: InitialStateSource
-    estimated_states: list[str] = Field(
-        default_factory=list, description="states fitted on the leading window (source 'estimated')")
-    estimate_window: Optional[int] = Field(
-        default=None, description="samples of the leading window the free initial states were fitted on")
-    note: Optional[str] = None
-
-
-class ValidationResult(OutputMetrics):
-    """Simulation metrics on records (pooled over experiments), and per experiment."""
-
-    experiments: list[ExperimentValidation]
-
+from schemas.validation import InitialStateSource, ValidationResult
 
 class SimulatedExperiment(BaseModel):
     name: str

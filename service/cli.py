@@ -1,4 +1,4 @@
-"""`greyfit` command line: fit, discover, batch, serve."""
+"""`greyfit` command line: fit, discover, batch, serve, simulate, report."""
 from __future__ import annotations
 
 import argparse
@@ -102,7 +102,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _extra_commands():
     from service.cli_service import add_batch, add_serve
-    return [add_serve, add_batch]
+    from service.cli_workflow import add_report, add_simulate
+    return [add_serve, add_batch, add_simulate, add_report]
 
 
 if __name__ == "__main__":

@@ -22,16 +22,18 @@ def check_limits(req: FitRequest, settings: Settings, prefix: str = "") -> None:
         if len(text) > settings.max_expression_length:
             raise LimitExceeded(f"{prefix}model.{where}", f"{len(text)} characters, the limit is "
                                 f"{settings.max_expression_length}; split it with definitions")
-    for i, exp in enumerate(req.experiments):
-        if len(exp.time) > settings.max_samples_per_experiment:
-            raise LimitExceeded(f"{prefix}experiments[{i}].time", f"{len(exp.time)} samples, the limit "
-                                f"is {settings.max_samples_per_experiment}; decimate or split the record")
+    records = [("experiments", req.experiments), ("validation", getattr(req, "validation", []))]
+    for field, exps in records:
+        for i, exp in enumerate(exps):
+            if len(exp.time) > settings.max_samples_per_experiment:
+                raise LimitExceeded(f"{prefix}{field}[{i}].time", f"{len(exp.time)} samples, the limit "
+                                    f"is {settings.max_samples_per_experiment}; decimate or split the record")
 
 
 def data_values(req: FitRequest) -> int:
     """How many numbers the request's experiments carry (the synchronous size measure)."""
     total = 0
-    for exp in req.experiments:
+    for exp in list(req.experiments) + list(getattr(req, "validation", [])):
         series = 1 + len(exp.inputs) + len(exp.outputs) + len(exp.derivatives)
         total += series * len(exp.time)
     return total

@@ -18,6 +18,8 @@ def outcome_or_raise(outcome: dict) -> Response:
         raise cls(err["detail"], err.get("field"))
     if err["type"] in ("Timeout", "WorkerLost"):
         raise HTTPException(503 if err["type"] == "WorkerLost" else 504, err["detail"])
+    if err["type"] == "DependencyMissing":   # an optional extra of this server is not installed
+        raise HTTPException(501, err["detail"])
     if err["type"] == "ValidationError":
         raise FitError(err["detail"])
     raise HTTPException(500, f"{err['type']}: {err['detail']}")

@@ -6,7 +6,7 @@ from typing import Any, Callable
 
 from pydantic import ValidationError
 
-TASK_KINDS = ("fit", "discover")
+TASK_KINDS = ("fit", "discover", "simulate", "report")
 
 
 def _runners() -> dict[str, Callable[[dict, float], Any]]:
@@ -32,7 +32,24 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
         runners["discover"] = disc
     except ImportError:  # pragma: no cover - discovery is part of the package
         pass
+    runners.update(_workflow_runners())
     return runners
+
+
+def _workflow_runners() -> dict[str, Callable[[dict, float], Any]]:
+    """Simulation and report pages also run in workers (CPU-bound: never in the web process)."""
+    from schemas.report import ReportRequest
+    from schemas.simulate import SimulateRequest
+
+    def simulate(request: dict | str, cpu_seconds: float):
+        from solvers.simulate import simulate_request
+        return simulate_request(_parse(SimulateRequest, request))
+
+    def report(request: dict | str, cpu_seconds: float):
+        from service.report import report_public
+        return report_public(_parse(ReportRequest, request))
+
+    return {"simulate": simulate, "report": report}
 
 
 def _parse(model, request: dict | str):
@@ -57,6 +74,9 @@ def run_task(kind: str, request: dict | str, cpu_seconds: float = 600.0) -> dict
         return {"status": "failed", "error": {"type": "ValidationError", "field": None,
                                               "detail": str(exc), "errors": [
                                                   {"loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]}}
+    except ImportError as exc:   # an optional extra (matplotlib for reports) is not installed
+        return {"status": "failed", "error": {"type": "DependencyMissing", "field": None,
+                                              "detail": str(exc)}}
     except Exception as exc:  # a bug or a CasADi failure: the task fails, the worker goes on
         return {"status": "failed", "error": {"type": "InternalError", "field": None,
                                               "detail": f"{type(exc).__name__}: {exc}",

@@ -15,13 +15,16 @@ from solvers.data import ExperimentData, prepare_experiments
 from solvers.diagnostics import residual_analysis
 from solvers.equation_error import EquationErrorProblem, build_equation_error
 from solvers.errors import DataError
+from solvers.fixed_fit import fixed_parameter_result
 from solvers.model_compiler import CompiledModel, compile_model
 from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
+from solvers.preprocess import prepare_request
 from solvers.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
 from solvers.statistics import information_criteria
+from solvers.validate import validate_fit
 
 BOUND_TOLERANCE = 1e-5
 
@@ -84,14 +87,26 @@ def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
 
 
 def fit_model(request: FitRequest) -> FitResult:
-    """Fit the request's model to its experiments; see `schemas.fit.FitResult`."""
+    """Fit the request's model to its experiments; see `schemas.fit.FitResult`.
+
+    Each experiment's `preprocess` is applied first; `validation` records are simulated after.
+    """
+    prepared, preprocessing = prepare_request(request)
+    result = _fit_prepared(prepared)
+    if prepared.validation:
+        result.validation = validate_fit(prepared, result)
+    result.preprocessing = preprocessing
+    return result
+
+
+def _fit_prepared(request: FitRequest) -> FitResult:
     started = time.perf_counter()
     opts = request.options
     cm = compile_model(request.model)
     data = prepare_experiments(request.experiments, cm)
     layout = build_layout(request.model, [d.name for d in data])
-    if layout.size == 0:
-        raise DataError("every parameter is fixed; free at least one", "model.parameters")
+    if layout.size == 0:   # nothing to estimate: a simulation, reported like a fit
+        return fixed_parameter_result(request, cm, data, layout, started)
     unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
     if unknown_w:
         raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",

@@ -12,9 +12,8 @@ import numpy as np
 from schemas.experiment import Experiment
 from schemas.fit import FitOptions
 from schemas.model import Model
-from schemas.simulate import (
-    ExperimentValidation, OutputMetrics, SimulatedExperiment, ValidationResult,
-)
+from schemas.simulate import SimulatedExperiment, SimulateRequest, SimulateResult
+from schemas.validation import ExperimentValidation, OutputMetrics, ValidationResult
 from solvers.data import ExperimentData, prepare_experiment
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel, compile_model
@@ -67,6 +66,11 @@ def parameter_vector(model: Model, parameters: dict[str, float], experiment: str
                             f"parameters.{label}")
     values = []
     for p in model.parameters:
+        copies = [k for k in parameters if k.startswith(f"{p.name}[")]
+        if copies and f"{p.name}[{experiment}]" not in parameters and p.name not in parameters:
+            raise DataError(f"'{p.name}' has per-experiment values {copies} but none for experiment "
+                            f"'{experiment}'; give parameters['{p.name}'] (or '{p.name}[{experiment}]')",
+                            f"parameters.{p.name}")
         v = parameters.get(f"{p.name}[{experiment}]", parameters.get(p.name, p.value))
         if not np.isfinite(v):
             raise DataError("must be a finite number", f"parameters.{p.name}")
@@ -301,7 +305,7 @@ def output_metrics(cm: CompiledModel, pairs: list[tuple[np.ndarray, np.ndarray]]
     return metrics
 
 
-def validation_from(cm: CompiledModel, sims: list[Simulation]) -> ValidationResult:
+def validation_from(cm: CompiledModel, sims: list[Simulation], traces: bool = False) -> ValidationResult:
     """Per-experiment and pooled metrics of simulations against their measured outputs."""
     per = []
     for s in sims:
@@ -310,7 +314,8 @@ def validation_from(cm: CompiledModel, sims: list[Simulation]) -> ValidationResu
             name=s.data.name, rmse=m.rmse, fit_percent=m.fit_percent, nrmse=m.nrmse,
             initial_state={st: float(s.x0[i]) for i, st in enumerate(cm.states)},
             initial_state_source=s.source, estimated_states=s.estimated, estimate_window=s.window,
-            note=s.note))
+            note=s.note, time=s.data.t.tolist() if traces else None,
+            simulated={o: _finite_list(s.outputs[j]) for j, o in enumerate(cm.outputs)} if traces else None))
     pooled = output_metrics(cm, [(s.data.y, s.outputs) for s in sims])
     return ValidationResult(rmse=pooled.rmse, fit_percent=pooled.fit_percent, nrmse=pooled.nrmse,
                             experiments=per)
@@ -332,3 +337,37 @@ def validation_metrics(model: Model, parameters: dict[str, float], experiments: 
 
 __all__ = ["simulate_experiments", "validation_metrics", "simulate_arrays", "validation_from",
            "estimate_initial_state", "k_step_ahead", "parameter_vector"]
+
+
+def simulate_request(request: SimulateRequest) -> SimulateResult:
+    """Run a `schemas.simulate.SimulateRequest`: parameter values and initial states from the model,
+    then a previous result (`fit_result`), then the request's own `parameters`/`initial_states`."""
+    import time
+
+    from schemas.discovery import DiscoveryResult
+    from solvers.preprocess import prepare_request
+
+    started = time.perf_counter()
+    fit = request.fit_result.fit if isinstance(request.fit_result, DiscoveryResult) else request.fit_result
+    model = request.model
+    if model is None:
+        if not isinstance(request.fit_result, DiscoveryResult):
+            raise DataError("give the model (a FitResult does not carry it; a discovery result does)", "model")
+        model = request.fit_result.model
+    params = {k: v.value for k, v in fit.parameters.items()} if fit is not None else {}
+    params.update(request.parameters)
+    states = {k: dict(v) for k, v in fit.initial_states.items()} if fit is not None else {}
+    names = {e.name for e in request.experiments}
+    states = {k: v for k, v in states.items() if k in names}   # a previous fit may have had other records
+    for name, values in request.initial_states.items():
+        states.setdefault(name, {}).update(values)
+    prepared, _ = prepare_request(request)
+    cm = compile_model(model)
+    sims = simulate_arrays(model, params, prepared.experiments, request.options, states,
+                           request.estimate_window, request.horizon, cm=cm)
+    measured = any(np.isfinite(s.data.y).any() for s in sims)
+    used = {p.name: float(p.value) for p in model.parameters}
+    used.update(params)
+    return SimulateResult(parameters=used, experiments=[to_public(cm, s) for s in sims],
+                          validation=validation_from(cm, sims) if measured else None,
+                          wall_time_s=time.perf_counter() - started)

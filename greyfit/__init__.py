@@ -1,0 +1,1 @@
+"""greyfit's Python entry points for other tools: `from greyfit.client import Client`."""

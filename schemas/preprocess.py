@@ -1,0 +1,52 @@
+"""Per-experiment data preparation (window, detrend, decimate) and what was done, for the result."""
+from __future__ import annotations
+
+from typing import Literal, Optional
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+
+class Preprocess(BaseModel):
+    """Applied to every series of the experiment in this order: window, detrend, decimate."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    window: Optional[tuple[float, float]] = Field(
+        default=None, description="keep the samples with t0 <= t <= t1")
+    detrend: Optional[Literal["mean", "linear"]] = Field(
+        default=None, description="remove each input's and output's mean or least-squares line")
+    decimate: Optional[int] = Field(
+        default=None, ge=2, le=1000,
+        description="keep every k-th sample after a zero-phase low-pass FIR anti-alias filter "
+                    "(Hamming-windowed sinc of 20k+1 taps, cut-off at the new Nyquist frequency)")
+
+    @model_validator(mode="after")
+    def _window_is_ordered(self) -> "Preprocess":
+        if self.window is not None and not self.window[0] < self.window[1]:
+            raise ValueError(f"window {list(self.window)}: give [t0, t1] with t0 < t1")
+        return self
+
+
+class Hint(BaseModel):
+    """Advice about the data or the options (the fit ran as requested)."""
+
+    code: str
+    message: str
+    detail: dict = Field(default_factory=dict)
+
+
+class ExperimentPreprocessing(BaseModel):
+    name: str
+    samples_in: int
+    samples_out: int
+    window: Optional[tuple[float, float]] = None
+    detrend: Optional[str] = None
+    removed_trend: dict[str, list[float]] = Field(
+        default_factory=dict, description="per series: [mean] or [intercept at the first sample, slope]")
+    decimate: Optional[int] = None
+    anti_alias_filter: Optional[str] = None
+
+
+class PreprocessingReport(BaseModel):
+    experiments: list[ExperimentPreprocessing] = Field(default_factory=list)
+    hints: list[Hint] = Field(default_factory=list)

@@ -1,0 +1,335 @@
+"""Figures and one self-contained HTML page for a fit or discovery result (matplotlib, Agg).
+
+compare (measured vs simulated, estimation and validation), resid (residual autocorrelation and
+input cross-correlation with the 99 % band), estimates with confidence intervals, the correlation
+matrix, and for discovery the model before/after the added terms.
+"""
+from __future__ import annotations
+
+import base64
+import html
+import io
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from schemas.discovery import DiscoveryResult
+from schemas.fit import FitRequest, FitResult
+from schemas.report import ReportPublic, ReportRequest
+
+
+class ReportDependencyMissing(ImportError):
+    """matplotlib is an optional extra."""
+
+
+def _pyplot():
+    try:
+        import matplotlib
+    except ImportError as exc:
+        raise ReportDependencyMissing(
+            "reports need matplotlib: pip install 'greyfit[report]' (bash scripts/install.sh report)") from exc
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+@dataclass
+class Figure:
+    name: str
+    title: str
+    png: bytes
+    svg: str
+
+
+@dataclass
+class Report:
+    title: str
+    figures: list[Figure] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+    summary_html: str = ""
+
+
+@dataclass
+class Series:
+    """Measured and simulated outputs of one record on its time grid."""
+
+    name: str
+    time: np.ndarray
+    measured: dict[str, np.ndarray]
+    simulated: dict[str, np.ndarray]
+
+
+def _save(plt, fig, name: str, title: str) -> Figure:
+    png, svg = io.BytesIO(), io.StringIO()
+    fig.savefig(png, format="png", dpi=110, bbox_inches="tight")
+    fig.savefig(svg, format="svg", bbox_inches="tight")
+    plt.close(fig)
+    return Figure(name, title, png.getvalue(), svg.getvalue())
+
+
+def _simulated_series(model, params, experiments, options, initial_states, sources=None) -> list[Series]:
+    from solvers.model_compiler import compile_model
+    from solvers.simulate import simulate_arrays
+    cm = compile_model(model)
+    sims = simulate_arrays(model, params, experiments, options, initial_states, cm=cm,
+                           provided_source=sources)
+    return [Series(s.data.name, s.data.t,
+                   {o: s.data.y[j] for j, o in enumerate(cm.outputs) if np.isfinite(s.data.y[j]).any()},
+                   {o: s.outputs[j] for j, o in enumerate(cm.outputs)}) for s in sims]
+
+
+def estimation_series(fit: FitResult, request: FitRequest | None, model) -> tuple[list[Series], list[Series]]:
+    """(estimation, validation) records: simulated again from the request, else from the traces."""
+    params = {k: v.value for k, v in fit.parameters.items()}
+    if request is not None:
+        from solvers.preprocess import prepare_request
+        prepared, _ = prepare_request(request)
+        est = _simulated_series(model, params, prepared.experiments, prepared.options, fit.initial_states)
+        val = []
+        if prepared.validation and fit.validation is not None:
+            x0 = {e.name: e.initial_state for e in fit.validation.experiments}
+            val = _simulated_series(model, params, prepared.validation, prepared.options, x0)
+        return est, val
+    est = []
+    for tr in fit.traces or []:
+        sim = {k: np.array(v, dtype=float) for k, v in tr.simulated.items()}
+        res = {k: np.array([np.nan if r is None else r for r in v], dtype=float) for k, v in tr.residuals.items()}
+        est.append(Series(tr.name, np.array(tr.time), {k: sim[k] - res[k] for k in sim}, sim))
+    return est, []
+
+
+def compare_figure(plt, records: list[Series], kind: str) -> Figure:
+    outputs = sorted({o for r in records for o in r.measured})
+    cols = min(len(records), 4)
+    fig, axes = plt.subplots(len(outputs), cols, figsize=(5.2 * cols, 2.4 * len(outputs) + 0.6),
+                             squeeze=False, sharex="col")
+    for c, rec in enumerate(records[:cols]):
+        for r, out in enumerate(outputs):
+            ax = axes[r][c]
+            if out in rec.measured:
+                y, yh = rec.measured[out], rec.simulated[out]
+                ok = np.isfinite(y) & np.isfinite(yh)
+                fit = 100 * (1 - np.linalg.norm(yh[ok] - y[ok]) / max(np.linalg.norm(y[ok] - y[ok].mean()), 1e-300))
+                ax.plot(rec.time, y, color="0.55", lw=0.9, label="measured")
+                ax.plot(rec.time, yh, color="C0", lw=1.2, label=f"simulated (fit {fit:.1f} %)")
+                ax.legend(loc="upper right", fontsize=7, frameon=False)
+            ax.set_ylabel(out)
+            if r == 0:
+                ax.set_title(f"{kind}: {rec.name}", fontsize=9)
+            if r == len(outputs) - 1:
+                ax.set_xlabel("t")
+    fig.tight_layout()
+    return _save(plt, fig, f"compare_{kind}", f"Measured and simulated outputs ({kind} records)")
+
+
+def residual_figure(plt, fit: FitResult) -> Figure | None:
+    analyses = [a for a in fit.residual_analysis if a.whiteness.lags > 0]
+    if not analyses:
+        return None
+    inputs = sorted({u for a in analyses for u in a.cross_correlation})
+    fig, axes = plt.subplots(len(analyses), 1 + len(inputs), squeeze=False,
+                             figsize=(4.2 * (1 + len(inputs)), 2.3 * len(analyses) + 0.5))
+    for r, a in enumerate(analyses):
+        ax = axes[r][0]
+        lags = np.arange(len(a.autocorrelation))
+        ax.bar(lags[1:], a.autocorrelation[1:], width=0.6, color="C0" if a.whiteness.passed else "C3")
+        ax.axhspan(-a.whiteness.bound, a.whiteness.bound, color="C2", alpha=0.15, label="99 % band")
+        ax.set_title(f"autocorrelation of e({a.output}): {'white' if a.whiteness.passed else 'not white'}", fontsize=9)
+        ax.set_xlabel("lag")
+        for c, u in enumerate(inputs, start=1):
+            ax = axes[r][c]
+            xc = np.array(a.cross_correlation.get(u, []))
+            if xc.size:
+                test = a.independence[u]
+                k = np.arange(xc.size) - (xc.size - 1) // 2
+                ax.bar(k, xc, width=0.6, color="C0" if test.passed else "C3")
+                ax.axhspan(-test.bound, test.bound, color="C2", alpha=0.15)
+                ax.set_title(f"cross-correlation e({a.output}) with {u}", fontsize=9)
+            ax.set_xlabel("lag")
+    fig.tight_layout()
+    return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs (99 % bands)")
+
+
+def parameter_figure(plt, fit: FitResult) -> Figure | None:
+    free = [(k, p) for k, p in fit.parameters.items() if not p.fixed]
+    if not free:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 0.45 * len(free) + 1.2))
+    for i, (name, p) in enumerate(free):
+        scale = abs(p.value) if p.value != 0 else 1.0
+        if p.ci95 is not None:
+            lo, hi = (p.ci95[0] - p.value) / scale * 100, (p.ci95[1] - p.value) / scale * 100
+            ax.errorbar([0], [i], xerr=[[-lo], [hi]], fmt="o", color="C0", capsize=4)
+        else:
+            ax.plot([0], [i], "o", color="C3")
+        label = f"{name} = {p.value:.5g}" + (f" ± {p.stderr:.2g}" if p.stderr is not None else " (no CI)")
+        ax.annotate(label, (0, i), xytext=(8, 6), textcoords="offset points", fontsize=8)
+    ax.set_yticks(range(len(free)), [k for k, _ in free])
+    ax.axvline(0, color="0.7", lw=0.8)
+    ax.set_xlabel("95 % confidence interval, % of the estimate")
+    ax.invert_yaxis()
+    fig.tight_layout()
+    return _save(plt, fig, "parameters", "Estimates with their confidence intervals")
+
+
+def correlation_figure(plt, fit: FitResult) -> Figure | None:
+    if fit.correlation is None or len(fit.correlation.names) < 2:
+        return None
+    names, m = fit.correlation.names, np.array(fit.correlation.matrix)
+    n = len(names)
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.0 + 0.55 * n), max(3.5, 0.8 + 0.5 * n)))
+    im = ax.imshow(m, cmap="RdBu_r", vmin=-1, vmax=1)
+    ax.set_xticks(range(n), names, rotation=60, ha="right", fontsize=8)
+    ax.set_yticks(range(n), names, fontsize=8)
+    if n <= 12:
+        for i in range(n):
+            for j in range(n):
+                ax.text(j, i, f"{m[i, j]:.2f}", ha="center", va="center", fontsize=7,
+                        color="white" if abs(m[i, j]) > 0.6 else "black")
+    fig.colorbar(im, ax=ax, fraction=0.046)
+    fig.tight_layout()
+    return _save(plt, fig, "correlation", "Correlation of the estimates")
+
+
+def discovery_figures(plt, result: DiscoveryResult, request) -> tuple[list[Figure], list[str]]:
+    figs, notes = [], []
+    outs = list(result.before.rmse)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    x = np.arange(len(outs))
+    for ax, key, label in ((axes[0], "rmse", "RMSE"), (axes[1], "fit_percent", "fit %")):
+        before = [getattr(result.before, key)[o] for o in outs]
+        after = [getattr(result.after, key)[o] for o in outs]
+        ax.bar(x - 0.2, before, 0.4, label="declared model", color="0.6")
+        ax.bar(x + 0.2, after, 0.4, label="with the added terms", color="C0")
+        ax.set_xticks(x, outs)
+        ax.set_title(label, fontsize=9)
+    axes[0].legend(fontsize=7, frameon=False)
+    terms = "; ".join(f"+ {s.term} in d{s.equation}/dt" for s in result.steps) or "nothing added"
+    fig.suptitle(terms, fontsize=8)
+    fig.tight_layout()
+    figs.append(_save(plt, fig, "discovery_metrics", "Before and after discovery"))
+    if request is None or not result.steps:
+        if request is None:
+            notes.append("the before/after overlay needs the request (measured data)")
+        return figs, notes
+    from solvers.preprocess import prepare_request
+    prepared, _ = prepare_request(request)
+    experiments = []
+    for exp in prepared.experiments:
+        extra = result.added_inputs.get(exp.name, {})
+        experiments.append(exp.model_copy(update={"inputs": {**exp.inputs, **extra}}))
+    params = {k: v.value for k, v in result.fit.parameters.items()}
+    after = _simulated_series(result.model, params, experiments, prepared.options, result.fit.initial_states)
+    added = {p.name for s in result.steps for p in s.parameters}
+    without = {k: (0.0 if k.split("[", 1)[0] in added else v) for k, v in params.items()}
+    before = _simulated_series(result.model, without, experiments, prepared.options, result.fit.initial_states)
+    rec_a, rec_b = after[0], before[0]
+    outputs = list(rec_a.measured)
+    fig, axes = plt.subplots(len(outputs), 1, figsize=(9, 2.4 * len(outputs) + 0.6), squeeze=False, sharex=True)
+    for r, out in enumerate(outputs):
+        ax = axes[r][0]
+        ax.plot(rec_a.time, rec_a.measured[out], color="0.55", lw=0.9, label="measured")
+        ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=1.0, label="without the added terms")
+        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=1.2, label="with " + terms)
+        ax.set_ylabel(out)
+        ax.legend(fontsize=7, frameon=False, loc="upper right")
+    axes[-1][0].set_xlabel("t")
+    fig.tight_layout()
+    figs.append(_save(plt, fig, "discovery_overlay", f"{rec_a.name}: the final model with and without the added terms"))
+    return figs, notes
+
+
+def build_report(req: ReportRequest) -> Report:
+    """Render every figure the result (and request) allow; notes say what could not be drawn."""
+    plt = _pyplot()
+    result, request = req.result, req.request
+    discovery = isinstance(result, DiscoveryResult)
+    fit = result.fit if discovery else result
+    model = result.model if discovery else (request.model if request is not None else None)
+    report = Report(title=req.title or ("greyfit discovery report" if discovery else "greyfit fit report"))
+    if discovery and request is not None and result.added_inputs:   # series the augmented model needs
+        request = request.model_copy(update={"experiments": [
+            e.model_copy(update={"inputs": {**e.inputs, **result.added_inputs.get(e.name, {})}})
+            for e in request.experiments]})
+    est, val = estimation_series(fit, request, model)
+    if est:
+        report.figures.append(compare_figure(plt, est, "estimation"))
+    else:
+        report.notes.append("no measured-vs-simulated figure: give the request, or fit with return_traces")
+    if val:
+        report.figures.append(compare_figure(plt, val, "validation"))
+    for make in (residual_figure, parameter_figure, correlation_figure):
+        figure = make(plt, fit)
+        if figure is not None:
+            report.figures.append(figure)
+    if discovery:
+        figs, notes = discovery_figures(plt, result, request)
+        report.figures += figs
+        report.notes += notes
+    report.summary_html = _summary(fit, result if discovery else None)
+    return report
+
+
+def _summary(fit: FitResult, discovery: DiscoveryResult | None) -> str:
+    rows = "".join(f"<tr><td>{html.escape(o)}</td><td>{fit.metrics.rmse[o]:.4g}</td>"
+                   f"<td>{fit.metrics.fit_percent[o]:.2f}</td>"
+                   + (f"<td>{fit.validation.rmse.get(o, float('nan')):.4g}</td>"
+                      f"<td>{fit.validation.fit_percent.get(o, float('nan')):.2f}</td>" if fit.validation else "")
+                   + "</tr>" for o in fit.metrics.rmse)
+    head = "<tr><th>output</th><th>RMSE</th><th>fit %</th>" + (
+        "<th>validation RMSE</th><th>validation fit %</th>" if fit.validation else "") + "</tr>"
+    text = (f"<p><b>{'converged' if fit.success else 'not converged'}</b>: {html.escape(fit.message)} "
+            f"({fit.solver.method.value}, {fit.solver.iterations} iterations)</p>")
+    if discovery is not None:
+        text += f"<p>discovery: {html.escape(discovery.conclusion)}</p>"
+    if fit.covariance_note:
+        text += f"<p>covariance: {html.escape(fit.covariance_note)}</p>"
+    return text + f"<table>{head}{rows}</table>"
+
+
+def render_html(report: Report) -> str:
+    """One page; figures as base64 PNG. A small script marks each decoded figure (data-rendered)."""
+    figures = "\n".join(
+        f'<figure id="fig-{f.name}" class="figure"><img alt="{html.escape(f.title)}" '
+        f'src="data:image/png;base64,{base64.b64encode(f.png).decode()}">'
+        f"<figcaption>{html.escape(f.title)}</figcaption></figure>" for f in report.figures)
+    notes = "".join(f"<li>{html.escape(n)}</li>" for n in report.notes)
+    return f"""<!DOCTYPE html>
+<html lang="en"><head><meta charset="utf-8"><title>{html.escape(report.title)}</title>
+<style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}}
+table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}}
+figure{{margin:1.5em 0}}img{{max-width:100%}}figcaption{{color:#555;font-size:90%}}</style></head>
+<body><h1>{html.escape(report.title)}</h1>
+{report.summary_html}
+{f"<ul class='notes'>{notes}</ul>" if notes else ""}
+{figures}
+<script>window.addEventListener("load", function () {{
+  document.querySelectorAll("figure img").forEach(function (img) {{
+    img.setAttribute("data-rendered", img.naturalWidth + "x" + img.naturalHeight); }});
+  document.body.setAttribute("data-figures", document.querySelectorAll("figure img").length);
+}});</script>
+</body></html>
+"""
+
+
+def report_public(req: ReportRequest) -> ReportPublic:
+    report = build_report(req)
+    return ReportPublic(html=render_html(report), figures=[f.name for f in report.figures], notes=report.notes)
+
+
+def write_report(req: ReportRequest, out_dir: Path, formats: tuple[str, ...] = ("png", "svg")) -> list[Path]:
+    """Write every figure (PNG and SVG) and report.html to out_dir; return the paths."""
+    report = build_report(req)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for f in report.figures:
+        if "png" in formats:
+            paths.append(out_dir / f"{f.name}.png")
+            paths[-1].write_bytes(f.png)
+        if "svg" in formats:
+            paths.append(out_dir / f"{f.name}.svg")
+            paths[-1].write_text(f.svg)
+    page = out_dir / "report.html"
+    page.write_text(render_html(report))
+    return paths + [page]

@@ -1,0 +1,43 @@
+import json
+
+from fastapi import APIRouter, Depends, HTTPException, Query, Request
+from fastapi.responses import HTMLResponse
+from sqlalchemy import select
+
+from schemas.report import ReportRequest
+from service.deps import require_api_key
+from service.routes.fits import run_sync
+from service.store import tasks
+
+router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)])
+
+HTML = {200: {"content": {"text/html": {}}, "description": "one self-contained HTML page"}}
+
+
+async def _page(request: Request, payload: dict) -> HTMLResponse:
+    response = await run_sync(request, "report", payload)
+    return HTMLResponse(json.loads(response.body)["html"])
+
+
+@router.post("/report", response_class=HTMLResponse, responses=HTML)
+async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
+    """The report page of a result (with its request for the measured-vs-simulated figures)."""
+    return await _page(request, body.model_dump(mode="json"))
+
+
+@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=HTML)
+async def job_report(job_id: str, request: Request, index: int = Query(0, ge=0)) -> HTMLResponse:
+    """The report page of task `index` of a finished job (its stored request supplies the data)."""
+    store = request.app.state.store
+    if store.get_job(job_id) is None:
+        raise HTTPException(404, f"no job with id '{job_id}'")
+    with store.engine.connect() as conn:
+        row = conn.execute(select(tasks.c.status, tasks.c.request, tasks.c.result)
+                           .where(tasks.c.job_id == job_id, tasks.c.idx == index)).mappings().first()
+    if row is None:
+        raise HTTPException(404, f"job '{job_id}' has no task {index}")
+    if row["status"] != "succeeded" or not row["result"]:
+        raise HTTPException(409, f"task {index} of job '{job_id}' is {row['status']}; a report needs its result")
+    payload = {"result": json.loads(row["result"]), "request": json.loads(row["request"]),
+               "title": f"job {job_id}, task {index}"}
+    return await _page(request, payload)

@@ -1,0 +1,89 @@
+"""The HTML report opened in a real headless browser (Chromium from the distribution's packages)."""
+import json
+import re
+import shutil
+import struct
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from tests.solvers.test_validation import DUFFING_TRUTH, duffing_input, duffing_model, record, simulate_duffing
+
+ROOT = Path(__file__).resolve().parents[2]
+FIGURES = ("compare_estimation", "compare_validation", "residuals", "parameters", "correlation")
+
+
+def browser() -> str:
+    for name in ("chromium", "chromium-browser", "google-chrome"):
+        path = shutil.which(name)
+        if path:
+            return path
+    pytest.skip("no headless browser: install Chromium (apt-get install -y chromium; scripts/test.sh does "
+                "it when run as root with apt-get)")
+
+
+def png_size(path: Path) -> tuple[int, int]:
+    head = path.read_bytes()[:24]
+    assert head[:8] == b"\x89PNG\r\n\x1a\n", f"{path} is not a PNG"
+    return struct.unpack(">II", head[16:24])
+
+
+def chromium(exe: str, *args: str) -> subprocess.CompletedProcess:
+    profile = tempfile.mkdtemp(prefix="greyfit-chromium-")
+    try:
+        return subprocess.run([exe, "--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+                               "--no-first-run", f"--user-data-dir={profile}", *args],
+                              capture_output=True, text=True, timeout=120)
+    finally:
+        shutil.rmtree(profile, ignore_errors=True)
+
+
+@pytest.fixture(scope="module")
+def report_dir(tmp_path_factory):
+    """`greyfit report` on a Duffing fit with a contiguous validation record."""
+    pytest.importorskip("matplotlib", reason="the report extra is not installed (pip install 'greyfit[report]')")
+    tmp = tmp_path_factory.mktemp("report")
+    t = np.linspace(0, 30, 601)
+    u = duffing_input(t)
+    x = simulate_duffing(t, DUFFING_TRUTH, (0.5, 0.0), u)
+    request = {"model": duffing_model(), "experiments": [record("est", t[:301], x[:, :301], u[:301], 1)],
+               "validation": [record("val", t[300:], x[:, 300:], u[300:], 2)], "options": {"substeps": 2}}
+    (tmp / "request.json").write_text(json.dumps(request))
+    fit = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(tmp / "request.json")],
+                         cwd=ROOT, capture_output=True, text=True, check=True)
+    (tmp / "result.json").write_text(fit.stdout)
+    subprocess.run([sys.executable, "-m", "service.cli", "report", str(tmp / "result.json"), "--request",
+                    str(tmp / "request.json"), "--out", str(tmp / "out")], cwd=ROOT, check=True,
+                   capture_output=True, text=True)
+    return tmp / "out"
+
+
+def test_report_files_are_written(report_dir):
+    for name in FIGURES:
+        width, height = png_size(report_dir / f"{name}.png")
+        assert width >= 300 and height >= 150, (name, width, height)
+        assert (report_dir / f"{name}.png").stat().st_size > 5_000
+        assert (report_dir / f"{name}.svg").read_text().lstrip().startswith(("<?xml", "<svg"))
+    width, height = png_size(report_dir / "compare_validation.png")
+    assert 500 <= width <= 3000 and 200 <= height <= 3000
+
+
+def test_report_page_loads_in_headless_chromium_with_every_figure_rendered(report_dir):
+    exe = browser()
+    page = report_dir / "report.html"
+    dom = chromium(exe, "--dump-dom", page.as_uri())
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    html = dom.stdout
+    assert 'data-figures="5"' in html, html[:500]
+    for name in FIGURES:
+        m = re.search(rf'<figure id="fig-{name}"[^>]*>\s*<img[^>]*data-rendered="(\d+)x(\d+)"', html)
+        assert m, f"figure {name} missing or not decoded by the browser"
+        assert int(m.group(1)) >= 300 and int(m.group(2)) >= 150, (name, m.groups())
+    shot = report_dir / "page.png"
+    result = chromium(exe, f"--screenshot={shot}", "--window-size=1200,2400", page.as_uri())
+    assert result.returncode == 0 and shot.exists(), result.stderr[-2000:]
+    assert png_size(shot) == (1200, 2400) and shot.stat().st_size > 50_000

@@ -38,6 +38,7 @@ from solvers.discovery.screening import Scored, Screening, screen
 from solvers.errors import FitError, ModelDefinitionError
 from solvers.expressions import compile_expression
 from solvers.fit import fit_model
+from solvers.preprocess import prepare_request
 
 
 @dataclass
@@ -58,6 +59,8 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
     started = time.perf_counter()
     opts = request.discovery
     check_user_candidates(request)
+    # detrend/decimate/window once, for the fits and the screens alike
+    request, _ = prepare_request(request)
     fit_req = FitRequest(model=request.model, experiments=request.experiments, method=request.method,
                          options=request.options)
     base = fit_model(fit_req)

@@ -4,9 +4,10 @@ from __future__ import annotations
 from enum import Enum
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from schemas.experiment import Experiment
+from schemas.frequency import FrequencyResponseResult
 from schemas.limits import MAX_EXPERIMENTS
 from schemas.model import Model, Name
 
@@ -15,6 +16,7 @@ class FitMethod(str, Enum):
     equation_error = "equation_error"
     single_shooting = "single_shooting"
     multiple_shooting = "multiple_shooting"
+    frequency_response = "frequency_response"   # only in results of /v1/frequency-fits
 
 
 class FitOptions(BaseModel):
@@ -52,6 +54,14 @@ class FitRequest(BaseModel):
     experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
     method: FitMethod = FitMethod.multiple_shooting
     options: FitOptions = Field(default_factory=FitOptions)
+
+    @field_validator("method")
+    @classmethod
+    def _time_domain_method(cls, method: FitMethod) -> FitMethod:
+        if method == FitMethod.frequency_response:
+            raise ValueError("frequency_response fits take a FrequencyFitRequest (model kind "
+                             "transfer_function): POST /v1/frequency-fits")
+        return method
 
 
 class ParameterEstimate(BaseModel):
@@ -131,3 +141,4 @@ class FitResult(BaseModel):
     solver: SolverInfo
     residual_analysis: list[ResidualAnalysis] = Field(default_factory=list)
     traces: Optional[list[ExperimentTrace]] = None
+    frequency_response: Optional[FrequencyResponseResult] = None

@@ -114,8 +114,8 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     theta_s = outcome.w[:layout.size]
     theta = layout.physical(theta_s)
     bounds = _at_bound(layout, theta_s)
-    jac_fn = ca.Function("data_jacobian", [fp.problem.w], [ca.jacobian(fp.problem.residual[:fp.n_data_rows], fp.problem.w),
-                                                 fp.problem.residual[:fp.n_data_rows]])
+    data_r = fp.problem.residual[:fp.n_data_rows]   # the stability penalty rows are not data
+    jac_fn = ca.Function("data_jacobian", [fp.problem.w], [ca.jacobian(data_r, fp.problem.w), data_r])
     jac, res = (np.array(x) for x in jac_fn(outcome.w))
     res = res.ravel()
     keep = np.array([b is None for b in bounds])

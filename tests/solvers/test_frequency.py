@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from schemas.frequency import FrequencyData, FrequencyFitRequest
+from schemas.frequency import FrequencyData, FrequencyFitRequest, SineTest
 from solvers.errors import DataError, ModelDefinitionError
 from solvers.frequency import fit_frequency_response
 from solvers.frequency.data import prepare_frequency_data
@@ -149,7 +149,6 @@ def test_seed_001_numbers_levy_biased_then_nonlinear_fit_recovers():
 def test_sine_tests_give_the_frequency_response():
     omegas = [0.3, 3.0, 30.0, 300.0]
     records = sine_records(TRUTH, 1, 1, omegas, noise=0.0, seed=0)
-    from schemas.frequency import SineTest
     omega, g = response_from_sine_tests([SineTest.model_validate(r) for r in records], "data[0].sine_tests")
     np.testing.assert_allclose(omega, omegas)
     np.testing.assert_allclose(g, response(TRUTH, 1, 1, np.array(omegas)), rtol=1e-3)

@@ -87,6 +87,12 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         k, name = unknown[0]
         raise DataError(f"'{name}' is not a model constant; declare it in model.constants",
                         f"options.also_stable_with[{k}].{name}")
+    if opts.cost in ("relative_complex", "log"):
+        for i, s in enumerate(sets):
+            if np.any(np.abs(s.response) == 0):
+                raise DataError(f"|G| = 0 at ω = {s.omega[np.argmax(np.abs(s.response) == 0)]:g}: a relative "
+                                "or log cost cannot use it; drop the point or set options.cost to 'complex'",
+                                f"data[{i}]")
     layout = build_layout(request.model, [s.name for s in sets])   # uses only model.parameters
     if layout.size == 0:
         raise DataError("every parameter is fixed; free at least one", "model.parameters")

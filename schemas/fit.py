@@ -4,9 +4,10 @@ from __future__ import annotations
 from enum import Enum
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, field_validator
 
 from schemas.experiment import Experiment
+from schemas.frequency import FrequencyResponseResult
 from schemas.limits import MAX_EXPERIMENTS
 from schemas.model import Model, Name
 from schemas.preprocess import PreprocessingReport
@@ -17,6 +18,7 @@ class FitMethod(str, Enum):
     equation_error = "equation_error"
     single_shooting = "single_shooting"
     multiple_shooting = "multiple_shooting"
+    frequency_response = "frequency_response"   # only in results of /v1/frequency-fits
 
 
 class FitOptions(BaseModel):
@@ -57,6 +59,14 @@ class FitRequest(BaseModel):
     validation: list[Experiment] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
         description="records not used to fit; the result's `validation` has their simulation metrics")
+
+    @field_validator("method")
+    @classmethod
+    def _time_domain_method(cls, method: FitMethod) -> FitMethod:
+        if method == FitMethod.frequency_response:
+            raise ValueError("frequency_response fits take a FrequencyFitRequest (model kind "
+                             "transfer_function): POST /v1/frequency-fits")
+        return method
 
 
 class ParameterEstimate(BaseModel):
@@ -140,3 +150,4 @@ class FitResult(BaseModel):
         default=None, description="simulation metrics on the request's validation records")
     preprocessing: Optional[PreprocessingReport] = Field(
         default=None, description="what each experiment's `preprocess` did, and hints about the data")
+    frequency_response: Optional[FrequencyResponseResult] = None

@@ -12,7 +12,7 @@ from service.dispatcher import Dispatcher
 from service.executors import make_executor
 from service.metrics import Metrics
 from service.problems import install_handlers, problem
-from service.routes import discover, fits, health, jobs, ops
+from service.routes import discover, fits, frequency, health, jobs, ops
 from service.routes import report as report_routes, simulate as simulate_routes
 from service.settings import Settings, get_settings
 from service.store import JobStore, make_engine
@@ -94,7 +94,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     app.state.metrics = Metrics()
     install_handlers(app)
     for router in (health.router, fits.router, discover.router, jobs.router, ops.router,
-                   simulate_routes.router, report_routes.router):
+                   simulate_routes.router, report_routes.router, frequency.router):
         app.include_router(router)
 
     app.add_middleware(CountRequests, metrics=app.state.metrics)

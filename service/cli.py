@@ -25,8 +25,14 @@ def _validation_message(exc: ValidationError) -> str:
 def cmd_fit(args) -> int:
     from schemas import FitRequest
     from solvers.fit import fit_model
-    request = FitRequest.model_validate(_read_json(args.request))
-    result = fit_model(request)
+    body = _read_json(args.request)
+    if isinstance(body, dict) and isinstance(body.get("model"), dict) and \
+            body["model"].get("kind") == "transfer_function":   # a frequency-response fit
+        from schemas.frequency import FrequencyFitRequest
+        from solvers.frequency import fit_frequency_response
+        result = fit_frequency_response(FrequencyFitRequest.model_validate(body))
+    else:
+        result = fit_model(FitRequest.model_validate(body))
     print(result.model_dump_json(indent=2 if args.pretty else None))
     return 0
 

@@ -6,7 +6,7 @@ from typing import Any, Callable
 
 from pydantic import ValidationError
 
-TASK_KINDS = ("fit", "discover", "simulate", "report")
+TASK_KINDS = ("fit", "discover", "simulate", "report", "frequency_fit")
 
 
 def _runners() -> dict[str, Callable[[dict, float], Any]]:
@@ -19,7 +19,14 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
         req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
         return fit_model(req)
 
-    runners = {"fit": fit}
+    def frequency_fit(request: dict | str, cpu_seconds: float):
+        from schemas.frequency import FrequencyFitRequest
+        from solvers.frequency import fit_frequency_response
+        req = _parse(FrequencyFitRequest, request)
+        req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
+        return fit_frequency_response(req)
+
+    runners = {"fit": fit, "frequency_fit": frequency_fit}
     try:
         from schemas.discovery import DiscoverRequest
         from solvers.discovery import discover

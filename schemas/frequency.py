@@ -1,0 +1,177 @@
+"""Frequency-response fitting: transfer-function models, frequency data, options and the response result.
+
+Polynomials are coefficient lists in descending powers of s; each coefficient is an expression of
+the parameters and constants in the same whitelist grammar as ODE models.
+"""
+from __future__ import annotations
+
+import math
+from typing import Literal, Optional, Union
+
+from pydantic import BaseModel, ConfigDict, Field, model_validator
+
+from schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
+from schemas.model import RESERVED_NAMES, Expression, Name, Parameter
+
+MAX_DEGREE = 40
+Coefficients = list[Expression]
+
+
+class Polynomials(BaseModel):
+    """A transfer function num(s)/den(s) given by coefficients in descending powers of s."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    num: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
+    den: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
+
+
+class Feedback(BaseModel):
+    """A known controller C(s) closing the loop around the plant P(s) (negative feedback)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    controller: Polynomials = Field(description="C(s); its coefficients may use constants that each "
+                                    "data set sets (e.g. Kp, Ki), so one structure serves every setting")
+    measured: Literal["P/(1+PC)", "PC/(1+PC)"] = Field(
+        default="P/(1+PC)", description="which closed-loop response the data are: plant output per "
+        "input disturbance P/(1+PC), or plant output per reference PC/(1+PC)")
+
+
+class TransferFunctionModel(BaseModel):
+    """A plant P(s) = numerator/denominator, optionally measured inside a known feedback loop."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["transfer_function"] = "transfer_function"
+    name: Name = "plant"
+    parameters: list[Parameter] = Field(min_length=1, max_length=MAX_PARAMETERS)
+    constants: dict[Name, float] = Field(default_factory=dict)
+    numerator: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
+    denominator: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
+    constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS)
+    feedback: Optional[Feedback] = None
+
+    @model_validator(mode="after")
+    def _names_are_consistent(self) -> "TransferFunctionModel":
+        seen: dict[str, str] = {}
+        for group, names in (("parameters", [p.name for p in self.parameters]),
+                             ("constants", list(self.constants))):
+            for name in names:
+                if name in RESERVED_NAMES or name == "s":
+                    raise ValueError(f"{group}: '{name}' is reserved (s, t, pi, e, inf); rename it")
+                if name in seen:
+                    raise ValueError(f"{group}: name '{name}' is already used in {seen[name]}")
+                seen[name] = group
+        for name, value in self.constants.items():
+            if not math.isfinite(value):
+                raise ValueError(f"constants.{name}: must be a finite number")
+        return self
+
+
+class SineTest(BaseModel):
+    """A raw record with sinusoidal excitation at one or several frequencies (rad/s).
+
+    The response at each frequency is estimated by least squares on sin/cos components of input
+    and output (plus an offset), after discarding the transient before `settle_time`.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    omega: Union[float, list[float]]
+    time: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
+    input: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
+    output: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
+    settle_time: float = Field(default=0.0, ge=0, description="samples before this time are ignored")
+
+
+class FrequencyData(BaseModel):
+    """One measured frequency response: omega with real/imag, or gain with phase, or raw sine tests."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    name: Name = "data"
+    omega: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES,
+                                         description="angular frequencies in rad/s, increasing")
+    real: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
+    imag: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
+    gain: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
+    gain_unit: Literal["abs", "dB"] = Field(default="abs", description="gain as |G| or 20 log10 |G|")
+    phase_deg: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
+    sine_tests: Optional[list[SineTest]] = Field(default=None, max_length=10_000)
+    constants: dict[Name, float] = Field(
+        default_factory=dict, description="values of model constants for this data set (e.g. Kp, Ki)")
+
+
+class FrequencyFitOptions(BaseModel):
+    """Cost, stability handling and solver options; every field has a default."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    cost: Literal["relative_complex", "complex", "log", "seed_log"] = Field(
+        default="relative_complex",
+        description="relative_complex: (Ĝ-G)/|G|; complex: Ĝ-G; log: log|Ĝ/G| and phase of Ĝ/G; "
+                    "seed_log: log(|Ĝ-G|+1) (the cost of seed 001)")
+    stability: Literal["routh", "penalty", "check", "none"] = Field(
+        default="routh", description="routh: Liénard-Chipart (Routh-Hurwitz) conditions of every closed-loop "
+        "denominator as constraints >= stability_margin; penalty: their violation as an extra residual; "
+        "check: poles reported only")
+    stability_margin: float = Field(default=1e-6, ge=0, le=1,
+                                    description="margin of each normalised Hurwitz condition")
+    penalty_weight: float = Field(default=1e3, gt=0)
+    also_stable_with: list[dict[Name, float]] = Field(
+        default_factory=list, max_length=MAX_EXPERIMENTS,
+        description="further constant settings (e.g. other controller gains) whose closed loop must be stable")
+    levy_start: bool = Field(default=True, description="start from a Levy / Sanathanan-Koerner fit")
+    sk_iterations: int = Field(default=5, ge=0, le=50, description="Sanathanan-Koerner reweightings")
+    multistart: int = Field(default=1, ge=1, le=100, description="further starts drawn inside the bounds")
+    seed: int = 0
+    hessian: Literal["gauss_newton", "exact"] = "gauss_newton"
+    max_iter: int = Field(default=500, ge=1, le=10_000)
+    max_cpu_time: float = Field(default=120.0, gt=0, le=86_400)
+    tol: float = Field(default=1e-10, gt=0, lt=1)
+    confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
+
+
+class FrequencyFitRequest(BaseModel):
+    model_config = ConfigDict(extra="forbid")
+
+    model: TransferFunctionModel
+    data: list[FrequencyData] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
+    options: FrequencyFitOptions = Field(default_factory=FrequencyFitOptions)
+
+
+class LoopStability(BaseModel):
+    """Poles of one fitted closed loop (the data set's, or one of `also_stable_with`)."""
+
+    setting: str
+    poles_real: list[float]
+    poles_imag: list[float]
+    max_real_part: float
+    stable: bool
+    routh_first_column: list[float]
+
+
+class DataSetResponse(BaseModel):
+    """Measured and fitted response of one data set, for Bode and Nyquist plots."""
+
+    name: str
+    omega: list[float]
+    measured_real: list[float]
+    measured_imag: list[float]
+    fitted_real: list[float]
+    fitted_imag: list[float]
+    zeros_real: list[float]
+    zeros_imag: list[float]
+    numerator: list[float] = Field(description="fitted closed-loop numerator, descending powers of s")
+    denominator: list[float]
+
+
+class FrequencyResponseResult(BaseModel):
+    data: list[DataSetResponse]
+    loops: list[LoopStability]
+    stable: bool = Field(description="every fitted closed loop has all poles in the open left half plane")
+    cost_kind: str
+    stability_handling: str
+    levy_start: Optional[dict[str, float]] = Field(
+        default=None, description="parameters of the linearised (Levy / Sanathanan-Koerner) start")

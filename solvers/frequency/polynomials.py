@@ -1,0 +1,155 @@
+"""Compile a transfer-function model into CasADi coefficient vectors of each closed loop.
+
+Coefficients are in descending powers of s and are SX expressions of the full physical parameter
+vector ``p`` (declaration order), so the fit can differentiate through them.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from schemas.frequency import TransferFunctionModel
+from solvers.errors import ModelDefinitionError
+from solvers.expressions import compile_expression, names_in, parse, to_casadi
+
+Poly = list  # list of SX scalars, descending powers of s
+
+
+@dataclass
+class ClosedLoop:
+    """num(s)/den(s) of one measured (or stability-only) loop, common factors s^k cancelled."""
+
+    name: str
+    num: Poly
+    den: Poly
+    num_fn: ca.Function   # p -> num coefficients (column)
+    den_fn: ca.Function   # p -> den coefficients
+    cancelled: int = 0    # powers of s removed from both
+
+
+@dataclass
+class CompiledTransferFunction:
+    model: TransferFunctionModel
+    parameters: list[str]
+    p: ca.SX
+    constraint: ca.SX | None          # g(p) >= 0 (== 0 where equality)
+    constraint_equality: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    probe_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def loop(self, name: str, constants: dict[str, float]) -> ClosedLoop:
+        """The response measured with these constant values (e.g. this data set's Kp, Ki)."""
+        env = self._env(constants)
+        m = self.model
+        num = _coefficients(m.numerator, env, "model.numerator")
+        den = _coefficients(m.denominator, env, "model.denominator")
+        if m.feedback is not None:
+            c_num = _coefficients(m.feedback.controller.num, env, "model.feedback.controller.num")
+            c_den = _coefficients(m.feedback.controller.den, env, "model.feedback.controller.den")
+            self._check_proper(c_num, c_den, "model.feedback.controller")
+            char = poly_add(poly_mul(den, c_den), poly_mul(num, c_num))
+            num = poly_mul(num, c_num) if m.feedback.measured == "PC/(1+PC)" else poly_mul(num, c_den)
+            den = char
+        num, den, cancelled = self._cancel_common_s(num, den)
+        if not den:
+            raise ModelDefinitionError(f"the closed-loop denominator of '{name}' is identically zero",
+                                       "model.denominator")
+        return ClosedLoop(name, num, den, ca.Function("num", [self.p], [ca.vertcat(*num)]),
+                          ca.Function("den", [self.p], [ca.vertcat(*den)]), cancelled)
+
+    def check_plant(self) -> None:
+        env = self._env({})
+        num = _coefficients(self.model.numerator, env, "model.numerator")
+        den = _coefficients(self.model.denominator, env, "model.denominator")
+        self._check_proper(num, den, "model")
+
+    # -- helpers ---------------------------------------------------------------------------------
+    def _env(self, constants: dict[str, float]) -> dict[str, object]:
+        env: dict[str, object] = {n: self.p[i] for i, n in enumerate(self.parameters)}
+        env.update(self.model.constants)
+        env.update(constants)
+        return env
+
+    def is_zero(self, expr) -> bool:
+        """Zero for every probe parameter vector: a structural zero (e.g. Ki*b2 with Ki = 0)."""
+        fn = ca.Function("c", [self.p], [expr])
+        return all(float(fn(pt)) == 0.0 for pt in self.probe_points)
+
+    def _strip_leading(self, poly: Poly) -> Poly:
+        k = 0
+        while k < len(poly) and self.is_zero(poly[k]):
+            k += 1
+        return poly[k:]
+
+    def _check_proper(self, num: Poly, den: Poly, where: str) -> None:
+        n, d = self._strip_leading(num), self._strip_leading(den)
+        field_num = "numerator" if where == "model" else "num"
+        field_den = "denominator" if where == "model" else "den"
+        if not d:
+            raise ModelDefinitionError("the denominator is identically zero", f"{where}.{field_den}")
+        if len(n) > len(d):
+            raise ModelDefinitionError(
+                f"improper transfer function: numerator degree {len(n) - 1} exceeds denominator degree "
+                f"{len(d) - 1}; a physical system has at most as many zeros as poles",
+                f"{where}.{field_num}")
+
+    def _cancel_common_s(self, num: Poly, den: Poly) -> tuple[Poly, Poly, int]:
+        num, den = self._strip_leading(num), self._strip_leading(den)
+        k = 0
+        while len(num) > 1 and len(den) > 1 and self.is_zero(num[-1]) and self.is_zero(den[-1]):
+            num, den, k = num[:-1], den[:-1], k + 1
+        return num, den, k
+
+
+def poly_mul(a: Poly, b: Poly) -> Poly:
+    out = [ca.SX(0)] * (len(a) + len(b) - 1)
+    for i, x in enumerate(a):
+        for j, y in enumerate(b):
+            out[i + j] = out[i + j] + x * y
+    return out
+
+
+def poly_add(a: Poly, b: Poly) -> Poly:
+    n = max(len(a), len(b))
+    a = [ca.SX(0)] * (n - len(a)) + list(a)
+    b = [ca.SX(0)] * (n - len(b)) + list(b)
+    return [x + y for x, y in zip(a, b)]
+
+
+def _coefficients(texts: list[str], env: dict, where: str) -> Poly:
+    return [ca.SX(compile_expression(t, env, f"{where}[{i}]")) for i, t in enumerate(texts)]
+
+
+def _probe_points(model: TransferFunctionModel, n: int = 3, seed: int = 12345) -> np.ndarray:
+    """Generic parameter vectors (around the guesses) to tell structural zeros from accidental ones."""
+    rng = np.random.default_rng(seed)
+    base = np.array([p.value if p.value != 0 else 1.0 for p in model.parameters])
+    return base[None, :] * rng.uniform(0.5, 1.5, size=(n, base.size)) + rng.uniform(0.01, 0.1, (n, base.size))
+
+
+def compile_transfer_function(model: TransferFunctionModel) -> CompiledTransferFunction:
+    """Compile constraints and check the plant; loops are built per data set with `loop`."""
+    names = [p.name for p in model.parameters]
+    p = ca.SX.sym("p", len(names))
+    tf = CompiledTransferFunction(model, names, p, None, probe_points=_probe_points(model))
+    tf.check_plant()
+    if model.constraints:
+        env = tf._env({})
+        g, equality = [], []
+        for i, text in enumerate(model.constraints):
+            where = f"model.constraints[{i}]"
+            node = parse(text, where)
+            if node[0] != "cmp" or node[1] == "!=":
+                raise ModelDefinitionError(
+                    "a constraint is a comparison such as 'a1*a2 - a3 >= 0.01' (<=, >=, == allowed)", where)
+            unknown = names_in(node) - set(env) - {"pi", "e"}
+            if unknown:
+                raise ModelDefinitionError(f"unknown name '{sorted(unknown)[0]}'; constraints use parameters "
+                                           "and constants", where)
+            lhs, rhs = to_casadi(node[2], env, where), to_casadi(node[3], env, where)
+            g.append(lhs - rhs if node[1] in (">", ">=", "==") else rhs - lhs)
+            equality.append(node[1] == "==")
+        tf.constraint = ca.vertcat(*g)
+        tf.constraint_equality = np.array(equality, dtype=bool)
+    return tf

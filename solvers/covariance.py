@@ -104,11 +104,18 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     sc = scale[cols]
     npar = len(names)
     cov = (cov_scaled * np.outer(sc, sc))[:npar, :npar]
+    if not (np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)):
+        return CovarianceEstimate(names, None, {}, {}, "the covariance is numerically degenerate (a zero "
+                                  "or non-finite variance; the weights or scales differ by too many "
+                                  "orders of magnitude)", condition)
     stderr, ci = _intervals(cov, cols[:npar], labels, values, level, dof)
     if not robust or sample_keys is None:
         return CovarianceEstimate(names, cov, stderr, ci, None, condition)
     meat, bandwidth = hac_meat(j, residual, sample_keys, experiment_keys)
     hac = (inv @ meat @ inv * (ndata / dof) * np.outer(sc, sc))[:npar, :npar]
+    if not (np.all(np.isfinite(hac)) and np.all(np.diag(hac) > 0)):
+        return CovarianceEstimate(names, cov, stderr, ci, "the robust covariance is degenerate; the "
+                                  "classical one is reported", condition)
     r_stderr, r_ci = _intervals(hac, cols[:npar], labels, values, level, dof)
     note = (f"stderr, ci95 and covariance are HAC (Newey-West, Bartlett kernel, bandwidth "
             f"{bandwidth:.1f} samples) because the residual is not white; covariance_classical and "

@@ -49,9 +49,6 @@ class FitOptions(BaseModel):
     derivative_order: int = Field(default=3, ge=2, le=6, description="Savitzky-Golay polynomial order")
     return_traces: bool = Field(default=False, description="include simulated outputs and residuals")
     confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
-    profile: list[Name] = Field(
-        default_factory=list, max_length=20,
-        description="parameters to get profile-likelihood intervals for (each costs ~20 re-fits)")
     robust_covariance: Literal["auto", "always", "never"] = Field(
         default="auto",
         description="HAC (Newey-West) covariance: when the whiteness test fails (auto), always, never")
@@ -88,9 +85,6 @@ class ParameterEstimate(BaseModel):
     stderr_classical: Optional[float] = Field(
         default=None, description="sigma^2 (J^T J)^-1 standard error; equals stderr unless the "
         "robust (HAC) covariance is reported")
-    profile_ci: Optional[tuple[Optional[float], Optional[float]]] = Field(
-        default=None, description="profile-likelihood interval (options.profile); null end: not "
-        "reached inside the bounds")
 
 
 class CovariancePublic(BaseModel):

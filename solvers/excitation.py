@@ -54,34 +54,50 @@ def _mentions(combination: str, label: str) -> bool:
 def persistent_excitation_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
     """Largest n whose n×n (non-centred) autocovariance matrix of u is well conditioned.
 
+    Lags are `len(u) // (4 max_order)` samples apart, so the order describes the record, not
+    the sampling rate.
+
     A constant input has order 1 (it excites the static gain only); a sinusoid 2; an n-th order
     linear system needs an input of order 2n to be identified from steady excitation (seed 003).
     """
     n = u.size
     if n < 2 * max_order or not np.any(u):
         return 0 if not np.any(u) else 1
-    r = np.array([float(u[k:] @ u[:n - k]) / n for k in range(max_order)])
+    # lags spaced over a quarter of the record: at fine sampling, neighbouring samples of any
+    # smooth input are nearly equal, which would make every slow input look "constant"
+    spacing = max(1, n // (4 * max_order))
+    rows = n - (max_order - 1) * spacing
+    lagged = np.column_stack([u[(max_order - 1 - k) * spacing:][:rows] for k in range(max_order)])
     order = 0
     for m in range(1, max_order + 1):
-        idx = np.abs(np.subtract.outer(np.arange(m), np.arange(m)))
-        eig = np.linalg.eigvalsh(r[idx])
+        gram = lagged[:, :m].T @ lagged[:, :m] / rows   # positive semidefinite by construction
+        eig = np.linalg.eigvalsh(gram)
         if eig[0] <= PE_RATIO * eig[-1]:
             break
         order = m
     return order
 
 
-def input_warnings(inputs: dict[str, list[np.ndarray]], interpolation: str) -> list[FitWarning]:
-    """Constant inputs (order-1 excitation) and inputs rougher than the sampling resolves."""
+def input_warnings(inputs: dict[str, list[np.ndarray]], interpolation: str,
+                   coupled: dict[str, list[str]] | None = None) -> list[FitWarning]:
+    """Constant inputs (order-1 excitation) and inputs rougher than the sampling resolves.
+
+    `coupled` names, per input, the free parameters that act on it (∂²f/∂u∂p ≠ 0): those an
+    input of low order leaves poorly determined.
+    """
     out = []
     for name, series in inputs.items():
         orders = [persistent_excitation_order(u) for u in series]
         if max(orders, default=0) <= 1:
+            params = (coupled or {}).get(name, [])
             out.append(FitWarning(
                 code="input_not_exciting",
-                message=f"input '{name}' is constant (persistent excitation of order "
-                        f"{max(orders, default=0)}): it reveals static gains only, not time constants",
-                detail={"input": name, "pe_order": orders}))
+                message=f"input '{name}' has persistent excitation of order {max(orders, default=0)} "
+                        "(constant, or one step early in the record): it reveals static gains, "
+                        "hardly time constants" + (f"; poorly determined: {', '.join(params)}" if params
+                                                   else "")
+                        + "; add steps and sinusoids of several frequencies",
+                detail={"input": name, "pe_order": orders, "parameters": params}))
         rough = max((_roughness(u) for u in series), default=0.0)
         if interpolation == "foh" and rough > ROUGH_INPUT:
             out.append(FitWarning(

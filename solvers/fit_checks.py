@@ -31,7 +31,21 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
         labels = list(layout.labels) + oem.x0_labels()
     inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
-    return information_warnings(jac, labels) + input_warnings(inputs, options.input_interpolation)
+    return information_warnings(jac, labels) + input_warnings(inputs, options.input_interpolation,
+                                                              input_parameters(cm, layout))
+
+
+def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
+    """Per input, the free parameters that act on it in some equation (∂²f/∂u∂p ≠ 0)."""
+    x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    f = cm.rhs(x, u, p, t)
+    free = set(layout.base_names)
+    out = {}
+    for k, name in enumerate(cm.inputs):
+        cross = ca.jacobian(ca.jacobian(f, u[k]), p)
+        _, cols = cross.sparsity().get_triplet()
+        out[name] = sorted({cm.parameters[j] for j in cols} & free)
+    return out
 
 
 def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,

@@ -26,7 +26,7 @@ GAP_RATIO = 2.0              # simulated cost vs the multiple-shooting optimum
 STATE_RATIO = 1e3            # fitted state magnitude vs the simulation at the initial guess
 NEAR_SINGULAR = 1e8          # condition of the equilibrated information matrix
 FLAT_RELATIVE = 1e-6         # cost change for a 100 % step along a direction, relative to the cost
-FAR_FROM_WHITE = 0.8         # residual autocorrelation at some lag
+FAR_FROM_WHITE = 0.95        # residual autocorrelation at some lag
 NEGLIGIBLE_FIT = 99.0        # fit % above which the residual's colour does not matter
 
 

@@ -31,10 +31,10 @@ def null_directions(eigval: np.ndarray, eigvec: np.ndarray, labels: list[str],
                     limit: float = CONDITION_LIMIT) -> list[str]:
     """Every eigen-direction whose eigenvalue is below λmax/limit, as a named combination."""
     top = max(float(eigval[-1]), 1e-300)
-    return [_combination(eigvec[:, k], labels) for k in range(eigval.size) if eigval[k] <= top / limit]
+    return [combination(eigvec[:, k], labels) for k in range(eigval.size) if eigval[k] <= top / limit]
 
 
-def _combination(vector: np.ndarray, labels: list[str]) -> str:
+def combination(vector: np.ndarray, labels: list[str]) -> str:
     order = np.argsort(-np.abs(vector))
     terms = [f"{vector[i]:+.2f}*{labels[i]}" for i in order if abs(vector[i]) > 0.1][:6]
     return " ".join(terms) if terms else labels[int(order[0])]

@@ -204,7 +204,11 @@ def fit_model(request: FitRequest) -> FitResult:
         covariance_classical=None if cov.classical is None else CovariancePublic(
             names=cov.names, matrix=cov.classical.tolist()),
         active_constraints=active_constraints(cm, layout, theta_s))
-    return assess_fit(result, _quality_inputs(result, outcome, request, cov, jac[:, keep], labels, keep,
+    # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
+    size = np.maximum(np.abs(values) / scale, 1.0)
+    params_kept = keep & (np.arange(keep.size) < layout.size)
+    return assess_fit(result, _quality_inputs(result, outcome, request, cov, (jac * size)[:, params_kept],
+                                              labels, params_kept,
                                               channels, oem, layout, theta_s, x0s, before, opts))
 
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from schemas.fit import FitResult, FitWarning
-from solvers.covariance import CovarianceEstimate, null_directions
+from solvers.covariance import CovarianceEstimate, combination, null_directions
 
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
@@ -148,7 +148,7 @@ def _curvature_warnings(q: QualityInputs) -> list[FitWarning]:
         floor = FLAT_RELATIVE * max(2 * q.cost, 1e-10 * max(float(eigval[-1]), 1e-300))
         flat = [k for k in range(eigval.size) if eigval[k] <= floor]
         if flat:
-            dirs = null_directions(eigval, eigvec, q.jac_labels, float(eigval[-1]) / floor)
+            dirs = [combination(eigvec[:, k], q.jac_labels) for k in flat]
             out.append(FitWarning(
                 code="flat_cost",
                 message="the cost hardly changes (relative < 1e-6) when these combinations change "

@@ -1,8 +1,9 @@
 """Fit request and the one documented fit result type (lmfit/scipy style)."""
 from __future__ import annotations
 
+import math
 from enum import Enum
-from typing import Literal, Optional
+from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator
 
@@ -12,6 +13,10 @@ from schemas.limits import MAX_EXPERIMENTS
 from schemas.model import Model, Name
 from schemas.preprocess import PreprocessingReport
 from schemas.validation import ValidationResult
+
+
+# A weight squared times the data squared must stay far from overflow (1e308).
+MIN_OUTPUT_WEIGHT, MAX_OUTPUT_WEIGHT = 1e-100, 1e100
 
 
 class FitMethod(str, Enum):
@@ -37,7 +42,8 @@ class FitOptions(BaseModel):
     max_cpu_time: float = Field(default=120.0, gt=0, le=86_400)
     tol: float = Field(default=1e-8, gt=0, lt=1)
     multistart: int = Field(default=1, ge=1, le=100, description="starts drawn inside the bounds; best kept")
-    seed: int = Field(default=0, description="random seed for multistart")
+    seed: int = Field(default=0, ge=0, le=2**63 - 1,
+                      description="random seed for multistart (a non-negative integer)")
     output_weights: dict[Name, float] = Field(
         default_factory=dict,
         description="weight per output; default 1/std of the measured output")
@@ -47,6 +53,20 @@ class FitOptions(BaseModel):
     derivative_order: int = Field(default=3, ge=2, le=6, description="Savitzky-Golay polynomial order")
     return_traces: bool = Field(default=False, description="include simulated outputs and residuals")
     confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
+    robust_covariance: Literal["auto", "always", "never"] = Field(
+        default="auto",
+        description="HAC (Newey-West) covariance: when the whiteness test fails (auto), always, never")
+
+    @field_validator("output_weights")
+    @classmethod
+    def _weights_are_positive_and_moderate(cls, weights: dict[str, float]) -> dict[str, float]:
+        for name, w in weights.items():
+            if not (math.isfinite(w) and MIN_OUTPUT_WEIGHT <= w <= MAX_OUTPUT_WEIGHT):
+                raise ValueError(
+                    f"output_weights.{name} = {w}: a weight must be a positive number between "
+                    f"{MIN_OUTPUT_WEIGHT:g} and {MAX_OUTPUT_WEIGHT:g} (only ratios matter; to leave an "
+                    "output out of the fit, leave its data out)")
+        return weights
 
 
 class FitRequest(BaseModel):
@@ -77,6 +97,9 @@ class ParameterEstimate(BaseModel):
     at_bound: Optional[Literal["lower", "upper"]] = None
     initial: float
     experiment: Optional[str] = Field(default=None, description="set for per_experiment copies")
+    stderr_classical: Optional[float] = Field(
+        default=None, description="sigma^2 (J^T J)^-1 standard error; equals stderr unless the "
+        "robust (HAC) covariance is reported")
 
 
 class CovariancePublic(BaseModel):
@@ -85,14 +108,17 @@ class CovariancePublic(BaseModel):
 
 
 class FitMetrics(BaseModel):
-    cost: float = Field(description="0.5 * sum of weighted squared residuals")
+    """Null where undefined: a failed simulation, or a constant measured signal (fit %)."""
+
+    cost: Optional[float] = Field(description="0.5 * sum of weighted squared residuals")
     ndata: int
     nfree: int
     nvarys: int
-    rmse: dict[str, float]
-    fit_percent: dict[str, float] = Field(description="NRMSE fit as MATLAB compare: 100(1-|y-ŷ|/|y-mean(y)|)")
-    aic: float
-    bic: float
+    rmse: dict[str, Optional[float]]
+    fit_percent: dict[str, Optional[float]] = Field(
+        description="NRMSE fit as MATLAB compare: 100(1-|y-ŷ|/|y-mean(y)|)")
+    aic: Optional[float] = None
+    bic: Optional[float] = None
 
 
 class SolverInfo(BaseModel):
@@ -116,8 +142,8 @@ class ResidualTest(BaseModel):
 
 class ResidualAnalysis(BaseModel):
     output: str
-    rmse: float
-    fit_percent: float
+    rmse: Optional[float]
+    fit_percent: Optional[float]
     autocorrelation: list[float]
     whiteness: ResidualTest
     cross_correlation: dict[str, list[float]] = Field(default_factory=dict)
@@ -127,8 +153,16 @@ class ResidualAnalysis(BaseModel):
 class ExperimentTrace(BaseModel):
     name: str
     time: list[float]
-    simulated: dict[str, list[float]]
+    simulated: dict[str, list[Optional[float]]]
     residuals: dict[str, list[Optional[float]]]
+
+
+class FitWarning(BaseModel):
+    """Something the user should know about the result; `code` is stable (README lists them)."""
+
+    code: str
+    message: str
+    detail: dict[str, Any] = Field(default_factory=dict)
 
 
 class FitResult(BaseModel):
@@ -151,3 +185,12 @@ class FitResult(BaseModel):
     preprocessing: Optional[PreprocessingReport] = Field(
         default=None, description="what each experiment's `preprocess` did, and hints about the data")
     frequency_response: Optional[FrequencyResponseResult] = None
+    warnings: list[FitWarning] = Field(
+        default_factory=list, description="checks before and after the fit; codes in the README")
+    quality: Literal["good", "suspect", "failed"] = Field(
+        default="good", description="good: converged and no warning that doubts the answer; "
+        "suspect: converged but a warning doubts it; failed: not converged or not finite")
+    covariance_classical: Optional[CovariancePublic] = Field(
+        default=None, description="sigma^2 (J^T J)^-1 when `covariance` holds the robust (HAC) one")
+    active_constraints: list[str] = Field(
+        default_factory=list, description="model.constraints that hold with equality at the solution")

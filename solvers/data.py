@@ -11,6 +11,10 @@ from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel
 
 
+# Beyond this, squares and sums of squares overflow double precision.
+MAX_ABS_VALUE = 1e100
+
+
 @dataclass
 class ExperimentData:
     """Arrays of one experiment; missing output samples are NaN and masked out."""
@@ -39,6 +43,10 @@ def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
     if bad:
         raise DataError(f"value at index {bad[0]} is {values[bad[0]]}; only finite numbers "
                         "(or null for a missing sample) are allowed", where)
+    huge = np.flatnonzero(np.abs(np.nan_to_num(arr)) > MAX_ABS_VALUE)
+    if huge.size:
+        raise DataError(f"value at index {int(huge[0])} is {values[int(huge[0])]:g}; magnitudes above "
+                        f"{MAX_ABS_VALUE:g} overflow when squared: change the units", where)
     if not allow_missing and np.isnan(arr).any():
         i = int(np.flatnonzero(np.isnan(arr))[0])
         raise DataError(f"missing value (null) at index {i}; inputs must be complete: "
@@ -53,6 +61,9 @@ def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> Experi
     if not np.all(np.isfinite(t)):
         i = int(np.flatnonzero(~np.isfinite(t))[0])
         raise DataError(f"time[{i}] is not a finite number", f"{base}.time")
+    if np.any(np.abs(t) > MAX_ABS_VALUE):
+        i = int(np.flatnonzero(np.abs(t) > MAX_ABS_VALUE)[0])
+        raise DataError(f"time[{i}] = {t[i]:g} is too large; change the time unit or origin", f"{base}.time")
     steps = np.diff(t)
     if np.any(steps <= 0):
         i = int(np.flatnonzero(steps <= 0)[0])
@@ -88,8 +99,9 @@ def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> Experi
         if name not in cm.states:
             raise DataError(f"'{name}' is not a state (states: {cm.states})",
                             f"{base}.initial_state.{name}")
-        if not math.isfinite(value):
-            raise DataError("must be a finite number", f"{base}.initial_state.{name}")
+        if not math.isfinite(value) or abs(value) > MAX_ABS_VALUE:
+            raise DataError(f"must be a finite number of magnitude at most {MAX_ABS_VALUE:g}",
+                            f"{base}.initial_state.{name}")
         x0[cm.states.index(name)] = float(value)
 
     derivatives = {}

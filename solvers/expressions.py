@@ -156,7 +156,10 @@ class _Parser:
     def atom(self) -> Node:
         tok = self.take()
         if tok.kind == "num":
-            return ("num", float(tok.text))
+            value = float(tok.text)
+            if not math.isfinite(value):
+                raise self.fail(f"number {tok.text} is too large for double precision", tok)
+            return ("num", value)
         if tok.kind == "name":
             if self.peek().text == "(":
                 return self.call(tok)
@@ -193,35 +196,62 @@ def parse(text: str, where: str) -> Node:
     return _Parser(text, where).parse()
 
 
-def names_in(node: Node) -> set[str]:
+def _children(node: Node) -> tuple:
     kind = node[0]
-    if kind == "name":
-        return {node[1]}
-    if kind == "num":
-        return set()
+    if kind in ("num", "name"):
+        return ()
     if kind == "neg":
-        return names_in(node[1])
+        return (node[1],)
     if kind in ("bin", "cmp"):
-        return names_in(node[2]) | names_in(node[3])
-    return set().union(*(names_in(a) for a in node[2]))
+        return (node[2], node[3])
+    return tuple(node[2])
 
 
-def to_casadi(node: Node, env: Mapping[str, object], where: str):
-    """Build the CasADi expression of `node` with names looked up in `env`."""
+def _postorder(node: Node, combine: Callable):
+    """`combine(node, child_results)` bottom-up with an explicit stack.
+
+    Sums and products of many terms parse to left-deep trees (a 1000-term chain is 1000 levels
+    deep); walking them recursively would exhaust Python's recursion limit.
+    """
+    stack: list[tuple[Node, bool]] = [(node, False)]
+    results: list = []
+    while stack:
+        current, expanded = stack.pop()
+        kids = _children(current)
+        if expanded or not kids:
+            k = len(kids)
+            args = results[len(results) - k:] if k else []
+            if k:
+                del results[len(results) - k:]
+            results.append(combine(current, args))
+        else:
+            stack.append((current, True))
+            stack.extend((child, False) for child in reversed(kids))
+    return results[0]
+
+
+def names_in(node: Node) -> set[str]:
+    found: set[str] = set()
+    stack = [node]
+    while stack:
+        current = stack.pop()
+        if current[0] == "name":
+            found.add(current[1])
+        stack.extend(_children(current))
+    return found
+
+
+def _is_number(value) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+def _apply(node: Node, args: list):
+    """The CasADi operation of one node on already compiled arguments."""
     kind = node[0]
-    if kind == "num":
-        return node[1]
-    if kind == "name":
-        name = node[1]
-        if name in env:
-            return env[name]
-        if name in CONSTANTS:
-            return CONSTANTS[name]
-        raise ModelDefinitionError(f"unknown name '{name}' at column {node[2]}", where)
     if kind == "neg":
-        return -to_casadi(node[1], env, where)
+        return -args[0]
     if kind == "bin":
-        a, b = to_casadi(node[2], env, where), to_casadi(node[3], env, where)
+        a, b = args
         op = node[1]
         if op == "+":
             return a + b
@@ -233,15 +263,53 @@ def to_casadi(node: Node, env: Mapping[str, object], where: str):
             return a / b
         return a ** b
     if kind == "cmp":
-        a, b = to_casadi(node[2], env, where), to_casadi(node[3], env, where)
+        a, b = args
         return {"<": a < b, "<=": a <= b, ">": a > b, ">=": a >= b,
                 "==": a == b, "!=": a != b}[node[1]]
-    fname, args = node[1], [to_casadi(a, env, where) for a in node[2]]
+    fname = node[1]
     if fname in _UNARY:
         return _UNARY[fname](args[0])
     if fname in _BINARY:
         return _BINARY[fname](args[0], args[1])
     return ca.if_else(args[0], args[1], args[2])
+
+
+def _fold(node: Node, args: list, where: str) -> float:
+    """Evaluate a node whose arguments are all numbers, in IEEE arithmetic (CasADi DM).
+
+    Python floats raise on 1/0 and 1e308**2 and turn (-1)**0.5 complex; DM gives inf/NaN, which
+    is refused here: a constant that is not a finite real number is a modelling error.
+    """
+    value = float(_apply(node, [ca.DM(a) for a in args]))
+    if not math.isfinite(value):
+        what = "not a real number" if math.isnan(value) else "infinite"
+        raise ModelDefinitionError(
+            f"the constant part '{unparse(node)}' is {what} (it evaluates to {value}); "
+            "check divisions by zero, overflowing powers and roots of negative numbers", where)
+    return value
+
+
+def to_casadi(node: Node, env: Mapping[str, object], where: str):
+    """Build the CasADi expression of `node` with names looked up in `env`.
+
+    Sub-expressions of numbers only are folded to numbers (and refused if not finite and real).
+    """
+    def combine(current: Node, args: list):
+        kind = current[0]
+        if kind == "num":
+            return current[1]
+        if kind == "name":
+            name = current[1]
+            if name in env:
+                return env[name]
+            if name in CONSTANTS:
+                return CONSTANTS[name]
+            raise ModelDefinitionError(f"unknown name '{name}' at column {current[2]}", where)
+        if all(_is_number(a) for a in args):
+            return _fold(current, args, where)
+        return _apply(current, args)
+
+    return _postorder(node, combine)
 
 
 def compile_expression(text: str, env: Mapping[str, object], where: str):
@@ -252,42 +320,55 @@ def compile_expression(text: str, env: Mapping[str, object], where: str):
 _PRECEDENCE = {"cmp": 1, "+": 2, "-": 2, "*": 3, "/": 3, "neg": 4, "^": 5}
 
 
+def _precedence(node: Node) -> int:
+    kind = node[0]
+    if kind in ("bin", "cmp"):
+        return _PRECEDENCE["cmp" if kind == "cmp" else node[1]]
+    return _PRECEDENCE["neg"] if kind == "neg" else 99
+
+
+def _number_text(value: float) -> str:
+    return repr(value) if value != int(value) or abs(value) >= 1e15 else str(int(value))
+
+
 def unparse(node: Node) -> str:
     """AST back to grammar text (parenthesised where precedence needs it)."""
-    kind = node[0]
-    if kind == "num":
-        return repr(node[1]) if node[1] != int(node[1]) or abs(node[1]) >= 1e15 else str(int(node[1]))
-    if kind == "name":
-        return node[1]
-    if kind == "neg":
-        return f"-{_wrap(node[1], _PRECEDENCE['neg'])}"
-    if kind == "call":
-        return f"{node[1]}({', '.join(unparse(a) for a in node[2])})"
-    op = node[1]
-    prec = _PRECEDENCE["cmp" if kind == "cmp" else op]
-    if op == "^":   # right associative
-        return f"{_wrap(node[2], prec + 1)}^{_wrap(node[3], prec)}"
-    right_prec = prec + 1 if op in ("-", "/") or kind == "cmp" else prec
-    return f"{_wrap(node[2], prec)} {op} {_wrap(node[3], right_prec)}"
+    def wrap(child: Node, text: str, prec: int) -> str:
+        return f"({text})" if _precedence(child) < prec else text
 
+    def combine(current: Node, texts: list[str]) -> str:
+        kind = current[0]
+        if kind == "num":
+            return _number_text(current[1])
+        if kind == "name":
+            return current[1]
+        kids = _children(current)
+        if kind == "neg":
+            return f"-{wrap(kids[0], texts[0], _PRECEDENCE['neg'])}"
+        if kind == "call":
+            return f"{current[1]}({', '.join(texts)})"
+        op = current[1]
+        prec = _precedence(current)
+        if op == "^":   # right associative
+            return f"{wrap(kids[0], texts[0], prec + 1)}^{wrap(kids[1], texts[1], prec)}"
+        right_prec = prec + 1 if op in ("-", "/") or kind == "cmp" else prec
+        return f"{wrap(kids[0], texts[0], prec)} {op} {wrap(kids[1], texts[1], right_prec)}"
 
-def _wrap(node: Node, prec: int) -> str:
-    kind = node[0]
-    mine = _PRECEDENCE["cmp" if kind == "cmp" else node[1]] if kind in ("bin", "cmp") else \
-        _PRECEDENCE["neg"] if kind == "neg" else 99
-    text = unparse(node)
-    return f"({text})" if mine < prec else text
+    return _postorder(node, combine)
 
 
 def substitute(node: Node, name: str, replacement: Node) -> Node:
     """Replace every occurrence of the name `name` by the AST `replacement`."""
-    kind = node[0]
-    if kind == "name":
-        return replacement if node[1] == name else node
-    if kind == "num":
-        return node
-    if kind == "neg":
-        return ("neg", substitute(node[1], name, replacement))
-    if kind in ("bin", "cmp"):
-        return (kind, node[1], substitute(node[2], name, replacement), substitute(node[3], name, replacement))
-    return ("call", node[1], [substitute(a, name, replacement) for a in node[2]], node[3])
+    def combine(current: Node, kids: list) -> Node:
+        kind = current[0]
+        if kind == "name":
+            return replacement if current[1] == name else current
+        if kind == "num":
+            return current
+        if kind == "neg":
+            return ("neg", kids[0])
+        if kind in ("bin", "cmp"):
+            return (kind, current[1], kids[0], kids[1])
+        return ("call", current[1], list(kids), current[3])
+
+    return _postorder(node, combine)

@@ -16,6 +16,9 @@ from solvers.diagnostics import residual_analysis
 from solvers.equation_error import EquationErrorProblem, build_equation_error
 from solvers.errors import DataError
 from solvers.fixed_fit import fixed_parameter_result
+from solvers.fit_checks import (
+    active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
+)
 from solvers.model_compiler import CompiledModel, compile_model
 from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
@@ -23,6 +26,7 @@ from solvers.preprocess import prepare_request
 from solvers.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
+from solvers.quality import QualityInputs, assess_fit
 from solvers.statistics import information_criteria
 from solvers.validate import validate_fit
 
@@ -35,6 +39,7 @@ class Residuals:
 
     channels: list[str]
     per_experiment: list[tuple[np.ndarray, np.ndarray]]  # (measured, residual), each (nch, N)
+    states: list[np.ndarray] | None = None   # simulated states per experiment (output error)
 
 
 def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
@@ -118,12 +123,17 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     if request.method == FitMethod.equation_error:
         eep = build_equation_error(cm, data, layout, opts)
         problem = eep.problem
-        outcome, n_starts = _solve(problem, opts, starts, eep.linear)
     else:
         oem = OutputErrorModel(cm, data, layout, opts)
         build = build_single_shooting if request.method == FitMethod.single_shooting else build_multiple_shooting
         problem = build(oem)
+    before = pre_fit_warnings(cm, data, layout, opts, problem, eep, oem)
+    if eep is not None:
+        outcome, n_starts = _solve(problem, opts, starts, eep.linear)
+    else:
         outcome, n_starts = _solve(problem, opts, starts, False)
+    if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
+        outcome.w, outcome.success = problem.initial_guess(layout.initial), False
 
     theta_s = outcome.w[:layout.size]
     theta = layout.physical(theta_s)
@@ -147,8 +157,6 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         n_extra = len(x0_free)
         jac, res, groups = sensitivity_jacobian(oem, theta_s, x0s)
     keep = np.array([b is None for b in bounds] + [True] * n_extra)
-    cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level,
-                              groups=groups)
 
     ndata = res.size
     nvarys = int(keep.sum())
@@ -164,12 +172,19 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         analysis = residual_analysis(name, segments)
         analyses.append(analysis)
         rmse[name], fitp[name] = analysis.rmse, analysis.fit_percent
+    white = all(a.whiteness.passed or not a.whiteness.lags for a in analyses)
+    robust = opts.robust_covariance == "always" or (opts.robust_covariance == "auto" and not white)
+    sample_keys, experiment_keys = row_keys(data, eep, cm)
+    cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level,
+                              groups=groups, sample_keys=sample_keys, experiment_keys=experiment_keys,
+                              robust=robust)
 
     params: dict[str, ParameterEstimate] = {}
     for i, label in enumerate(layout.labels):
         params[label] = ParameterEstimate(
             value=float(theta[i]), stderr=cov.stderr.get(label), ci95=cov.ci.get(label),
-            at_bound=bounds[i], initial=float(layout.initial[i]), experiment=layout.experiment[i])
+            at_bound=bounds[i], initial=float(layout.initial[i]), experiment=layout.experiment[i],
+            stderr_classical=cov.classical_stderr.get(label, cov.stderr.get(label)))
     for name, value in layout.fixed.items():
         params[name] = ParameterEstimate(value=value, fixed=True, initial=value)
 
@@ -188,7 +203,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
             residuals={ch: [None if not np.isfinite(v) else float(v) for v in r[c]]
                        for c, ch in enumerate(channels.channels)})
             for d, (meas, r) in zip(data, channels.per_experiment)]
-    return FitResult(
+    result = FitResult(
         success=outcome.success, status="success" if outcome.success else "failed",
         message=_message(outcome.status), parameters=params,
         covariance=covariance, covariance_note=cov.note, correlation=correlation,
@@ -200,7 +215,37 @@ def _fit_prepared(request: FitRequest) -> FitResult:
                           starts=n_starts,
                           derivative_filter=eep.derivative_filter if eep else None,
                           linear_in_parameters=eep.linear if eep else None),
-        residual_analysis=analyses, traces=traces)
+        residual_analysis=analyses, traces=traces,
+        covariance_classical=None if cov.classical is None else CovariancePublic(
+            names=cov.names, matrix=cov.classical.tolist()),
+        active_constraints=active_constraints(cm, layout, theta_s))
+    # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
+    size = np.maximum(np.abs(values) / scale, 1.0)
+    params_kept = keep & (np.arange(keep.size) < layout.size)
+    return assess_fit(result, _quality_inputs(result, outcome, request, cov, (jac * size)[:, params_kept],
+                                              labels, params_kept,
+                                              channels, oem, layout, theta_s, x0s, before, opts))
+
+
+def _quality_inputs(result, outcome, request, cov, jac, labels, keep, channels, oem, layout, theta_s,
+                    x0s, before, opts) -> QualityInputs:
+    """Collect what `solvers.quality` checks; state sizes and step size only for output error."""
+    fitted = guess = None
+    if oem is not None and channels.states is not None:
+        fitted, guess = state_peaks(oem, channels.states, layout.initial)
+        before = before + fastest_rate_warning(oem.cm, oem.data, layout, theta_s, channels.states, opts)
+    failures = list(oem.simulation_failures) if oem is not None else []
+    signed = {lab for i, lab in enumerate(layout.labels)
+              if layout.lower[i] >= 0 or layout.upper[i] <= 0}
+    return QualityInputs(
+        converged=outcome.success, status=outcome.status, cost=result.metrics.cost if
+        result.metrics.cost is not None else float("nan"), nlp_cost=outcome.cost,
+        method=request.method.value, covariance=cov, jac=jac,
+        jac_labels=[lab for lab, k in zip(labels, keep) if k],
+        measured={ch: [m[c] for m, _ in channels.per_experiment] for c, ch in enumerate(channels.channels)},
+        fitted_state_peak=fitted, guess_state_peak=guess, state_names=list(request.model.states),
+        simulation_failures=failures, before=before, active_constraints=result.active_constraints,
+        sign_constrained=signed)
 
 
 def _message(status: str) -> str:
@@ -236,4 +281,4 @@ def _residuals(cm: CompiledModel, data: list[ExperimentData], eep, oem, theta, x
         return Residuals([f"der({cm.states[i]})" for i in eep.equations], per)
     sims = oem.simulate(theta, [np.array([x0s[e][s] for s in cm.states]) for e in range(len(data))])
     per = [(d.y, ys - d.y) for d, (_, ys) in zip(data, sims)]
-    return Residuals(list(cm.outputs), per)
+    return Residuals(list(cm.outputs), per, [xs for xs, _ in sims])

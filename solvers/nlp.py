@@ -55,7 +55,12 @@ class LeastSquaresSolver:
         lbw, ubw = p.lbw, p.ubw
         w0 = np.clip(w0, lbw, ubw)
         start = time.perf_counter()
-        sol = self.solver(x0=w0, lbx=lbw, ubx=ubw, lbg=p.lbg, ubg=p.ubg)
+        try:
+            sol = self.solver(x0=w0, lbx=lbw, ubx=ubw, lbg=p.lbg, ubg=p.ubg)
+        except RuntimeError as exc:   # e.g. CVODES cannot integrate at the start point
+            reason = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "error"
+            return NlpOutcome(w0, float("nan"), f"Evaluation_Failed: {reason}", False, 0,
+                              time.perf_counter() - start)
         stats = self.solver.stats()
         w = np.array(sol["x"]).ravel()
         status = str(stats.get("return_status", "unknown"))

@@ -10,8 +10,13 @@ import numpy as np
 
 from schemas.fit import FitOptions
 from solvers.data import ExperimentData
+from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
+
+
+# weighted residuals beyond this overflow when squared and summed
+WEIGHTED_LIMIT = 1e100
 
 
 @dataclass
@@ -67,10 +72,15 @@ def output_weights(cm: CompiledModel, data: list[ExperimentData], options: FitOp
     """Weight per output: user value, else 1/std of the measured output over all experiments."""
     w = np.ones(cm.ny)
     for j, name in enumerate(cm.outputs):
+        values = np.concatenate([d.y[j][np.isfinite(d.y[j])] for d in data])
         if name in options.output_weights:
             w[j] = options.output_weights[name]
+            peak = w[j] * float(np.max(np.abs(values), initial=0.0))
+            if peak > WEIGHTED_LIMIT:
+                raise DataError(f"the weighted output reaches {peak:.1e}, its squares overflow; use a "
+                                "smaller weight (only the ratios between outputs matter)",
+                                f"options.output_weights.{name}")
             continue
-        values = np.concatenate([d.y[j][np.isfinite(d.y[j])] for d in data])
         sd = float(np.std(values)) if values.size > 1 else 0.0
         w[j] = 1.0 / sd if sd > 0 else 1.0
     return w

@@ -31,6 +31,7 @@ class OutputErrorModel:
         self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
         self._sims: dict[int, ca.Function] = {}
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
+        self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
         """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once."""
@@ -63,6 +64,19 @@ class OutputErrorModel:
         u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
         xs = self.simulator(d.n - 1)(x0, u0, u1, ca.repmat(p, 1, d.n - 1), t0, dt)
         return ca.horzcat(x0, xs)
+
+    def numeric_trajectory(self, e: int, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """`trajectory` for numbers; NaN (and the reason kept) when the integrator fails.
+
+        CVODES raises when it cannot take a step (a stiff or diverging model); a fit that reaches
+        such a point must end as a result that says so, not as an exception.
+        """
+        try:
+            return np.array(self.trajectory(e, x0, p))
+        except RuntimeError as exc:
+            self.simulation_failures.append(
+                f"the simulation of experiment '{self.data[e].name}' failed ({_first_line(exc)})")
+            return np.full((self.cm.nx, self.data[e].n), np.nan)
 
     def outputs_of(self, e: int, states, p):
         d = self.data[e]
@@ -122,10 +136,15 @@ class OutputErrorModel:
         theta_s = theta_phys / self.layout.scale
         for e in range(len(self.data)):
             p = self.layout.full(e, theta_s)
-            xs = np.array(self.trajectory(e, x0s[e], p))
+            xs = self.numeric_trajectory(e, np.asarray(x0s[e], dtype=float), np.asarray(p, dtype=float))
             ys = np.array(self.outputs_of(e, xs, p))
             out.append((xs, ys))
         return out
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:200] if text else type(exc).__name__
 
 
 def _x0_reader(oem: OutputErrorModel, offset: int, stride_of):
@@ -265,10 +284,15 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
     for e, d in enumerate(oem.data):
         p = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
         x0 = np.array([x0s[e][s] for s in cm.states])
-        states = np.array(oem.trajectory(e, x0, p))
+        states = oem.numeric_trajectory(e, x0, p)
         n = d.n
         u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
-        _, a, b = step_sens.map(n - 1)(states[:, :-1], u0, u1, np.repeat(p[:, None], n - 1, 1), t0, dt)
+        try:
+            _, a, b = step_sens.map(n - 1)(states[:, :-1], u0, u1, np.repeat(p[:, None], n - 1, 1), t0, dt)
+        except RuntimeError as exc:   # the integrator's sensitivities failed: no Jacobian
+            oem.simulation_failures.append(f"sensitivities of experiment '{d.name}' failed ({_first_line(exc)})")
+            nan = np.full((cm.nx, (n - 1) * cm.nx), np.nan)
+            a, b = nan, np.full((cm.nx, (n - 1) * cm.np), np.nan)
         a = np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2)
         b = np.array(b).reshape(cm.nx, n - 1, cm.np).transpose(1, 0, 2) @ layout.matrix[e]
         y, hx, hp = out_sens.map(n)(states, d.u, np.repeat(p[:, None], n, 1), d.t[None, :])

@@ -1,0 +1,114 @@
+"""The pieces `fit_model` hands to the trust checks: excitation at the start, row keys for the
+robust covariance, active constraints, state sizes. Kept here so `fit_model` stays an outline."""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from schemas.fit import FitOptions, FitWarning
+from solvers.data import ExperimentData
+from solvers.equation_error import EquationErrorProblem
+from solvers.excitation import information_warnings, input_warnings, step_size_warning
+from solvers.model_compiler import CompiledModel
+from solvers.parameters import ParameterLayout
+from solvers.shooting import OutputErrorModel, sensitivity_jacobian
+
+ACTIVE_TOLERANCE = 1e-6
+
+
+def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+                     options: FitOptions, problem, eep: EquationErrorProblem | None,
+                     oem: OutputErrorModel | None) -> list[FitWarning]:
+    """Excitation of the parameters at the initial guess and of every input (before solving)."""
+    theta_s = layout.initial / layout.scale
+    if eep is not None:
+        jac, _ = problem.evaluate_jacobian(problem.initial_guess(layout.initial))
+        labels = list(layout.labels)
+    else:
+        x0s = [dict(zip(cm.states, oem.x0_guess(e))) for e in range(len(data))]
+        failures = len(oem.simulation_failures)
+        jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
+        del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
+        labels = list(layout.labels) + oem.x0_labels()
+    inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
+    return information_warnings(jac, labels) + input_warnings(inputs, options.input_interpolation,
+                                                              input_parameters(cm, layout))
+
+
+def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
+    """Per input, the free parameters that act on it in some equation (∂²f/∂u∂p ≠ 0)."""
+    x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    f = cm.rhs(x, u, p, t)
+    free = set(layout.base_names)
+    out = {}
+    for k, name in enumerate(cm.inputs):
+        cross = ca.jacobian(ca.jacobian(f, u[k]), p)
+        _, cols = cross.sparsity().get_triplet()
+        out[name] = sorted({cm.parameters[j] for j in cols} & free)
+    return out
+
+
+def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+                         theta_s: np.ndarray, states: list[np.ndarray], options: FitOptions) -> list[FitWarning]:
+    """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
+    if options.integrator != "rk4":
+        return []
+    x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    jac_fn = ca.Function("dfdx", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])
+    rate, dt = 0.0, np.inf
+    for e, d in enumerate(data):
+        pe = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
+        xs = states[e]
+        for k in np.linspace(0, d.n - 1, min(d.n, 20)).astype(int):
+            if not np.all(np.isfinite(xs[:, k])):
+                continue
+            a = np.array(jac_fn(xs[:, k], d.u[:, k], pe, d.t[k]))
+            if np.all(np.isfinite(a)):
+                rate = max(rate, float(np.max(np.abs(np.linalg.eigvals(a)))))
+        dt = min(dt, float(np.median(np.diff(d.t))))
+    return step_size_warning(rate, dt, options.substeps, options.integrator)
+
+
+def row_keys(data: list[ExperimentData], eep: EquationErrorProblem | None,
+             cm: CompiledModel) -> tuple[np.ndarray, np.ndarray]:
+    """(sample key, experiment) of every residual row, in the order of the covariance Jacobian."""
+    keys, exps, base = [], [], 0
+    for e, d in enumerate(data):
+        if eep is not None:
+            samples = np.repeat(eep.per_experiment[e].rows, len(eep.equations))
+        else:
+            samples = np.nonzero(d.mask.T)[0]   # sample-major, measured entries only
+        keys.append(base + samples)
+        exps.append(np.full(samples.size, e))
+        base += d.n
+    return np.concatenate(keys), np.concatenate(exps)
+
+
+def active_constraints(cm: CompiledModel, layout: ParameterLayout, theta_s: np.ndarray) -> list[str]:
+    """User constraints (inequalities) that hold with equality at the solution."""
+    if cm.constraint is None:
+        return []
+    texts = list(cm.model.constraints)
+    active = set()
+    for e in range(len(layout.matrix)):
+        g = np.array(cm.constraint(layout.full(e, theta_s))).ravel()
+        for i, value in enumerate(g):
+            if not cm.constraint_equality[i] and abs(value) <= ACTIVE_TOLERANCE * max(1.0, _size(cm, layout, e, theta_s)):
+                active.add(i)
+    return [texts[i] for i in sorted(active)]
+
+
+def _size(cm: CompiledModel, layout: ParameterLayout, e: int, theta_s: np.ndarray) -> float:
+    return float(np.max(np.abs(np.asarray(layout.full(e, theta_s), dtype=float)), initial=1.0))
+
+
+def state_peaks(oem: OutputErrorModel, states: list[np.ndarray], theta_guess: np.ndarray):
+    """(max |x| per state at the solution, the same for a simulation at the initial guess)."""
+    fitted = np.max(np.abs(np.hstack(states)), axis=1)
+    failures = len(oem.simulation_failures)
+    sims = oem.simulate(theta_guess, [oem.x0_guess(e) for e in range(len(oem.data))])
+    del oem.simulation_failures[failures:]
+    peaks = np.abs(np.hstack([s for s, _ in sims]))
+    guess = np.where(np.isfinite(peaks).all(axis=1), np.max(np.where(np.isfinite(peaks), peaks, 0), axis=1),
+                     np.inf)   # a diverged simulation at the guess gives no reference
+    return fitted, np.maximum(guess, oem.xscale)

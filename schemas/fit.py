@@ -9,12 +9,15 @@ from pydantic import BaseModel, ConfigDict, Field
 from schemas.experiment import Experiment
 from schemas.limits import MAX_EXPERIMENTS
 from schemas.model import Model, Name
+from schemas.online import MrasOptions, ParameterTrajectory, Prefilter, RlsOptions
 
 
 class FitMethod(str, Enum):
     equation_error = "equation_error"
     single_shooting = "single_shooting"
     multiple_shooting = "multiple_shooting"
+    recursive_least_squares = "recursive_least_squares"
+    mras = "mras"
 
 
 class FitOptions(BaseModel):
@@ -43,6 +46,10 @@ class FitOptions(BaseModel):
     derivative_order: int = Field(default=3, ge=2, le=6, description="Savitzky-Golay polynomial order")
     return_traces: bool = Field(default=False, description="include simulated outputs and residuals")
     confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
+    rls: RlsOptions = Field(default_factory=RlsOptions, description="method recursive_least_squares")
+    mras: MrasOptions = Field(default_factory=MrasOptions, description="method mras")
+    prefilter: Optional[Prefilter] = Field(
+        default=None, description="same low-pass on both sides of the equation (equation_error, RLS)")
 
 
 class FitRequest(BaseModel):
@@ -131,3 +138,5 @@ class FitResult(BaseModel):
     solver: SolverInfo
     residual_analysis: list[ResidualAnalysis] = Field(default_factory=list)
     traces: Optional[list[ExperimentTrace]] = None
+    trajectory: Optional[ParameterTrajectory] = Field(
+        default=None, description="θ(t) ± 2σ: online estimators and time-varying parameters")

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_vali
 from schemas.limits import (
     MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
 )
+from schemas.online import ArxTemplate, DiscreteTime, TimeVarying, expand_arx_template
 
 Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
 Expression = Annotated[str, StringConstraints(min_length=1, max_length=MAX_EXPRESSION_LENGTH)]
@@ -28,6 +29,8 @@ class Parameter(BaseModel):
     fixed: bool = False
     per_experiment: bool = False
     unit: Optional[str] = Field(default=None, max_length=32)
+    time_varying: Optional[TimeVarying] = Field(
+        default=None, description="estimate θ(t) (piecewise constant/linear) in batch fits")
 
     @model_validator(mode="after")
     def _bounds_hold_the_guess(self) -> "Parameter":
@@ -58,6 +61,17 @@ class Model(BaseModel):
     equations: dict[Name, Expression]
     outputs: Optional[dict[Name, Expression]] = None
     constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS)
+    discrete: Optional[DiscreteTime] = Field(
+        default=None, description="difference equations: equations[x] is x[k+1]")
+    template: Optional[ArxTemplate] = Field(
+        default=None, description="ARX template expanded into states/equations (needs discrete)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _expand_template(cls, data):
+        if isinstance(data, dict) and data.get("template") is not None and not data.get("states"):
+            return expand_arx_template(data)
+        return data
 
     @model_validator(mode="after")
     def _names_are_consistent(self) -> "Model":

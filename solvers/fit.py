@@ -85,6 +85,9 @@ def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
 
 def fit_model(request: FitRequest) -> FitResult:
     """Fit the request's model to its experiments; see `schemas.fit.FitResult`."""
+    if request.method in (FitMethod.recursive_least_squares, FitMethod.mras):   # online estimators
+        from solvers.online import fit_online
+        return fit_online(request)
     started = time.perf_counter()
     opts = request.options
     cm = compile_model(request.model)

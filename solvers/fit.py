@@ -15,6 +15,7 @@ from solvers.data import ExperimentData, prepare_experiments
 from solvers.diagnostics import residual_analysis
 from solvers.equation_error import EquationErrorProblem, build_equation_error
 from solvers.errors import DataError
+from solvers.extensions import prepare_batch
 from solvers.model_compiler import CompiledModel, compile_model
 from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
@@ -92,7 +93,9 @@ def fit_model(request: FitRequest) -> FitResult:
     opts = request.options
     cm = compile_model(request.model)
     data = prepare_experiments(request.experiments, cm)
-    layout = build_layout(request.model, [d.name for d in data])
+    ext = prepare_batch(request, cm, data)   # discrete-time checks, prefilter, time-varying parameters
+    cm, data = ext.cm, ext.data
+    layout = build_layout(ext.model, [d.name for d in data])
     if layout.size == 0:
         raise DataError("every parameter is fixed; free at least one", "model.parameters")
     unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
@@ -106,11 +109,14 @@ def fit_model(request: FitRequest) -> FitResult:
     if request.method == FitMethod.equation_error:
         eep = build_equation_error(cm, data, layout, opts)
         problem = eep.problem
-        outcome, n_starts = _solve(problem, opts, starts, eep.linear)
+        ext.attach(problem, layout)
+        outcome, n_starts = (ext.solve_affine(problem, layout, eep.linear)
+                             or _solve(problem, opts, starts, eep.linear and problem.penalty is None))
     else:
         oem = OutputErrorModel(cm, data, layout, opts)
         build = build_single_shooting if request.method == FitMethod.single_shooting else build_multiple_shooting
         problem = build(oem)
+        ext.attach(problem, layout)
         outcome, n_starts = _solve(problem, opts, starts, False)
 
     theta_s = outcome.w[:layout.size]
@@ -176,7 +182,7 @@ def fit_model(request: FitRequest) -> FitResult:
             residuals={ch: [None if not np.isfinite(v) else float(v) for v in r[c]]
                        for c, ch in enumerate(channels.channels)})
             for d, (meas, r) in zip(data, channels.per_experiment)]
-    return FitResult(
+    return ext.finish(FitResult(
         success=outcome.success, status="success" if outcome.success else "failed",
         message=_message(outcome.status), parameters=params,
         covariance=covariance, covariance_note=cov.note, correlation=correlation,
@@ -188,7 +194,7 @@ def fit_model(request: FitRequest) -> FitResult:
                           starts=n_starts,
                           derivative_filter=eep.derivative_filter if eep else None,
                           linear_in_parameters=eep.linear if eep else None),
-        residual_analysis=analyses, traces=traces)
+        residual_analysis=analyses, traces=traces), layout, theta, cov)
 
 
 def _message(status: str) -> str:

@@ -65,3 +65,31 @@ def simulate_seed004(system, duration: float = 10.0, noise_power: float = 1e-5, 
     y = signal.lfilter(np.ravel(num), den, u)
     rng = np.random.default_rng(seed)
     return t, u, y + np.sqrt(noise_power) * rng.standard_normal(n)
+
+
+def first_order_model(guess=(50.0, 100.0)) -> dict:
+    """200/(s+100) sampled with a zero-order hold, in its physical parameters ap, bp."""
+    return {"name": "first_order", "states": ["y"], "inputs": ["u"], "constants": {"T": SEED004_T},
+            "parameters": [{"name": "ap", "value": guess[0]}, {"name": "bp", "value": guess[1]}],
+            "equations": {"y": "exp(-ap*T)*y + bp/ap*(1 - exp(-ap*T))*u"},
+            "discrete": {"sample_time": SEED004_T}}
+
+
+def second_order_model(guess=(4.0, 9000.0, 15000.0)) -> dict:
+    """bp2/(s^2 + ap1 s + ap2) sampled with a zero-order hold (underdamped), in ap1, ap2, bp2.
+
+    States y, y_1 = y[k-1] and u_1 = u[k-1] (delay states, rebuilt from the data)."""
+    return {"name": "second_order", "states": ["y", "y_1", "u_1"], "inputs": ["u"],
+            "constants": {"T": SEED004_T},
+            "parameters": [{"name": "ap1", "value": guess[0]}, {"name": "ap2", "value": guess[1]},
+                           {"name": "bp2", "value": guess[2]}],
+            "definitions": {"sig": "ap1/2", "wd": "sqrt(ap2 - sig^2)", "K": "bp2/ap2", "E": "exp(-sig*T)",
+                            "c": "cos(wd*T)", "s": "sin(wd*T)",
+                            "a1": "-2*E*c", "a2": "E^2",
+                            "b1": "K*(1 - E*(c + sig/wd*s))", "b2": "K*(E^2 + E*(sig/wd*s - c))"},
+            "equations": {"y": "-a1*y - a2*y_1 + b1*u + b2*u_1", "y_1": "y", "u_1": "u"}, "outputs": {"y": "y"},
+            "discrete": {"sample_time": SEED004_T}}
+
+
+def seed004_experiment(t, u, y) -> dict:
+    return {"name": "seed004", "time": t.tolist(), "inputs": {"u": u.tolist()}, "outputs": {"y": y.tolist()}}

@@ -129,8 +129,8 @@ class MrasOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     kp: float = Field(default=0.0, ge=0, description="proportional adaptation gain (>= 0)")
-    ki: float = Field(default=200.0, gt=0, description="integral adaptation gain [1/s] (> 0)")
-    substeps: int = Field(default=4, ge=1, le=100, description="Euler steps of the adjustable model per sample")
+    ki: float = Field(default=1000.0, gt=0, description="integral adaptation gain [1/s] (> 0), on normalised signals")
+    substeps: int = Field(default=1, ge=1, le=100, description="Euler steps of the adjustable model per sample")
     trajectory_every: int = Field(default=1, ge=1, le=100_000)
 
 

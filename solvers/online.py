@@ -130,21 +130,24 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
         covariance = CovariancePublic(names=list(layout.labels), matrix=cov.tolist())
         correlation = CovariancePublic(names=list(layout.labels), matrix=correlation_from(cov).tolist())
     else:
-        cov_note = (f"the {opts.rls.gain_law} gain law's P is not a covariance" if run.covariances is None
-                    else "the covariance of the last update is not positive definite")
+        cov_note = ("the covariance of the last update is not positive definite" if run.covariances is not None
+                    else "MRAS gives no covariance" if request.method == FitMethod.mras
+                    else f"the {opts.rls.gain_law} gain law's P is not a covariance")
 
     # innovations (one-step a-priori errors) per equation channel, unweighted
-    w = eep.weights[eqs]
+    w = eep.weights[eqs] if run.residual_weighted else np.ones(len(eqs))
     innov = run.innovations / w
-    measured = ed.dx[eqs][:, ed.rows]
+    measured = ed.dx[eqs][:, ed.rows] if run.measured is None else run.measured
     prefix = "next" if is_discrete(cm) else "der"
+    if run.measured is not None:      # MRAS: the output error of the adjustable model
+        prefix = "state"
     analyses, rmse, fitp = [], {}, {}
     for c, i in enumerate(eqs):
         name = f"{prefix}({cm.states[i]})"
         a = residual_analysis(name, [(measured[c], innov[:, c], {u: d.u[k, ed.rows] for k, u in enumerate(cm.inputs)})])
         analyses.append(a)
         rmse[name], fitp[name] = a.rmse, a.fit_percent
-    weighted = run.innovations.ravel()
+    weighted = (run.innovations * (1.0 if run.residual_weighted else eep.weights[eqs])).ravel()
     cost = 0.5 * float(weighted @ weighted)
     aic, bic = information_criteria(2 * cost, weighted.size, n)
 

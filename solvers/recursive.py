@@ -38,6 +38,8 @@ class OnlineRun:
     label: str
     window: int                    # effective number of samples remembered
     memory: float                  # λ for the excitation weighting (1: whole record)
+    measured: np.ndarray | None = None   # (neq, M) what the innovations are errors of (default ẋ / x[k+1])
+    residual_weighted: bool = True       # innovations carry equation error's weights
 
 
 def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, opts: RlsOptions) -> OnlineRun:

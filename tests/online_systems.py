@@ -93,3 +93,11 @@ def second_order_model(guess=(4.0, 9000.0, 15000.0)) -> dict:
 
 def seed004_experiment(t, u, y) -> dict:
     return {"name": "seed004", "time": t.tolist(), "inputs": {"u": u.tolist()}, "outputs": {"y": y.tolist()}}
+
+
+def rl_continuous_model(R: float = 1.0, L: float = 1.0) -> dict:
+    """Seed 003's RL circuit in continuous time, L di/dt = -R i + u, for MRAS."""
+    return {"name": "rl_circuit", "states": ["i"], "inputs": ["u"],
+            "parameters": [{"name": "R", "value": R, "lower": 0, "unit": "ohm"},
+                           {"name": "L", "value": L, "lower": 0, "unit": "H"}],
+            "equations": {"i": "(-R*i + u)/L"}}

@@ -172,9 +172,11 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
     return FitResult(
         success=bool(np.all(np.isfinite(theta))), status="success" if np.all(np.isfinite(theta)) else "failed",
         message=message, parameters=params, covariance=covariance, covariance_note=cov_note,
-        correlation=correlation, initial_states={d.name: {s: float(ed.x[i, ed.rows[0]]) for i, s in enumerate(cm.states)}},
+        correlation=correlation,
+        initial_states={d.name: {s: float(ed.x[i, ed.rows[0]]) for i, s in enumerate(cm.states)}},
         metrics=FitMetrics(cost=cost, ndata=weighted.size, nfree=weighted.size - n, nvarys=n,
                            rmse=rmse, fit_percent=fitp, aic=aic, bic=bic),
         solver=SolverInfo(method=request.method, iterations=m, wall_time_s=time.perf_counter() - started,
-                          return_status="Online_Estimate", derivative_filter=filt, linear_in_parameters=not form.mapped),
+                          return_status="Online_Estimate", derivative_filter=filt,
+                          linear_in_parameters=not form.mapped),
         residual_analysis=analyses, trajectory=trajectory)

@@ -83,39 +83,41 @@ class TimeVaryingExpansion:
             return ca.vertcat(*out)
         return rows
 
-    def difference_matrix(self, layout: ParameterLayout) -> np.ndarray:
-        """D with rows √(W n)·(Δ_j as a linear function of θ scaled): the differences are linear."""
-        blocks = []
+    def difference_matrix(self, layout: ParameterLayout) -> tuple[np.ndarray, np.ndarray]:
+        """(D, c): the differences Δ = Dθ (θ scaled; they are linear in θ) and each row's weight W n."""
+        blocks, weights = [], []
+        eye = np.eye(layout.size)
         for vp in self.varying:
             if vp.spec.regularization != "total_variation" or vp.spec.weight <= 0:
                 continue
             idx = [layout.labels.index(n) for n in vp.names]
-            eye = np.eye(layout.size)
             cols = [np.array(vp.differences([eye[i][j] for i in idx]), dtype=float) for j in range(layout.size)]
-            blocks.append(np.sqrt(vp.spec.weight * self.n_samples) * np.column_stack(cols))
-        return np.vstack(blocks) if blocks else np.zeros((0, layout.size))
+            blocks.append(np.column_stack(cols))
+            weights.append(np.full(blocks[-1].shape[0], vp.spec.weight * self.n_samples))
+        if not blocks:
+            return np.zeros((0, layout.size)), np.zeros(0)
+        return np.vstack(blocks), np.concatenate(weights)
 
     def solve_affine(self, problem, layout: ParameterLayout, max_iter: int = 200):
         """Iteratively reweighted least squares for an affine residual plus the TV penalty.
 
-        min ½‖Jθ + r₀‖² + Σ_j W n √(Δ_j² + ε²): each iteration solves
-        (JᵀJ + Dᵀ diag(1/√(Δ² + ε²)) D) θ = −Jᵀr₀; a convex problem, so this converges to the
-        optimum (from the unpenalised least-squares start). Returns None when a bound is violated
-        (Ipopt then solves it) or there is no penalty.
+        min ½‖Jθ + r₀‖² + Σ_j c_j √(Δ_j² + ε²), Δ = Dθ: each iteration solves
+        (JᵀJ + Dᵀ diag(c/√(Δ² + ε²)) D) θ = −Jᵀr₀; the problem is convex, so this converges to
+        its optimum (from the unpenalised least-squares start). Returns None when a bound is
+        violated (Ipopt then solves it) or there is no penalty.
         """
         from solvers.nlp import NlpOutcome
-        d = self.difference_matrix(layout)
+        d, c = self.difference_matrix(layout)
         if d.shape[0] == 0:
             return None
         started = time.perf_counter()
         jac, r0 = problem.evaluate_jacobian(np.zeros(layout.size))
         jtj, jtr = jac.T @ jac, jac.T @ r0
-        scale = np.sqrt(np.mean(np.diag(jtj)))
+        ridge = 1e-14 * float(np.mean(np.diag(jtj))) * np.eye(layout.size)
         theta = np.linalg.lstsq(jac, -r0, rcond=None)[0]
         for it in range(1, max_iter + 1):
-            delta = d @ theta / np.sqrt(np.maximum(np.sum(d ** 2, axis=1), 1e-300))   # the plain Δ_j
-            wts = 1.0 / np.sqrt(delta ** 2 + TV_EPSILON ** 2)
-            new = np.linalg.solve(jtj + d.T @ (wts[:, None] * d) + 1e-14 * scale ** 2 * np.eye(layout.size), -jtr)
+            wts = c / np.sqrt((d @ theta) ** 2 + TV_EPSILON ** 2)
+            new = np.linalg.solve(jtj + d.T @ (wts[:, None] * d) + ridge, -jtr)
             done = np.max(np.abs(new - theta)) <= 1e-10 * max(1.0, np.max(np.abs(new)))
             theta = new
             if done:
@@ -123,8 +125,7 @@ class TimeVaryingExpansion:
         if np.any(theta < problem.lbw - 1e-12) or np.any(theta > problem.ubw + 1e-12):
             return None
         r = jac @ theta + r0
-        delta = d @ theta / np.sqrt(np.maximum(np.sum(d ** 2, axis=1), 1e-300))
-        cost = 0.5 * float(r @ r) + float(np.sum(np.sqrt(np.sum(d ** 2, axis=1)) ** 2 * np.sqrt(delta ** 2 + TV_EPSILON ** 2)))
+        cost = 0.5 * float(r @ r) + float(np.sum(c * np.sqrt((d @ theta) ** 2 + TV_EPSILON ** 2)))
         return NlpOutcome(theta, cost, IRLS_STATUS, True, it, time.perf_counter() - started), 1
 
     def trajectory(self, layout: ParameterLayout, theta: np.ndarray, cov_names: list[str],

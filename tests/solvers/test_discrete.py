@@ -34,7 +34,8 @@ def test_arx_template_by_prediction_error_and_by_rls_is_exact_on_noise_free_data
     truth = {"a1": den[1], "a2": den[2], "b1": num[1], "b2": num[2]}
     batch = fit_model(arx_request(t, u, y, "equation_error"))
     assert batch.success and batch.solver.linear_in_parameters
-    rls = fit_model(arx_request(t, u, y, "recursive_least_squares", rls={"gain_law": "decreasing_gain", "initial_covariance": 1e8}))
+    rls = fit_model(arx_request(t, u, y, "recursive_least_squares",
+                                rls={"gain_law": "decreasing_gain", "initial_covariance": 1e8}))
     for name, value in truth.items():
         assert batch.parameters[name].value == pytest.approx(value, rel=1e-6, abs=1e-12), name
         assert rls.parameters[name].value == pytest.approx(value, rel=1e-3), name

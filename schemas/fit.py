@@ -17,6 +17,7 @@ from schemas.validation import ValidationResult
 
 # A weight squared times the data squared must stay far from overflow (1e308).
 MIN_OUTPUT_WEIGHT, MAX_OUTPUT_WEIGHT = 1e-100, 1e100
+from schemas.online import MrasOptions, ParameterTrajectory, Prefilter, RlsOptions
 
 
 class FitMethod(str, Enum):
@@ -24,6 +25,8 @@ class FitMethod(str, Enum):
     single_shooting = "single_shooting"
     multiple_shooting = "multiple_shooting"
     frequency_response = "frequency_response"   # only in results of /v1/frequency-fits
+    recursive_least_squares = "recursive_least_squares"
+    mras = "mras"
 
 
 class FitOptions(BaseModel):
@@ -67,6 +70,10 @@ class FitOptions(BaseModel):
                     f"{MIN_OUTPUT_WEIGHT:g} and {MAX_OUTPUT_WEIGHT:g} (only ratios matter; to leave an "
                     "output out of the fit, leave its data out)")
         return weights
+    rls: RlsOptions = Field(default_factory=RlsOptions, description="method recursive_least_squares")
+    mras: MrasOptions = Field(default_factory=MrasOptions, description="method mras")
+    prefilter: Optional[Prefilter] = Field(
+        default=None, description="same low-pass on both sides of the equation (equation_error, RLS)")
 
 
 class FitRequest(BaseModel):
@@ -194,3 +201,5 @@ class FitResult(BaseModel):
         default=None, description="sigma^2 (J^T J)^-1 when `covariance` holds the robust (HAC) one")
     active_constraints: list[str] = Field(
         default_factory=list, description="model.constraints that hold with equality at the solution")
+    trajectory: Optional[ParameterTrajectory] = Field(
+        default=None, description="θ(t) ± 2σ: online estimators and time-varying parameters")

@@ -10,6 +10,7 @@ from schemas.templates import LinearStateSpace, expand_linear_state_space
 from schemas.limits import (
     MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
 )
+from schemas.online import ArxTemplate, DiscreteTime, TimeVarying, expand_arx_template
 
 Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
 Expression = Annotated[str, StringConstraints(min_length=1, max_length=MAX_EXPRESSION_LENGTH)]
@@ -29,6 +30,8 @@ class Parameter(BaseModel):
     fixed: bool = False
     per_experiment: bool = False
     unit: Optional[str] = Field(default=None, max_length=32)
+    time_varying: Optional[TimeVarying] = Field(
+        default=None, description="estimate θ(t) (piecewise constant/linear) in batch fits")
 
     @model_validator(mode="after")
     def _bounds_hold_the_guess(self) -> "Parameter":
@@ -78,6 +81,18 @@ class Model(BaseModel):
         if data.get("outputs") is not None and outputs is not None and dict(data["outputs"]) != outputs:
             raise ValueError("give either outputs or linear_state_space.C/D, not both")
         return {**data, "equations": equations, "outputs": outputs if outputs is not None else data.get("outputs")}
+
+    discrete: Optional[DiscreteTime] = Field(
+        default=None, description="difference equations: equations[x] is x[k+1]")
+    template: Optional[ArxTemplate] = Field(
+        default=None, description="ARX template expanded into states/equations (needs discrete)")
+
+    @model_validator(mode="before")
+    @classmethod
+    def _expand_template(cls, data):
+        if isinstance(data, dict) and data.get("template") is not None and not data.get("states"):
+            return expand_arx_template(data)
+        return data
 
     @model_validator(mode="after")
     def _names_are_consistent(self) -> "Model":

@@ -27,6 +27,13 @@ class EquationData:
 def equation_data(cm: CompiledModel, d: ExperimentData, e: int, options: FitOptions,
                   equations: list[int]) -> tuple[EquationData, str | None]:
     """States from direct measurements; derivatives given, or by smoothing differentiation."""
+    if cm.model.discrete is not None:   # discrete time: x[k+1] takes the place of dx/dt
+        from solvers.discrete import next_state_data
+        x, dx = next_state_data(cm, d, e)
+        rows = np.flatnonzero(np.isfinite(x).all(axis=0) & np.isfinite(dx[equations]).all(axis=0))
+        if rows.size == 0:
+            raise DataError("no sample has every state and its next sample present", f"experiments[{e}]")
+        return EquationData(x, dx, rows), "next sample x[k+1] (discrete-time model)"
     state_to_output = {s: o for o, s in cm.direct_outputs.items()}
     x = np.full((cm.nx, d.n), np.nan)
     dx = np.full((cm.nx, d.n), np.nan)

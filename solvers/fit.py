@@ -19,6 +19,7 @@ from solvers.fixed_fit import fixed_parameter_result
 from solvers.fit_checks import (
     active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
 )
+from solvers.extensions import prepare_batch
 from solvers.model_compiler import CompiledModel, compile_model
 from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
@@ -94,8 +95,12 @@ def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
 def fit_model(request: FitRequest) -> FitResult:
     """Fit the request's model to its experiments; see `schemas.fit.FitResult`.
 
-    Each experiment's `preprocess` is applied first; `validation` records are simulated after.
+    Online estimators go their own way; otherwise each experiment's `preprocess` is applied first
+    and `validation` records are simulated after.
     """
+    if request.method in (FitMethod.recursive_least_squares, FitMethod.mras):   # online estimators
+        from solvers.online import fit_online
+        return fit_online(request)
     prepared, preprocessing = prepare_request(request)
     result = _fit_prepared(prepared)
     if prepared.validation:
@@ -109,7 +114,9 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     opts = request.options
     cm = compile_model(request.model)
     data = prepare_experiments(request.experiments, cm)
-    layout = build_layout(request.model, [d.name for d in data])
+    ext = prepare_batch(request, cm, data)   # discrete-time checks, prefilter, time-varying parameters
+    cm, data = ext.cm, ext.data
+    layout = build_layout(ext.model, [d.name for d in data])
     if layout.size == 0:   # nothing to estimate: a simulation, reported like a fit
         return fixed_parameter_result(request, cm, data, layout, started)
     unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
@@ -123,13 +130,16 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     if request.method == FitMethod.equation_error:
         eep = build_equation_error(cm, data, layout, opts)
         problem = eep.problem
+        ext.attach(problem, layout)
     else:
         oem = OutputErrorModel(cm, data, layout, opts)
         build = build_single_shooting if request.method == FitMethod.single_shooting else build_multiple_shooting
         problem = build(oem)
+        ext.attach(problem, layout)
     before = pre_fit_warnings(cm, data, layout, opts, problem, eep, oem)
     if eep is not None:
-        outcome, n_starts = _solve(problem, opts, starts, eep.linear)
+        outcome, n_starts = (ext.solve_affine(problem, layout, eep.linear)
+                             or _solve(problem, opts, starts, eep.linear and problem.penalty is None))
     else:
         outcome, n_starts = _solve(problem, opts, starts, False)
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
@@ -219,6 +229,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         covariance_classical=None if cov.classical is None else CovariancePublic(
             names=cov.names, matrix=cov.classical.tolist()),
         active_constraints=active_constraints(cm, layout, theta_s))
+    result = ext.finish(result, layout, theta, cov)
     # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
     size = np.maximum(np.abs(values) / scale, 1.0)
     params_kept = keep & (np.arange(keep.size) < layout.size)

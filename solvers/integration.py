@@ -14,6 +14,9 @@ def _input_at(u0, u1, tau, interpolation: str):
 
 def make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     """Function step(x, u0, u1, p, t0, dt) -> x(t0 + dt)."""
+    if cm.model.discrete is not None:   # difference equation: the step is f itself
+        from solvers.discrete import make_discrete_step
+        return make_discrete_step(cm)
     x = ca.SX.sym("x", cm.nx)
     u0, u1 = ca.SX.sym("u0", cm.nu), ca.SX.sym("u1", cm.nu)
     p, t0, dt = ca.SX.sym("p", cm.np), ca.SX.sym("t0"), ca.SX.sym("dt")

@@ -36,10 +36,14 @@ class LeastSquaresProblem:
     extra_labels: list[str] = field(default_factory=list)
     # numeric (J, r) at w; set where a cheaper form than differentiating the MX graph exists
     jacobian: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+    # extra residual rows of θ (scaled), e.g. a total-variation penalty; in the NLP only, not in
+    # the data Jacobian used for the covariance
+    penalty: Callable[[ca.MX], ca.MX] | None = None
 
     @cached_property
     def residual(self) -> ca.MX:
-        return self.residual_builder()
+        r = self.residual_builder()
+        return r if self.penalty is None else ca.vertcat(r, self.penalty(self.w[:self.n_theta]))
 
     def evaluate_jacobian(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.jacobian is not None:

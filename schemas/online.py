@@ -1,0 +1,179 @@
+"""Contract of the online and time-varying estimators: discrete-time models, ARX templates,
+time-varying parameters, RLS / MRAS / prefilter options and the parameter trajectory they return.
+
+Kept apart from `schemas.model` and `schemas.fit` (which import from here) so that those shared
+files only gain a field each.
+"""
+from __future__ import annotations
+
+from typing import Annotated, Literal, Optional
+
+from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StringConstraints, model_validator
+
+from schemas.limits import MAX_NAME_LENGTH, NAME_PATTERN
+
+_Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
+
+
+# --- model side --------------------------------------------------------------------------------
+class DiscreteTime(BaseModel):
+    """The model is a difference equation: `equations[x]` is x[k+1] = f(x[k], u[k], θ, t_k)."""
+
+    model_config = ConfigDict(extra="forbid", populate_by_name=True)
+
+    sample_time: float = Field(gt=0, validation_alias=AliasChoices("sample_time", "Ts"),
+                               description="Ts [s]; the experiments' time must step by exactly Ts")
+
+
+class ArxTemplate(BaseModel):
+    """ARX template y[k] = -a1 y[k-1] - ... - a_na y[k-na] + b1 u[k-nk] + ... + b_nb u[k-nk-nb+1].
+
+    Expanded into the discrete-time contract: the output state `output`, delay states
+    `<output>_1..` and `<input>_1..` (reconstructed from the data by equation error) and the
+    parameters a1..a_na, b1..b_nb (declare them yourself to give guesses or bounds).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["arx"] = "arx"
+    na: int = Field(ge=1, le=20)
+    nb: int = Field(ge=1, le=20)
+    nk: int = Field(default=1, ge=1, le=50, description="input delay in samples (>= 1)")
+    output: _Name = "y"
+    input: _Name = "u"
+
+
+def expand_arx_template(data: dict) -> dict:
+    """Fill states, inputs, equations, outputs and parameters of a model dict from its template."""
+    tpl = ArxTemplate.model_validate(data["template"])
+    if data.get("states") or data.get("equations"):
+        raise ValueError("template: give either a template or states/equations, not both")
+    if data.get("discrete") is None:
+        raise ValueError("template: an ARX model is discrete time; add discrete: {sample_time: Ts}")
+    y, u = tpl.output, tpl.input
+    y_lags = [f"{y}_{i}" for i in range(1, tpl.na)]
+    u_lag_max = tpl.nk - 1 + tpl.nb - 1
+    u_lags = [f"{u}_{i}" for i in range(1, u_lag_max + 1)]
+
+    def u_at(lag: int) -> str:
+        return u if lag == 0 else f"{u}_{lag}"
+
+    terms = [f"- a{i}*{y if i == 1 else y_lags[i - 2]}" for i in range(1, tpl.na + 1)]
+    terms += [f"+ b{j}*{u_at(tpl.nk - 1 + j - 1)}" for j in range(1, tpl.nb + 1)]
+    equations = {y: " ".join(terms)}   # "- a1*y - a2*y_1 + b1*u_0 ..." (leading unary minus)
+    for i, name in enumerate(y_lags):
+        equations[name] = y if i == 0 else y_lags[i - 1]
+    for i, name in enumerate(u_lags):
+        equations[name] = u if i == 0 else u_lags[i - 1]
+    declared = {p["name"]: p for p in data.get("parameters") or []}
+    names = [f"a{i}" for i in range(1, tpl.na + 1)] + [f"b{j}" for j in range(1, tpl.nb + 1)]
+    unknown = sorted(set(declared) - set(names))
+    if unknown:
+        raise ValueError(f"template: parameter '{unknown[0]}' is not part of the ARX template ({names})")
+    out = dict(data)
+    out.update(states=[y, *y_lags, *u_lags], inputs=data.get("inputs") or [u], equations=equations,
+               outputs=data.get("outputs") or {y: y},
+               parameters=[declared.get(n, {"name": n, "value": 0.0}) for n in names])
+    return out
+
+
+class TimeVarying(BaseModel):
+    """A parameter estimated as a trajectory θ(t) in a batch fit.
+
+    `piecewise_constant`: one value per segment; `piecewise_linear`: one value per knot, linear in
+    between. Knots are given, or `segments` equal segments span the experiments' time range.
+    `total_variation` adds weight·Σ|Δ| (first differences of the values for piecewise constant,
+    of the slopes for piecewise linear, relative to the parameter's guess) as extra residual rows,
+    which keeps steps sharp and trajectories free of spurious wiggles.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["piecewise_constant", "piecewise_linear"] = "piecewise_constant"
+    knots: Optional[list[float]] = Field(default=None, min_length=2, max_length=2000)
+    segments: Optional[int] = Field(default=None, ge=1, le=2000)
+    regularization: Literal["total_variation", "none"] = "total_variation"
+    weight: float = Field(default=1e-3, ge=0, le=1e6,
+                          description="total-variation weight per data residual row")
+
+    @model_validator(mode="after")
+    def _knots_or_segments(self) -> "TimeVarying":
+        if (self.knots is None) == (self.segments is None):
+            raise ValueError("give either knots (times) or segments (a count)")
+        if self.knots is not None and any(b <= a for a, b in zip(self.knots, self.knots[1:])):
+            raise ValueError("knots must increase strictly")
+        return self
+
+
+# --- fit side ------------------------------------------------------------------------------------
+class RlsOptions(BaseModel):
+    """Recursive least squares (seed 003, eqs. 7-38/39 and 7-44/45)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    forgetting: float = Field(default=0.99, gt=0, le=1, description="λ (λ1 of the gain laws)")
+    gain_law: Literal["forgetting", "decreasing_gain", "constant_trace", "constant_gain"] = Field(
+        default="forgetting",
+        description="forgetting: weighted LS with λ (7-38); decreasing_gain: λ = 1, ordinary LS; "
+                    "constant_trace: λ1(k) keeps trace P constant (7-45, λ2 = λ1); "
+                    "constant_gain: P stays γI (λ1 = 1, λ2 = 0)")
+    initial_covariance: float = Field(default=1e4, gt=0, le=1e12,
+                                      description="γ in P₀ = γI (parameters scaled by their guesses)")
+    trajectory_every: int = Field(default=1, ge=1, le=100_000,
+                                  description="keep every n-th sample of θ(t) in the result")
+
+
+class MrasOptions(BaseModel):
+    """Model-reference adaptive estimator (seed 003, 7.3) with the PI adaptation law (7-29/30)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    kp: float = Field(default=0.0, ge=0, description="proportional adaptation gain (>= 0)")
+    ki: float = Field(default=1000.0, gt=0, description="integral adaptation gain [1/s] (> 0), on normalised signals")
+    substeps: int = Field(default=1, ge=1, le=100, description="Euler steps of the adjustable model per sample")
+    trajectory_every: int = Field(default=1, ge=1, le=100_000)
+
+
+class Prefilter(BaseModel):
+    """The same stable low-pass on both sides of the equation (seed 004; state-variable filter).
+
+    Continuous-time models: n cascaded first-order filters ω/(s+ω) on states and inputs; the
+    derivative of the filtered state comes from the filter itself, ω(F^{n-1}x − F^n x), so no
+    differentiation of noisy data is needed. Discrete-time models: seed 004's
+    H_f = (1−a_f)/(1 − a_f z⁻¹), a_f = exp(−2π f_c Ts), n times, on outputs and inputs.
+    The first 5 time constants are dropped (filter start-up).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["lowpass"] = "lowpass"
+    cutoff_hz: float = Field(gt=0, description="cut-off frequency f_c [Hz]")
+    order: int = Field(default=1, ge=1, le=4)
+
+
+class ExcitationReport(BaseModel):
+    """Persistent excitation over the window the estimator used."""
+
+    window_samples: int = Field(description="effective memory: 1/(1-λ), or the record")
+    input_order: dict[str, int] = Field(description="PE order of each input over the window")
+    regressor_rank: int
+    regressor_size: int
+    regressor_condition: Optional[float] = None
+    persistently_exciting: bool
+
+
+class ParameterTrajectory(BaseModel):
+    """θ(t) with a ±2σ band: from an online estimator or a declared time-varying parameter."""
+
+    estimator: str
+    time: list[float]
+    values: dict[str, list[Optional[float]]]
+    lower: dict[str, list[Optional[float]]] = Field(description="value − 2σ (null when unknown)")
+    upper: dict[str, list[Optional[float]]] = Field(description="value + 2σ (null when unknown)")
+    coefficients: Optional[dict[str, list[Optional[float]]]] = Field(
+        default=None, description="the linear coefficients actually estimated, when the physical "
+                                  "parameters are mapped from them")
+    mapping: Optional[dict[str, str]] = Field(
+        default=None, description="coefficient -> its expression in the physical parameters")
+    excitation: Optional[ExcitationReport] = None
+    note: Optional[str] = None

@@ -1,0 +1,34 @@
+"""MRAS (seed 003, 7.3) beside RLS on the RL circuit with R stepping from 2 to 3 Ω at t = 5 s."""
+import numpy as np
+import pytest
+
+from schemas import FitRequest
+from solvers.fit import fit_model
+from tests.online_systems import rl_continuous_model, rl_experiment, rl_model, simulate_rl
+
+
+def settling_time(res, t_from, truth, tol):
+    """Time after t_from from which R stays within tol of the truth."""
+    times = np.array(res.trajectory.time)
+    r_hat = np.array(res.trajectory.values["R"], dtype=float)
+    after = times >= t_from
+    bad = np.flatnonzero(~(np.abs(r_hat[after] / truth - 1) <= tol))
+    return 0.0 if bad.size == 0 else float(times[after][bad[-1]] - t_from)
+
+
+@pytest.mark.slow
+def test_mras_and_rls_follow_the_resistance_step():
+    t, u, i = simulate_rl(8.0, r_of_t=lambda tt: np.where(tt < 5.0, 2.0, 3.0), noise=1e-5)
+    exp = rl_experiment(t, u, i)
+    mras = fit_model(FitRequest.model_validate({"model": rl_continuous_model(), "experiments": [exp],
+                                                "method": "mras"}))
+    rls = fit_model(FitRequest.model_validate({"model": rl_model(), "experiments": [exp],
+                                               "method": "recursive_least_squares",
+                                               "options": {"rls": {"forgetting": 0.98}}}))
+    assert mras.success and mras.covariance is None and mras.trajectory.lower["R"][0] is None
+    assert mras.parameters["R"].value == pytest.approx(3.0, rel=0.02)
+    assert mras.parameters["L"].value == pytest.approx(0.5, rel=0.02)
+    t_mras, t_rls = settling_time(mras, 5.0, 3.0, 0.02), settling_time(rls, 5.0, 3.0, 0.02)
+    print(f"settling to 2 % after the step: RLS {t_rls:.3f} s, MRAS {t_mras:.3f} s")
+    assert t_rls < 0.5 and t_mras < 2.0
+    assert t_rls < t_mras     # the price of MRAS's gradient law (no covariance, fixed gains)

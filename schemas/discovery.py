@@ -67,11 +67,11 @@ class ValidationSummary(BaseModel):
 class FitSummary(BaseModel):
     success: bool = True
     status: str = "success"
-    rmse: dict[str, float]
-    fit_percent: dict[str, float]
-    cost: float
-    aic: float
-    bic: float
+    rmse: dict[str, Optional[float]]
+    fit_percent: dict[str, Optional[float]]
+    cost: Optional[float] = Field(description="null when the fit is not finite")
+    aic: Optional[float]
+    bic: Optional[float]
     white: dict[str, bool] = Field(description="residual whiteness test passed, per output")
     validation: Optional[ValidationSummary] = Field(
         default=None, description="simulation on the validation experiments (not used to fit)")

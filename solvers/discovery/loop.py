@@ -113,11 +113,11 @@ def check_user_candidates(request: DiscoverRequest) -> None:
 # --- reasons to stop ------------------------------------------------------------------------------
 
 def unusable_fit(fit: FitResult) -> str:
-    if not fit.success:
-        return (f"nothing screened: the fit of the declared model did not converge ({fit.solver.return_status}: "
+    if fit.quality == "failed":
+        return (f"nothing screened: the fit of the declared model failed ({fit.solver.return_status}: "
                 f"{fit.message}); its residual would point at the solver, not at a missing effect — fix the fit "
                 "first (initial guess, bounds, method)")
-    if not np.isfinite(fit.metrics.cost):
+    if fit.metrics.cost is None or not np.isfinite(fit.metrics.cost):
         return "nothing screened: the fit's residual is not finite (the simulation diverged)"
     return ""
 
@@ -207,7 +207,7 @@ def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list
         except (FitError, RuntimeError, ValueError) as exc:   # a term the solver cannot handle is rejected
             errors.append(str(exc))
             continue
-        if best is None or (new_fit.success, -new_fit.metrics.bic) > (best[1].success, -best[1].metrics.bic):
+        if best is None or _rank_refit(new_fit) > _rank_refit(best[1]):
             best = (sc, new_fit, new_model, new_params, new_req)
     head = variants[0].candidate
     where = _equation_names(screening, head)
@@ -221,12 +221,12 @@ def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="cpu_limit",
                                  detail=f"the refit stopped at max_cpu_time ({new_req.options.max_cpu_time} s) "
                                         "before converging: no verdict on the evidence; raise options.max_cpu_time")
-    if not new_fit.success:
+    if new_fit.quality == "failed":   # "suspect" is fine here: what is left may be the next effect
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="solver_failed",
                                  detail=f"the refit did not converge ({status}, {new_fit.solver.iterations} "
                                         "iterations): no verdict on the evidence")
     t_value = _t_value(new_fit, new_params)
-    bic_drop = state.fit.metrics.bic - new_fit.metrics.bic
+    bic_drop = _bic(state.fit) - _bic(new_fit)
     if bic_drop < opts.min_bic_drop or (t_value is not None and t_value < opts.min_t_value):
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
@@ -282,7 +282,7 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
             new_fit = fit_model(new_req)
         except (FitError, RuntimeError, ValueError):
             continue
-        if not new_fit.success or new_fit.metrics.bic > state.fit.metrics.bic + opts.min_bic_drop:
+        if new_fit.quality == "failed" or _bic(new_fit) > _bic(state.fit) + opts.min_bic_drop:
             continue
         state.rejected.append(RejectedCandidate(
             effect=step.effect, equation=step.equation, term=step.term, reason="superseded",
@@ -292,6 +292,14 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
         del state.accepted[idx]
         state.model, state.fit, state.request = model, new_fit, new_req
         state.validation = validate(request, model, new_fit, request.validation)
+
+
+def _bic(fit: FitResult) -> float:
+    return float("inf") if fit.metrics.bic is None else fit.metrics.bic
+
+
+def _rank_refit(fit: FitResult) -> tuple[bool, float]:
+    return fit.quality != "failed", -_bic(fit)
 
 
 def with_declared_start(model: Model, declared: Model) -> Model:

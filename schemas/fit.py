@@ -4,7 +4,9 @@ from __future__ import annotations
 from enum import Enum
 from typing import Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+import math
+
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.experiment import Experiment
 from schemas.limits import MAX_EXPERIMENTS
@@ -44,6 +46,29 @@ class FitOptions(BaseModel):
     return_traces: bool = Field(default=False, description="include simulated outputs and residuals")
     confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
 
+    @field_validator("output_weights")
+    @classmethod
+    def _weights_positive(cls, weights: dict[str, float]) -> dict[str, float]:
+        for name, w in weights.items():
+            if not (math.isfinite(w) and w > 0):
+                raise ValueError(f"output_weights.{name} = {w}: a weight must be a finite number > 0 "
+                                 "(leave the output out of output_weights for the default 1/std)")
+        return weights
+
+    @field_validator("derivative_window")
+    @classmethod
+    def _window_odd(cls, window: int) -> int:
+        if window % 2 == 0:
+            raise ValueError(f"{window} is even; a Savitzky-Golay window is centred: use {window + 1}")
+        return window
+
+    @model_validator(mode="after")
+    def _order_below_window(self) -> "FitOptions":
+        if self.derivative_order >= self.derivative_window:
+            raise ValueError(f"derivative_order {self.derivative_order} must be below derivative_window "
+                             f"{self.derivative_window}")
+        return self
+
 
 class FitRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -52,6 +77,17 @@ class FitRequest(BaseModel):
     experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
     method: FitMethod = FitMethod.multiple_shooting
     options: FitOptions = Field(default_factory=FitOptions)
+
+    @model_validator(mode="after")
+    def _window_fits_the_records(self) -> "FitRequest":
+        # only a window the user chose: the default quietly falls back to differences on short records
+        if "derivative_window" in self.options.model_fields_set:
+            for i, exp in enumerate(self.experiments):
+                if self.options.derivative_window > len(exp.time):
+                    raise ValueError(f"options.derivative_window {self.options.derivative_window} is longer than "
+                                     f"experiments[{i}] ({len(exp.time)} samples); choose an odd window "
+                                     "shorter than the record")
+        return self
 
 
 class ParameterEstimate(BaseModel):

@@ -51,9 +51,11 @@ class Dispatcher:
     def sync_waiting(self) -> int:
         return self.sync.qsize()
 
-    def cancel_sync(self, fut: cf.Future) -> None:
+    def cancel_sync(self, fut: cf.Future, kind: str = "fit") -> None:
         """The caller gave up (timeout, disconnect): free the worker instead of finishing the fit."""
-        if not fut.cancel():          # already running: the dispatcher thread stops it
+        if fut.cancel():              # still queued: it will never start
+            self.metrics.count_fit(kind, "abandoned", None)
+        else:                         # already running: the dispatcher thread stops it
             self._cancels.put(fut)
             self.wake()
 

@@ -8,7 +8,7 @@ from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from pydantic import BaseModel, Field
-from sqlalchemy.exc import OperationalError
+from sqlalchemy.exc import InterfaceError, InternalError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
@@ -133,8 +133,11 @@ def install_handlers(app: FastAPI) -> None:
         return retry_later(503, "Unavailable", exc.detail, "unavailable", request.app.state.settings.retry_after_seconds)
 
     # a store that cannot be written is the server's state, not the request's fault: 503, retry
+    # (read-only is InternalError on PostgreSQL, OperationalError on SQLite; unreachable is either)
     @app.exception_handler(StoreUnavailable)
     @app.exception_handler(OperationalError)
+    @app.exception_handler(InternalError)
+    @app.exception_handler(InterfaceError)
     @app.exception_handler(PoolTimeout)
     async def _store(request: Request, exc: Exception):
         detail = store_error_detail(exc)

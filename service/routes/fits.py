@@ -47,13 +47,13 @@ async def run_sync(request: Request, kind: str, payload: dict):
             if waiter.done():
                 break
             if await request.is_disconnected():
-                dispatcher.cancel_sync(fut)
+                dispatcher.cancel_sync(fut, kind)
                 return Response(status_code=499)   # nginx's "client closed request"; nobody reads it
             if loop.time() > deadline:
-                dispatcher.cancel_sync(fut)
+                dispatcher.cancel_sync(fut, kind)
                 raise HTTPException(504, "the fit did not finish in time; submit it as a job")
     except asyncio.CancelledError:   # the server cancelled the handler: free the worker too
-        dispatcher.cancel_sync(fut)
+        dispatcher.cancel_sync(fut, kind)
         raise
     if waiter.cancelled():
         raise HTTPException(503, "the fit was cancelled: the server is shutting down")

@@ -22,7 +22,7 @@ def free_port() -> int:
 
 
 def start_server(data_dir: Path, port: int, workers: int = 2, **env_overrides: str) -> subprocess.Popen:
-    env = dict(os.environ, GREYFIT_LEASE_SECONDS="2", GREYFIT_POLL_SECONDS="0.02", **env_overrides)
+    env = {**os.environ, "GREYFIT_LEASE_SECONDS": "2", "GREYFIT_POLL_SECONDS": "0.02", **env_overrides}
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
                              "--port", str(port), "--data-dir", str(data_dir), "--workers", str(workers)],
                             cwd=ROOT, env=env, start_new_session=True,

@@ -5,7 +5,7 @@ import math
 from enum import Enum
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from schemas.experiment import Experiment
 from schemas.frequency import FrequencyResponseResult
@@ -75,6 +75,29 @@ class FitOptions(BaseModel):
     prefilter: Optional[Prefilter] = Field(
         default=None, description="same low-pass on both sides of the equation (equation_error, RLS)")
 
+    @field_validator("output_weights")
+    @classmethod
+    def _weights_positive(cls, weights: dict[str, float]) -> dict[str, float]:
+        for name, w in weights.items():
+            if not (math.isfinite(w) and w > 0):
+                raise ValueError(f"output_weights.{name} = {w}: a weight must be a finite number > 0 "
+                                 "(leave the output out of output_weights for the default 1/std)")
+        return weights
+
+    @field_validator("derivative_window")
+    @classmethod
+    def _window_odd(cls, window: int) -> int:
+        if window % 2 == 0:
+            raise ValueError(f"{window} is even; a Savitzky-Golay window is centred: use {window + 1}")
+        return window
+
+    @model_validator(mode="after")
+    def _order_below_window(self) -> "FitOptions":
+        if self.derivative_order >= self.derivative_window:
+            raise ValueError(f"derivative_order {self.derivative_order} must be below derivative_window "
+                             f"{self.derivative_window}")
+        return self
+
 
 class FitRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -94,6 +117,17 @@ class FitRequest(BaseModel):
             raise ValueError("frequency_response fits take a FrequencyFitRequest (model kind "
                              "transfer_function): POST /v1/frequency-fits")
         return method
+
+    @model_validator(mode="after")
+    def _window_fits_the_records(self) -> "FitRequest":
+        # only a window the user chose: the default quietly falls back to differences on short records
+        if "derivative_window" in self.options.model_fields_set:
+            for i, exp in enumerate(self.experiments):
+                if self.options.derivative_window > len(exp.time):
+                    raise ValueError(f"options.derivative_window {self.options.derivative_window} is longer than "
+                                     f"experiments[{i}] ({len(exp.time)} samples); choose an odd window "
+                                     "shorter than the record")
+        return self
 
 
 class ParameterEstimate(BaseModel):

@@ -2,16 +2,20 @@
 from __future__ import annotations
 
 import logging
+import uuid
 from contextlib import asynccontextmanager
 from typing import Optional
 
-from fastapi import FastAPI, HTTPException
+from fastapi import FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
 
+from service.admission import BodyBudget
+from service.auth import ApiKeyGate
 from service.dispatcher import Dispatcher
 from service.executors import make_executor
 from service.metrics import Metrics
-from service.problems import install_handlers, problem
+from service.openapi import install_openapi
+from service.problems import install_handlers
 from service.routes import discover, fits, frequency, health, jobs, ops
 from service.routes import report as report_routes, simulate as simulate_routes
 from service.settings import Settings, get_settings
@@ -20,36 +24,10 @@ from service.store import JobStore, make_engine
 log = logging.getLogger("greyfit.service")
 
 
-class BodyLimit:
-    """Refuse bodies above max_body_bytes with 413 before they are read into memory."""
-
-    def __init__(self, app: ASGIApp, max_bytes: int):
-        self.app, self.max_bytes = app, max_bytes
-
-    async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
-        if scope["type"] != "http":
-            return await self.app(scope, receive, send)
-        declared = dict(scope.get("headers") or []).get(b"content-length")
-        detail = (f"the body exceeds this server's limit of {self.max_bytes} bytes "
-                  "(GREYFIT_MAX_BODY_BYTES); decimate the data or split it into several jobs")
-        if declared is not None and declared.isdigit() and int(declared) > self.max_bytes:
-            return await problem(413, "Request too large", detail, "request-too-large")(scope, receive, send)
-        seen = 0
-
-        async def limited() -> dict:
-            nonlocal seen
-            message = await receive()
-            if message["type"] == "http.request":
-                seen += len(message.get("body", b""))
-                if seen > self.max_bytes:   # a chunked body without Content-Length
-                    raise HTTPException(413, detail)
-            return message
-
-        await self.app(scope, limited, send)
-
-
 class CountRequests:
-    """Pure ASGI middleware (not BaseHTTPMiddleware, which wraps errors raised while reading the body)."""
+    """Counts requests and gives each an id (X-Request-ID, echoed), which a logged 500 names.
+
+    Pure ASGI middleware (not BaseHTTPMiddleware, which wraps errors raised while reading the body)."""
 
     def __init__(self, app: ASGIApp, metrics: Metrics):
         self.app, self.metrics = app, metrics
@@ -58,10 +36,13 @@ class CountRequests:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         status = [500]
+        request_id = uuid.uuid4().hex[:16]
+        scope["greyfit.request_id"] = request_id
 
         async def send_wrapper(message) -> None:
             if message["type"] == "http.response.start":
                 status[0] = message["status"]
+                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
             await send(message)
 
         try:
@@ -97,6 +78,12 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
                    simulate_routes.router, report_routes.router, frequency.router):
         app.include_router(router)
 
+    install_openapi(app, settings)
+
+    # outermost last: count -> key and rate limit -> body budget -> the app; no body byte is read
+    # before the key is checked and the body admitted
+    app.add_middleware(BodyBudget, max_body_bytes=settings.max_body_bytes,
+                       max_inflight_bytes=settings.max_inflight_body_bytes, retry_after=settings.retry_after_seconds)
+    app.add_middleware(ApiKeyGate, api_key=settings.api_key, rate_limit_per_minute=settings.rate_limit_per_minute)
     app.add_middleware(CountRequests, metrics=app.state.metrics)
-    app.add_middleware(BodyLimit, max_bytes=settings.max_body_bytes)
     return app

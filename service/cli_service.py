@@ -69,7 +69,7 @@ def cmd_batch(args) -> int:
     total = len(todo) + len(bad)
     print(f"greyfit batch: {len(done)} already done, {total} to do", file=sys.stderr)
     pool = LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)
-    finished = 0
+    finished = succeeded = 0
     started = time.monotonic()
     with out_path.open("a") as out:
         for record in bad:
@@ -82,6 +82,7 @@ def cmd_batch(args) -> int:
                 pool.submit(str(i), args.kind, body)   # already parsed to check it; sent as is
             for key, outcome in pool.poll():
                 if outcome["status"] == "succeeded":
+                    succeeded += 1
                     out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome["result_json"]}}}\n')
                 else:
                     out.write(json.dumps({"line": int(key), **outcome}) + "\n")
@@ -91,6 +92,9 @@ def cmd_batch(args) -> int:
             time.sleep(0.02)
     pool.shutdown()
     print(file=sys.stderr)
+    if total and not succeeded:   # like a job: failed when no task succeeded
+        print(f"greyfit batch: all {total} requests failed; see the errors in {out_path}", file=sys.stderr)
+        return 1
     return 0
 
 

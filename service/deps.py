@@ -1,4 +1,4 @@
-"""Request-scoped dependencies: settings, store, dispatcher, API key."""
+"""Request-scoped dependencies: settings, API key."""
 from __future__ import annotations
 
 import hmac
@@ -13,11 +13,12 @@ def settings_of(request: Request) -> Settings:
 
 
 def require_api_key(request: Request) -> None:
+    """The key check as a dependency (service.auth.ApiKeyGate does it for the whole app, before the body)."""
     key = request.app.state.settings.api_key
     if not key:
         return
-    header = request.headers.get("authorization", "")
-    scheme, _, token = header.partition(" ")
-    if scheme.lower() != "bearer" or not hmac.compare_digest(token.strip(), key):
+    scheme, _, token = request.headers.get("authorization", "").partition(" ")
+    # compare bytes: compare_digest refuses non-ASCII str, and a header may carry any octet
+    if scheme.lower() != "bearer" or not hmac.compare_digest(token.strip().encode("latin-1"), key.encode("utf-8")):
         raise HTTPException(401, "missing or wrong API key: send 'Authorization: Bearer <key>'",
                             headers={"WWW-Authenticate": "Bearer"})

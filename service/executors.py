@@ -1,7 +1,11 @@
 """Where fits run: persistent local worker processes (default) or a Dask cluster (scale-out).
 
-Both expose the same small interface to the dispatcher: `free()`, `submit(key, kind, request)`,
-`poll() -> [(key, outcome)]`, `cancel(key)`, `shutdown()`.
+Both expose the same small interface to the dispatcher: `capacity()`, `free()`,
+`submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `cancel(key)`, `shutdown()`.
+
+A failed outcome whose error carries `retry: True` lost its worker to something outside the task
+(a crash, a kill, a lost Dask worker): the dispatcher runs the task again. A task that hit its CPU
+or wall-time limit is not retried: it would hit it again.
 """
 from __future__ import annotations
 
@@ -41,6 +45,17 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         resource.setrlimit(resource.RLIMIT_CPU, (soft, hard))
         outcome = run_task(kind, request, cpu_seconds)
         conn.send((key, outcome))
+
+
+def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
+    """Why a worker ended mid-task. RLIMIT_CPU's soft limit sends SIGXCPU (the hard limit is not
+    set), so SIGKILL is someone else: the OOM killer or an operator. That, and any crash, is retried."""
+    if code == -signal.SIGXCPU:
+        return {"type": "Timeout", "field": None, "detail": f"exceeded the CPU-time limit of {cpu_seconds:g} s"}
+    how = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 and \
+        -code in signal.valid_signals() else f"exit code {code}"
+    return {"type": "WorkerLost", "field": None, "retry": True,
+            "detail": f"the worker process died ({how}): killed or crashed, not a fault of this request"}
 
 
 @dataclass
@@ -84,6 +99,9 @@ class LocalWorkerPool:
         child.close()
         return _Slot(proc, parent)
 
+    def capacity(self) -> int:
+        return len(self.slots)
+
     def free(self) -> int:
         return sum(1 for s in self.slots if s.key is None)
 
@@ -120,12 +138,8 @@ class LocalWorkerPool:
                 except (EOFError, OSError):
                     pass
             if not slot.process.is_alive():
-                code = slot.process.exitcode
-                reason = (f"exceeded the CPU-time limit of {self.cpu_seconds:g} s"
-                          if code in (-signal.SIGXCPU, -signal.SIGKILL) else
-                          f"the worker process died (exit code {code})")
-                done.append((slot.key, {"status": "failed", "error": {"type": "WorkerLost", "field": None,
-                                                                      "detail": reason}}))
+                done.append((slot.key, {"status": "failed", "error": _death_reason(slot.process.exitcode,
+                                                                                   self.cpu_seconds)}))
                 self._replace(i)
             elif time.monotonic() - slot.started > self.wall_seconds:
                 done.append((slot.key, {"status": "failed", "error": {
@@ -192,7 +206,8 @@ class DaskExecutor:
                     done.append((key, fut.result()))
                 except Exception as exc:  # the worker died or the task errored on the cluster
                     done.append((key, {"status": "failed", "error": {
-                        "type": "WorkerLost", "field": None, "detail": f"dask: {type(exc).__name__}: {exc}"}}))
+                        "type": "WorkerLost", "field": None, "retry": True,
+                        "detail": f"dask: {type(exc).__name__}: {exc}"}}))
             elif time.monotonic() - started > self.wall_seconds:
                 fut.cancel()
                 del self.futures[key]

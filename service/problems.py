@@ -2,17 +2,45 @@
 from __future__ import annotations
 
 import logging
+from typing import Optional
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
+from pydantic import BaseModel, Field
+from sqlalchemy.exc import InterfaceError, InternalError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.store import StoreUnavailable
 from solvers.errors import DataError, FitError, ModelDefinitionError
 
 log = logging.getLogger("greyfit.service")
 PROBLEM = "application/problem+json"
 TYPE_BASE = "https://greyfit.dev/problems/"
+
+
+class ProblemError(BaseModel):
+    loc: str = Field(description="where in the request: experiments[0].outputs.x, equations.v, body")
+    msg: str
+
+
+class Problem(BaseModel):
+    """application/problem+json (RFC 9457): every error this service answers."""
+
+    type: str
+    title: str
+    status: int
+    detail: str
+    errors: Optional[list[ProblemError]] = Field(default=None, description="validation errors, by location")
+    request_id: Optional[str] = Field(default=None, description="for 500s: the id in the server's log")
+
+
+class Overloaded(Exception):
+    """The server is at a configured capacity limit: 503 with Retry-After."""
+
+    def __init__(self, detail: str):
+        self.detail = detail
 
 
 class RequestTooLarge(Exception):
@@ -42,20 +70,46 @@ def _loc(loc) -> str:
     return out or "body"
 
 
-def validation_errors(errors) -> list[dict]:
+def _json_position(doc, pos) -> str:
+    if not isinstance(pos, int) or not isinstance(doc, (str, bytes)):
+        return ""
+    text = doc if isinstance(doc, str) else doc.decode("utf-8", "replace")
+    line = text.count("\n", 0, pos) + 1
+    column = pos - (text.rfind("\n", 0, pos) + 1) + 1
+    return f" at line {line} column {column} (character {pos})"
+
+
+def validation_errors(errors, body=None) -> list[dict]:
     out = []
     for e in errors:
         msg = e.get("msg", "invalid")
-        if e.get("type") == "json_invalid":
-            msg = f"malformed JSON: {e.get('ctx', {}).get('error', msg)}"
+        if e.get("type") == "json_invalid":   # FastAPI puts the character offset into loc: say it in words
+            pos = (e.get("loc") or (None, None))[-1]
+            msg = f"malformed JSON: {e.get('ctx', {}).get('error', msg)}{_json_position(body, pos)}"
+            out.append({"loc": "body", "msg": msg})
+            continue
         out.append({"loc": _loc(e.get("loc", ())), "msg": msg})
     return out
+
+
+def retry_later(status: int, title: str, detail: str, kind: str, retry_after: int) -> JSONResponse:
+    resp = problem(status, title, detail, kind)
+    resp.headers["Retry-After"] = str(retry_after)
+    return resp
+
+
+def store_error_detail(exc: Exception) -> str:
+    if isinstance(exc, StoreUnavailable):
+        return str(exc)
+    cause = getattr(exc, "orig", None) or exc
+    first = (str(cause).splitlines() or [""])[0][:300]
+    return f"the job store failed ({type(cause).__name__}: {first}); retry later"
 
 
 def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(RequestValidationError)
     async def _validation(_: Request, exc: RequestValidationError):
-        errors = validation_errors(exc.errors())
+        errors = validation_errors(exc.errors(), exc.body)
         detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
         return problem(422, "Invalid request", detail, "validation-error", errors=errors)
 
@@ -74,6 +128,23 @@ def install_handlers(app: FastAPI) -> None:
         return problem(422, "Limit exceeded", f"{exc.field}: {exc.detail}", "limit-exceeded",
                        errors=[{"loc": exc.field, "msg": exc.detail}])
 
+    @app.exception_handler(Overloaded)
+    async def _overloaded(request: Request, exc: Overloaded):
+        return retry_later(503, "Unavailable", exc.detail, "unavailable", request.app.state.settings.retry_after_seconds)
+
+    # a store that cannot be written is the server's state, not the request's fault: 503, retry
+    # (read-only is InternalError on PostgreSQL, OperationalError on SQLite; unreachable is either)
+    @app.exception_handler(StoreUnavailable)
+    @app.exception_handler(OperationalError)
+    @app.exception_handler(InternalError)
+    @app.exception_handler(InterfaceError)
+    @app.exception_handler(PoolTimeout)
+    async def _store(request: Request, exc: Exception):
+        detail = store_error_detail(exc)
+        log.error("job store error on %s %s: %s", request.method, request.url.path, detail)
+        return retry_later(503, "Job store unavailable", detail, "store-unavailable",
+                           request.app.state.settings.retry_after_seconds)
+
     @app.exception_handler(RequestTooLarge)
     async def _too_large(_: Request, exc: RequestTooLarge):
         return problem(413, "Request too large", exc.detail, "request-too-large")
@@ -84,7 +155,7 @@ def install_handlers(app: FastAPI) -> None:
         if exc.status_code == 400 and detail == "There was an error parsing the body":
             detail = "the body could not be parsed: it must be UTF-8 JSON, nested at most ~1000 levels deep"
         titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
-                  413: "Request too large", 503: "Unavailable", 504: "Timeout"}
+                  413: "Request too large", 429: "Too many requests", 503: "Unavailable", 504: "Timeout"}
         resp = problem(exc.status_code, titles.get(exc.status_code, "Error"), detail,
                        titles.get(exc.status_code, "error").lower().replace(" ", "-"))
         for k, v in (exc.headers or {}).items():
@@ -97,7 +168,9 @@ def install_handlers(app: FastAPI) -> None:
                        errors=[{"loc": "body", "msg": "nested too deeply"}])
 
     @app.exception_handler(Exception)
-    async def _internal(_: Request, exc: Exception):
-        log.exception("unhandled error")
-        return problem(500, "Internal error", f"{type(exc).__name__}: the server failed; the error was logged",
-                       "internal-error")
+    async def _internal(request: Request, exc: Exception):
+        # last resort: a bug. Logged with the request id that the answer carries; the tests demand none.
+        request_id = request.scope.get("greyfit.request_id", "-")
+        log.exception("unhandled error in %s %s (request %s)", request.method, request.url.path, request_id)
+        return problem(500, "Internal error", f"{type(exc).__name__}: the server failed; the error was logged "
+                       f"with request id {request_id}", "internal-error", request_id=request_id)

@@ -38,6 +38,19 @@ class Settings(BaseSettings):
                                                                 "renewing it for this long is re-queued")
     poll_seconds: float = Field(default=0.5, gt=0, description="longest wait of the dispatcher between "
                                                                 "housekeeping rounds (it wakes on events)")
+    max_inflight_body_bytes: int = Field(
+        default=128 * 1024 * 1024, ge=1024,
+        description="request bytes being received and parsed at once; a body beyond it gets 503 + Retry-After "
+                    "(each byte of JSON costs about 3 bytes of memory while it is parsed)")
+    max_sync_queue: int = Field(default=32, ge=1, description="synchronous fits waiting for a worker; "
+                                                              "beyond it 503 + Retry-After")
+    rate_limit_per_minute: Optional[int] = Field(
+        default=None, ge=1, description="requests per minute per API key (or client address); beyond it 429")
+    job_reserved_workers: int = Field(
+        default=1, ge=0, description="workers kept for job tasks while synchronous fits wait, so jobs "
+                                     "progress under synchronous load (at most workers - 1; with one "
+                                     "worker, jobs and synchronous fits alternate)")
+    retry_after_seconds: int = Field(default=2, ge=1, description="the Retry-After of 503 and 429 answers")
 
     def resolved_database_url(self) -> str:
         if self.database_url:

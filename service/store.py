@@ -1,12 +1,16 @@
 """Job store on SQLAlchemy Core: SQLite by default, PostgreSQL for several replicas.
 
-A task is claimed by a conditional UPDATE (status = 'queued'), so two dispatchers never run the
-same task; a running task holds a lease that its dispatcher renews, and tasks whose lease has
-expired (their server died) are re-queued — a job accepted is never lost.
+A task is claimed by a conditional UPDATE (status = 'queued'; on PostgreSQL the candidate row is
+selected `FOR UPDATE SKIP LOCKED`, so concurrent replicas pass each other instead of colliding),
+so two dispatchers never run the same task; a running task holds a lease that its dispatcher
+renews, and tasks whose lease has expired (their server died) are re-queued — a job accepted is
+never lost. `attempts` counts the starts that ended in a lost worker or server; a graceful
+shutdown hands its tasks back without counting one.
 """
 from __future__ import annotations
 
 import json
+import os
 import time
 import uuid
 from dataclasses import dataclass
@@ -15,7 +19,7 @@ from typing import Any, Optional
 from sqlalchemy import (
     Column, Float, Integer, MetaData, String, Table, Text, create_engine, event, func, select, update,
 )
-from sqlalchemy.engine import Engine
+from sqlalchemy.engine import Engine, make_url
 
 metadata = MetaData()
 
@@ -44,7 +48,18 @@ tasks = Table(
     Column("finished_at", Float),
 )
 
+# one row per server: readiness writes it to prove that the store accepts writes
+store_probes = Table(
+    "store_probes", metadata,
+    Column("owner", String(36), primary_key=True),
+    Column("at", Float, nullable=False),
+)
+
 TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+class StoreUnavailable(Exception):
+    """The job store cannot take writes (deleted, read-only, full or unreachable): answered 503."""
 
 
 @dataclass
@@ -71,11 +86,49 @@ def make_engine(url: str) -> Engine:
     return engine
 
 
+def _sqlite_file(engine: Engine) -> Optional[str]:
+    url = make_url(str(engine.url))
+    if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
+        return None
+    return os.path.abspath(url.database)
+
+
 class JobStore:
     def __init__(self, engine: Engine):
         self.engine = engine
+        self.sqlite_path = _sqlite_file(engine)
+        # the file we opened: a file deleted or replaced under a running server takes jobs to nowhere
+        self._sqlite_id = self._file_identity()
+        self._skip_locked = engine.dialect.name == "postgresql"
+
+    def _file_identity(self) -> Optional[tuple[int, int]]:
+        if self.sqlite_path is None:
+            return None
+        try:
+            st = os.stat(self.sqlite_path)
+        except FileNotFoundError:
+            return None
+        return st.st_dev, st.st_ino
+
+    def check_file(self) -> None:
+        """Raise StoreUnavailable if the SQLite file was deleted or replaced since the server started."""
+        if self.sqlite_path is not None and self._file_identity() != self._sqlite_id:
+            raise StoreUnavailable(f"the SQLite job store {self.sqlite_path} was deleted or replaced while the "
+                                   "server ran; jobs written now would be lost: restart the server")
+
+    def check_writable(self, owner: str) -> None:
+        """Prove the store takes a write (readiness); raise StoreUnavailable saying why not."""
+        self.check_file()
+        try:
+            with self.engine.begin() as conn:
+                conn.execute(store_probes.delete().where(store_probes.c.owner == owner))
+                conn.execute(store_probes.insert().values(owner=owner, at=time.time()))
+        except Exception as exc:   # what the database says is the useful detail
+            raise StoreUnavailable(f"the job store does not take writes: {type(exc).__name__}: "
+                                   f"{str(exc).splitlines()[0][:300]}") from exc
 
     def create_job(self, kind: str, requests: list[dict], label: Optional[str]) -> str:
+        self.check_file()
         job_id = str(uuid.uuid4())
         now = time.time()
         with self.engine.begin() as conn:
@@ -127,11 +180,13 @@ class JobStore:
         """Take the oldest queued task, or None; safe against concurrent dispatchers."""
         for _ in range(5):
             with self.engine.begin() as conn:
-                row = conn.execute(
-                    select(tasks.c.job_id, tasks.c.idx, tasks.c.request, tasks.c.attempts, jobs.c.kind)
-                    .join(jobs, jobs.c.id == tasks.c.job_id)
-                    .where(tasks.c.status == "queued")
-                    .order_by(jobs.c.created_at, tasks.c.idx).limit(1)).mappings().first()
+                query = (select(tasks.c.job_id, tasks.c.idx, tasks.c.request, tasks.c.attempts, jobs.c.kind)
+                         .join(jobs, jobs.c.id == tasks.c.job_id)
+                         .where(tasks.c.status == "queued")
+                         .order_by(jobs.c.created_at, tasks.c.idx).limit(1))
+                if self._skip_locked:   # a row another replica is claiming is passed over, not waited for
+                    query = query.with_for_update(skip_locked=True, of=tasks)
+                row = conn.execute(query).mappings().first()
                 if row is None:
                     return None
                 now = time.time()
@@ -140,8 +195,9 @@ class JobStore:
                                                      tasks.c.status == "queued")
                                  .values(status="failed", finished_at=now, error=json.dumps({
                                      "type": "WorkerLost",
-                                     "detail": f"the task's worker stopped {row['attempts']} times "
-                                               "(crash, limit or server restart); not retried again"})))
+                                     "detail": f"the task was started {row['attempts']} times and each time "
+                                               "its worker or server was lost (crash or kill); not retried "
+                                               "again"})))
                     continue
                 res = conn.execute(
                     update(tasks).where(tasks.c.job_id == row["job_id"], tasks.c.idx == row["idx"],
@@ -166,10 +222,34 @@ class JobStore:
         return res.rowcount
 
     def requeue_owned(self, owner: str) -> int:
+        """A graceful shutdown hands its running tasks back; the interrupted start does not count."""
         with self.engine.begin() as conn:
             res = conn.execute(update(tasks).where(tasks.c.status == "running", tasks.c.owner == owner)
-                               .values(status="queued", owner=None, lease_until=None))
+                               .values(status="queued", owner=None, lease_until=None,
+                                       attempts=tasks.c.attempts - 1))
         return res.rowcount
+
+    def release(self, job_id: str, idx: int, owner: str, max_attempts: int, error: dict) -> str:
+        """A task whose worker was lost goes back to the queue, or fails after max_attempts starts.
+
+        Returns the task's new status ('queued' or 'failed'), or '' if the task is no longer ours.
+        """
+        with self.engine.begin() as conn:
+            attempts = conn.execute(select(tasks.c.attempts).where(
+                tasks.c.job_id == job_id, tasks.c.idx == idx, tasks.c.status == "running",
+                tasks.c.owner == owner)).scalar_one_or_none()
+            if attempts is None:
+                return ""
+            mine = (tasks.c.job_id == job_id, tasks.c.idx == idx, tasks.c.status == "running", tasks.c.owner == owner)
+            if attempts < max_attempts:
+                conn.execute(update(tasks).where(*mine).values(status="queued", owner=None, lease_until=None,
+                                                              error=json.dumps(error)))
+                return "queued"
+            final = {**error, "detail": f"the task's worker was lost {attempts} times; not retried again "
+                                        f"(last: {error.get('detail')})"}
+            conn.execute(update(tasks).where(*mine).values(status="failed", finished_at=time.time(),
+                                                          lease_until=None, error=json.dumps(final)))
+            return "failed"
 
     def finish(self, job_id: str, idx: int, owner: str, status: str, result_json: Optional[str],
                error: Optional[dict]) -> bool:

@@ -26,7 +26,8 @@ MAX_LENGTH = 4000
 _TOKEN = re.compile(
     r"\s*(?:(?P<num>(?:\d+\.?\d*|\.\d+)(?:[eE][+-]?\d+)?)"
     r"|(?P<name>[A-Za-z_][A-Za-z0-9_]*)"
-    r"|(?P<op>\*\*|<=|>=|==|!=|[-+*/^(),<>]))")
+    r"|(?P<op>\*\*|<=|>=|==|!=|[-+*/^(),<>]))",
+    re.ASCII)   # \d and \s must not take Unicode digits (e.g. '١٢') or spaces as numbers and blanks
 
 _UNARY: dict[str, Callable] = {
     "sin": ca.sin, "cos": ca.cos, "tan": ca.tan, "asin": ca.asin, "acos": ca.acos,

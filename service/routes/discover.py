@@ -1,16 +1,16 @@
-from fastapi import APIRouter, Depends, Request, Response
+from fastapi import APIRouter, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 from typing import Optional
 
 from schemas.discovery import DiscoverRequest, DiscoveryResult
 from schemas.jobs import JobPublic
-from service.deps import require_api_key
+from service.json_body import StrictJSONRoute
 from service.limits import check_limits, data_values
 from service.problems import RequestTooLarge
 from service.routes.fits import run_sync
 from service.routes.jobs import submit_job
 
-router = APIRouter(prefix="/v1", tags=["discovery"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1", tags=["discovery"], route_class=StrictJSONRoute)
 
 
 class DiscoverJobCreate(BaseModel):

@@ -1,6 +1,7 @@
 from fastapi import APIRouter, Request
-from fastapi.responses import JSONResponse
-from sqlalchemy import text
+
+from service.problems import Problem, problem
+from service.store import StoreUnavailable
 
 router = APIRouter(tags=["health"])
 
@@ -11,16 +12,14 @@ def healthz() -> dict:
     return {"status": "ok"}
 
 
-@router.get("/readyz")
+@router.get("/readyz", responses={503: {"model": Problem, "description": "not ready: the detail says why"}})
 def readyz(request: Request):
-    """Readiness: the job store answers and the dispatcher runs."""
+    """Readiness: the job store takes a write and the dispatcher runs."""
     state = request.app.state
     try:
-        with state.store.engine.connect() as conn:
-            conn.execute(text("SELECT 1"))
-    except Exception as exc:  # report, do not raise: this is what a probe reads
-        return JSONResponse({"status": "unavailable", "detail": f"job store: {exc}"}, status_code=503)
-    thread = state.dispatcher._thread
-    if thread is None or not thread.is_alive():
-        return JSONResponse({"status": "unavailable", "detail": "dispatcher not running"}, status_code=503)
+        state.store.check_writable(state.dispatcher.owner)
+    except StoreUnavailable as exc:   # report, do not raise: this is what a probe reads
+        return problem(503, "Not ready", str(exc), "not-ready")
+    if not state.dispatcher.is_alive():
+        return problem(503, "Not ready", "the dispatcher thread is not running", "not-ready")
     return {"status": "ready", "executor": state.settings.executor}

@@ -1,14 +1,16 @@
 import json
 from typing import Any, Optional
 
-from fastapi import APIRouter, Depends, HTTPException, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Query, Request, Response
 from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskPublic, TaskResult
-from service.deps import require_api_key
+from service.json_body import StrictJSONRoute
 from service.limits import check_limits
 from service.problems import LimitExceeded
 from service.store import job_status
 
-router = APIRouter(prefix="/v1/jobs", tags=["jobs"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
+
+MAX_OFFSET = 2 ** 31 - 1   # databases take 64-bit offsets at most; nobody pages this far
 
 
 def job_public(record: dict[str, Any]) -> JobPublic:
@@ -50,7 +52,7 @@ def create_job(body: JobCreate, request: Request, response: Response) -> JobPubl
 
 
 @router.get("", response_model=JobsPublic)
-def list_jobs(request: Request, offset: int = Query(0, ge=0), limit: int = Query(20, ge=1, le=200)) -> JobsPublic:
+def list_jobs(request: Request, offset: int = Query(0, ge=0, le=MAX_OFFSET), limit: int = Query(20, ge=1, le=200)) -> JobsPublic:
     """Jobs, newest first, with paging."""
     records, count = request.app.state.store.list_jobs(offset, limit)
     return JobsPublic(data=[job_public(r) for r in records], count=count)

@@ -21,10 +21,10 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path, port: int) -> subprocess.Popen:
-    env = dict(os.environ, GREYFIT_LEASE_SECONDS="2", GREYFIT_POLL_SECONDS="0.02")
+def start_server(data_dir: Path, port: int, workers: int = 2, **env_overrides: str) -> subprocess.Popen:
+    env = {**os.environ, "GREYFIT_LEASE_SECONDS": "2", "GREYFIT_POLL_SECONDS": "0.02", **env_overrides}
     proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
-                             "--port", str(port), "--data-dir", str(data_dir), "--workers", "2"],
+                             "--port", str(port), "--data-dir", str(data_dir), "--workers", str(workers)],
                             cwd=ROOT, env=env, start_new_session=True,
                             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     deadline = time.monotonic() + 60

@@ -1,0 +1,73 @@
+"""The OpenAPI description says what the service really sends: problem+json errors and the key.
+
+FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
+problem+json answers the middleware and handlers give (400, 401, 404, 413, 422, 429, 500, 503, and
+504 for synchronous fits) and the bearer security scheme.
+"""
+from __future__ import annotations
+
+from fastapi import FastAPI
+from fastapi.openapi.utils import get_openapi
+
+from service.problems import PROBLEM, Problem
+from service.settings import Settings
+
+SCHEME = "bearerAuth"
+ANSWERS = {
+    "400": "the body is not UTF-8 JSON or is nested too deeply",
+    "401": "missing or wrong API key (only when GREYFIT_API_KEY is set)",
+    "404": "no such job or route",
+    "413": "the body (or, for synchronous fits, its data) is larger than this server takes",
+    "422": "invalid request: `errors` lists each location (e.g. experiments[0].outputs.x) and what to fix",
+    "429": "more requests a minute than GREYFIT_RATE_LIMIT_PER_MINUTE allows; see Retry-After",
+    "500": "a bug in the server; logged under `request_id`",
+    "503": "at capacity (bodies in flight, synchronous queue), the job store cannot be written, "
+           "or shutting down; see Retry-After",
+    "504": "the synchronous fit exceeded its wall-time limit",
+}
+SYNC_PATHS = ("/v1/fits", "/v1/discover")
+PUBLIC = ("/healthz", "/readyz")
+
+
+def _problem_response(description: str, headers: bool) -> dict:
+    out = {"description": description,
+           "content": {PROBLEM: {"schema": {"$ref": "#/components/schemas/Problem"}}}}
+    if headers:
+        out["headers"] = {"Retry-After": {"schema": {"type": "integer"}, "description": "seconds to wait"}}
+    return out
+
+
+def describe(app: FastAPI, settings: Settings) -> dict:
+    spec = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
+    components = spec.setdefault("components", {})
+    schemas = components.setdefault("schemas", {})
+    problem_schema = Problem.model_json_schema(ref_template="#/components/schemas/{model}")
+    schemas.update(problem_schema.pop("$defs", {}))
+    schemas["Problem"] = problem_schema
+    for unused in ("HTTPValidationError", "ValidationError"):
+        schemas.pop(unused, None)
+    components["securitySchemes"] = {SCHEME: {"type": "http", "scheme": "bearer",
+                                              "description": "GREYFIT_API_KEY, when the server sets one"}}
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            responses = op.setdefault("responses", {})
+            codes = ["500"] if path == "/healthz" else ["500", "503"]
+            if path not in PUBLIC:
+                codes += ["401", "404", "413", "422", "429"]
+                op["security"] = [{SCHEME: []}] if settings.api_key else [{}, {SCHEME: []}]
+            if "requestBody" in op:
+                codes.append("400")
+            if path in SYNC_PATHS:
+                codes.append("504")
+            for code in sorted(set(codes)):
+                responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
+    return spec
+
+
+def install_openapi(app: FastAPI, settings: Settings) -> None:
+    def openapi() -> dict:
+        if app.openapi_schema is None:
+            app.openapi_schema = describe(app, settings)
+        return app.openapi_schema
+
+    app.openapi = openapi

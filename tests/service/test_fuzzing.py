@@ -1,0 +1,162 @@
+"""Fuzzing a real server: schemathesis from its own OpenAPI, and mutations of valid fit requests.
+
+Both demand zero 5xx, and every answer as the OpenAPI describes it (a 200 FitResult schema-valid,
+errors as problem+json). Bounded: a fixed number of examples, a fixed seed, tiny fits with a
+2-second CPU limit per fit.
+"""
+import copy
+import json
+import math
+import random
+
+import httpx
+import jsonschema_rs
+import pytest
+import schemathesis
+from hypothesis import HealthCheck, Phase, given, settings
+from schemathesis.checks import not_a_server_error
+from schemathesis.specs.openapi.checks import response_schema_conformance
+
+from tests.service.conftest import msd_request
+from tests.service.test_real_server import free_port, start_server, stop_server
+
+KEY = "fuzz-key"
+AUTH = {"Authorization": f"Bearer {KEY}"}
+MUTATIONS = 300
+SEED = 20240917
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    port = free_port()
+    proc = start_server(tmp_path_factory.mktemp("fuzz"), port, workers=2, GREYFIT_API_KEY=KEY,
+                        GREYFIT_TASK_CPU_SECONDS="2", GREYFIT_TASK_WALL_SECONDS="10")
+    yield f"http://127.0.0.1:{port}"
+    stop_server(proc)
+
+
+@pytest.mark.slow
+def test_openapi_fuzz_no_server_error_and_schema_conformance(server):
+    """Every operation of /openapi.json, 15 generated cases each, derandomized (a fixed seed).
+
+    Driven by hand rather than by schemathesis' pytest plugin, whose lazy loader does not run
+    under pytest 9.2; no shrinking, so a failure costs no extra time.
+    """
+    schema = schemathesis.openapi.from_url(f"{server}/openapi.json", headers=AUTH)
+    failures, operations = [], 0
+    for result in schema.get_all_operations():
+        operation = result.ok()
+        operations += 1
+
+        @given(case=operation.as_strategy())
+        @settings(max_examples=15, deadline=None, derandomize=True, database=None,
+                  phases=[Phase.explicit, Phase.generate], suppress_health_check=list(HealthCheck))
+        def check(case):
+            case.call_and_validate(headers=AUTH, timeout=30,
+                                   checks=[not_a_server_error, response_schema_conformance])
+
+        try:
+            check()
+        except Exception as exc:   # collect every operation's failure, then report them together
+            failures.append(f"{operation.method.upper()} {operation.path}: {str(exc)[:600]}")
+    assert operations >= 10
+    assert not failures, "\n\n".join(failures)
+
+
+# --- mutation fuzzer of valid fit requests ---------------------------------------------------------
+
+NUMBERS = [math.nan, math.inf, -math.inf, 1e308, -1e308, 0.0, -1.0, 1e-308, 10 ** 30]
+STRINGS = ["", "x" * 5000, "é漢字", "\u0000", "1/0", "1e999", "__import__('os')", "(" * 70 + "x" + ")" * 70,
+           " ", "NaN", "x^x^x^x^x^x", "exp(exp(exp(x)))"]
+
+
+def leaves(node, path=()):
+    """(path, value) of every number, string and list of the request."""
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from leaves(v, path + (k,))
+    elif isinstance(node, list):
+        yield path, node
+        if node and not isinstance(node[0], (int, float)):
+            for i, v in enumerate(node):
+                yield from leaves(v, path + (i,))
+    elif isinstance(node, (int, float, str)) and not isinstance(node, bool):
+        yield path, node
+
+
+def mutate(body: dict, rng: random.Random) -> tuple[dict, list[str]]:
+    body, notes = copy.deepcopy(body), []
+    for _ in range(rng.randint(1, 3)):
+        path, value = rng.choice(list(leaves(body)))   # again: an earlier mutation may have cut a list
+        parent = body
+        for p in path[:-1]:
+            parent = parent[p]
+        if isinstance(value, list):
+            if value and isinstance(value[0], (int, float)) and rng.random() < 0.5:
+                i = rng.randrange(len(value))          # one sample of a series
+                new = list(value)
+                new[i] = rng.choice(NUMBERS)
+                notes.append(f"{'.'.join(map(str, path))}[{i}] = {new[i]}")
+            else:
+                new = value[: rng.choice([0, 1, len(value) // 2])]
+                notes.append(f"{'.'.join(map(str, path))} truncated to {len(new)}")
+        elif isinstance(value, str):
+            new = rng.choice(STRINGS)
+            notes.append(f"{'.'.join(map(str, path))} = {new[:30]!r}")
+        else:
+            new = rng.choice(NUMBERS + [-value, int(-1)])
+            notes.append(f"{'.'.join(map(str, path))} = {new}")
+        parent[path[-1]] = new
+    return body, notes
+
+
+def base_requests() -> list[dict]:
+    out = []
+    for method in ("equation_error", "single_shooting", "multiple_shooting"):
+        body = msd_request(0, n=21)
+        body["method"] = method
+        body["options"] = {"max_cpu_time": 1.0, "return_traces": True, "multistart": 2, "seed": 1,
+                           "output_weights": {"x": 1.0}, "derivative_window": 5}
+        body["model"]["constants"] = {"g": 9.81}
+        body["model"]["definitions"] = {"spring": "k*x"}
+        body["model"]["equations"]["v"] = "(u - c*v - spring)/m"
+        out.append(body)
+    return out
+
+
+def strict_json(text: str):
+    def refuse(constant):
+        raise ValueError(f"{constant} is not JSON")
+    return json.loads(text, parse_constant=refuse)
+
+
+@pytest.mark.slow
+def test_mutated_fit_requests_get_no_5xx_and_schema_valid_results(server):
+    spec = httpx.get(f"{server}/openapi.json", headers=AUTH).json()
+    validate = {name: jsonschema_rs.validator_for({"$ref": f"#/components/schemas/{name}",
+                                                  "components": spec["components"]})
+                for name in ("FitResult", "Problem")}
+    rng = random.Random(SEED)
+    bases = base_requests()
+    failures, statuses = [], {}
+    with httpx.Client(base_url=server, headers=AUTH, timeout=60) as http:
+        for base in bases:   # the unmutated requests succeed: the fuzzer starts from valid ground
+            assert http.post("/v1/fits", json=base).status_code == 200
+        for n in range(MUTATIONS):
+            body, notes = mutate(bases[n % len(bases)], rng)
+            text = json.dumps(body, allow_nan=True)
+            resp = http.post("/v1/fits", content=text, headers={"content-type": "application/json"})
+            statuses[resp.status_code] = statuses.get(resp.status_code, 0) + 1
+            try:
+                payload = strict_json(resp.text)
+            except ValueError as exc:
+                failures.append((resp.status_code, notes, f"not strict JSON: {exc}"))
+                continue
+            kind = "FitResult" if resp.status_code == 200 else "Problem"
+            errors = [f"{'/'.join(map(str, e.instance_path))}: {e.message}"
+                      for e in validate[kind].iter_errors(payload)][:3]
+            if resp.status_code >= 500 or errors:
+                failures.append((resp.status_code, notes, errors or payload.get("detail")))
+    summary = "\n".join(f"{s} {n} -> {e}" for s, n, e in failures[:15])
+    assert not failures, f"{len(failures)} of {MUTATIONS} mutations failed (statuses {statuses}):\n{summary}"
+    assert statuses.get(200, 0) > 20 and statuses.get(422, 0) > 50, statuses   # both paths were exercised

@@ -1,0 +1,119 @@
+"""The job store on SQLite and PostgreSQL: claims once, leases, retries, graceful hand-back."""
+import threading
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import select, text
+
+from service.app import create_app
+from service.store import JobStore, make_engine, tasks
+from tests.service.conftest import make_settings, msd_request, wait_for_job
+
+
+@pytest.fixture
+def store(store_url):
+    s = JobStore(make_engine(store_url))
+    yield s
+    s.engine.dispose()
+
+
+def requests(n):
+    return [{"i": i} for i in range(n)]
+
+
+def test_claim_finish_once_in_order(store):
+    a = store.create_job("fit", requests(2), "a")
+    b = store.create_job("fit", requests(1), "b")
+    claimed = [store.claim("o1", 30, 3) for _ in range(3)]
+    assert [(t.job_id, t.idx) for t in claimed] == [(a, 0), (a, 1), (b, 0)]
+    assert store.claim("o1", 30, 3) is None
+    assert store.finish(a, 0, "o1", "succeeded", '{"x": 1}', None)
+    assert not store.finish(a, 0, "o1", "failed", None, {"type": "X"})       # once only
+    assert not store.finish(a, 1, "someone-else", "succeeded", "{}", None)   # not theirs
+    assert store.results(a)[0] == {"index": 0, "status": "succeeded", "result": {"x": 1}, "error": None}
+
+
+def test_concurrent_claims_take_every_task_exactly_once(store):
+    job = store.create_job("fit", requests(40), None)
+    taken: list[tuple[str, int]] = []
+    lock = threading.Lock()
+
+    def worker(owner):
+        while (task := store.claim(owner, 30, 3)) is not None:
+            with lock:
+                taken.append((owner, task.idx))
+
+    threads = [threading.Thread(target=worker, args=(f"owner{i}",)) for i in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join(timeout=60)
+    assert sorted(i for _, i in taken) == list(range(40))
+    with store.engine.connect() as conn:
+        rows = conn.execute(select(tasks.c.idx, tasks.c.owner, tasks.c.attempts)
+                            .where(tasks.c.job_id == job)).all()
+    assert all(r.attempts == 1 for r in rows)
+    assert {r.owner for r in rows} == {o for o, _ in taken}
+
+
+def test_lost_worker_is_retried_then_fails_with_the_count(store):
+    job = store.create_job("fit", requests(1), None)
+    lost = {"type": "WorkerLost", "field": None, "retry": True, "detail": "the worker process died (signal SIGKILL)"}
+    for attempt in (1, 2):
+        assert store.claim("o", 30, 3).idx == 0
+        assert store.release(job, 0, "o", 3, lost) == "queued"
+    assert store.claim("o", 30, 3).idx == 0
+    assert store.release(job, 0, "o", 3, lost) == "failed"
+    record = store.get_job(job)["tasks"][0]
+    assert record["status"] == "failed" and record["attempts"] == 3
+    assert "lost 3 times" in record["error"] and "SIGKILL" in record["error"]
+
+
+def test_graceful_hand_back_does_not_count_an_attempt_but_a_dead_server_does(store):
+    job = store.create_job("fit", requests(1), None)
+    for _ in range(5):                                  # five graceful restarts mid-task
+        assert store.claim("o", 30, 3) is not None
+        assert store.requeue_owned("o") == 1
+    assert store.get_job(job)["tasks"][0]["attempts"] == 0
+    for _ in range(3):                                  # three servers that died: the lease expires
+        assert store.claim("o", 0.01, 3) is not None
+        time.sleep(0.02)
+        assert store.requeue_expired() == 1
+    assert store.claim("o", 30, 3) is None              # started 3 times, lost 3 times: failed
+    record = store.get_job(job)["tasks"][0]
+    assert record["status"] == "failed" and "started 3 times" in record["error"]
+
+
+def test_store_write_check(store):
+    store.check_writable("probe-owner")
+    store.check_writable("probe-owner")                 # idempotent
+
+
+def test_a_job_runs_end_to_end_on_this_store(store_url, tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, database_url=store_url, workers=1))) as c:
+        job_id = c.post("/v1/jobs", json={"requests": [msd_request(i, n=41) for i in range(3)]}).json()["id"]
+        job = wait_for_job(c, job_id)
+        assert job["progress"] == {"done": 3, "total": 3, "succeeded": 3, "failed": 0}
+        assert c.get("/readyz").json()["status"] == "ready"
+
+
+def test_postgres_claims_skip_a_row_another_replica_has_locked(postgres_url):
+    """FOR UPDATE SKIP LOCKED: a claim passes over a locked row instead of waiting for its lock."""
+    store = JobStore(make_engine(postgres_url))
+    try:
+        job = store.create_job("fit", requests(2), None)
+        got = []
+        with store.engine.connect() as other:
+            tx = other.begin()
+            other.execute(text("SELECT idx FROM tasks WHERE job_id = :j AND idx = 0 FOR UPDATE"), {"j": job})
+            claimer = threading.Thread(target=lambda: got.append(store.claim("o", 30, 3)), daemon=True)
+            claimer.start()
+            claimer.join(timeout=10)
+            blocked = claimer.is_alive()
+            tx.rollback()
+        claimer.join(timeout=10)
+        assert not blocked, "the claim waited for another transaction's row lock"
+        assert got[0].idx == 1
+    finally:
+        store.engine.dispose()

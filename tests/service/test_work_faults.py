@@ -1,0 +1,147 @@
+"""Faults around the work: a store that refuses writes, workers killed, graceful restarts, starvation."""
+import concurrent.futures as cf
+import logging
+import os
+import signal
+import time
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import event, text
+
+from service.app import create_app
+from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
+
+
+def wait_until(condition, timeout=60.0, what="condition"):
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = condition()
+        if value:
+            return value
+        time.sleep(0.02)
+    raise AssertionError(f"{what} not reached in {timeout} s")
+
+
+def running_task(client, job_id):
+    return wait_until(lambda: any(t["status"] == "running" for t in client.get(f"/v1/jobs/{job_id}").json()["tasks"]),
+                      what="a running task")
+
+
+def make_read_only(engine, on: bool) -> None:
+    """A real fault, not a mock: new connections of the server's own engine refuse writes."""
+    def read_only(dbapi_conn, _record):
+        cur = dbapi_conn.cursor()
+        if engine.dialect.name == "sqlite":
+            cur.execute("PRAGMA query_only = ON")
+        else:
+            cur.execute("SET default_transaction_read_only = on")
+            dbapi_conn.commit()
+        cur.close()
+
+    if on:
+        event.listen(engine, "connect", read_only)
+        engine._greyfit_read_only = read_only
+    else:
+        event.remove(engine, "connect", engine._greyfit_read_only)
+    engine.dispose()   # pooled connections are replaced by ones made under the new rule
+
+
+def test_a_result_that_cannot_be_written_is_written_when_the_store_recovers(tmp_path):
+    """Defect: the task left the running list before its outcome was stored, so it stayed 'running'."""
+    with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
+        store = c.app.state.store
+        with store.engine.begin() as conn:   # every write that ends a task fails for now
+            conn.execute(text("CREATE TRIGGER refuse_finish BEFORE UPDATE OF status ON tasks "
+                              "WHEN NEW.status IN ('succeeded', 'failed') "
+                              "BEGIN SELECT RAISE(ABORT, 'simulated: the store refuses writes'); END"))
+        job_id = c.post("/v1/jobs", json={"requests": [msd_request(0, n=41)]}).json()["id"]
+        wait_until(lambda: 'greyfit_fits_total{kind="fit",status="succeeded"} 1' in c.get("/metrics").text,
+                   what="the fit finished")
+        time.sleep(0.5)                       # several dispatcher rounds fail to write it
+        assert c.get(f"/v1/jobs/{job_id}").json()["status"] == "running"
+        with store.engine.begin() as conn:
+            conn.execute(text("DROP TRIGGER refuse_finish"))
+        job = wait_for_job(c, job_id, timeout=20)
+        assert job["status"] == "succeeded" and job["tasks"][0]["attempts"] == 1
+        result = c.get(f"/v1/jobs/{job_id}/results").json()["results"][0]["result"]
+        assert result["parameters"]["k"]["value"] == pytest.approx(5.0, rel=0.05)
+
+
+def test_a_deleted_sqlite_file_makes_the_server_unready_and_refuse_jobs(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
+        assert c.get("/readyz").status_code == 200
+        for suffix in ("", "-wal", "-shm"):
+            if os.path.exists(tmp_path / f"greyfit.db{suffix}"):
+                os.remove(tmp_path / f"greyfit.db{suffix}")
+        assert_problem(c.get("/readyz"), 503, "deleted or replaced")
+        resp = c.post("/v1/jobs", json={"requests": [msd_request(0, n=41)]})
+        assert_problem(resp, 503, "deleted or replaced", "restart the server")
+        assert resp.headers["retry-after"]
+
+
+def test_a_read_only_store_is_503_and_unready_then_recovers(store_url, tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, workers=1, database_url=store_url))) as c:
+        engine = c.app.state.store.engine
+        make_read_only(engine, True)
+        try:
+            assert_problem(c.get("/readyz"), 503, "does not take writes")
+            resp = c.post("/v1/jobs", json={"requests": [msd_request(0, n=41)]})
+            assert_problem(resp, 503, "job store")
+            assert "read" in resp.json()["detail"].lower()
+        finally:
+            make_read_only(engine, False)
+        assert c.get("/readyz").status_code == 200
+        job_id = c.post("/v1/jobs", json={"requests": [msd_request(0, n=41)]}).json()["id"]
+        assert wait_for_job(c, job_id)["status"] == "succeeded"
+
+
+def test_a_worker_killed_mid_task_is_retried_not_called_a_cpu_limit(tmp_path):
+    with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
+        job_id = c.post("/v1/jobs", json={"requests": [slow_request()]}).json()["id"]
+        running_task(c, job_id)
+        time.sleep(0.2)
+        os.kill(c.app.state.dispatcher.executor.slots[0].process.pid, signal.SIGKILL)
+        job = wait_for_job(c, job_id)
+        assert job["status"] == "succeeded", job
+        assert job["tasks"][0]["attempts"] == 2          # the lost start counted, the retry succeeded
+        assert "CPU" not in str(job["tasks"][0]["error"])
+
+
+def test_three_graceful_restarts_during_one_task_do_not_fail_it(tmp_path):
+    settings = make_settings(tmp_path, workers=1, task_max_attempts=3)
+    with TestClient(create_app(settings)) as c:
+        job_id = c.post("/v1/jobs", json={"requests": [slow_request()]}).json()["id"]
+        running_task(c, job_id)
+    for _ in range(3):                                   # SIGTERM-like: the lifespan ends, tasks handed back
+        with TestClient(create_app(settings)) as c:
+            assert c.get(f"/v1/jobs/{job_id}").json()["tasks"][0]["attempts"] <= 1   # just re-claimed, or not yet
+            running_task(c, job_id)
+    with TestClient(create_app(settings)) as c:
+        job = wait_for_job(c, job_id)
+        assert job["status"] == "succeeded", job
+        assert job["tasks"][0]["attempts"] == 1
+
+
+def test_a_worker_traceback_is_logged_with_the_task(client, caplog):
+    caplog.set_level(logging.ERROR, logger="greyfit.dispatcher")
+    fut = client.app.state.dispatcher.submit_sync("no-such-kind", {})
+    outcome = fut.result(timeout=60)
+    assert outcome["error"]["type"] == "InternalError"
+    logged = "\n".join(r.getMessage() for r in caplog.records)
+    assert "internal error" in logged and "sync-" in logged and "KeyError" in logged and "Traceback" in logged
+
+
+def test_jobs_progress_under_a_burst_of_synchronous_fits(tmp_path):
+    """Defect: a job task waited behind every queued synchronous fit."""
+    with TestClient(create_app(make_settings(tmp_path, workers=2))) as c:
+        dispatcher = c.app.state.dispatcher
+        bodies, job = [msd_request(i) for i in range(40)], {"requests": [msd_request(99, n=41)]}
+        burst = [dispatcher.submit_sync("fit", body) for body in bodies]
+        job_id = c.post("/v1/jobs", json=job).json()["id"]
+        job = wait_for_job(c, job_id)
+        sync_done_meanwhile = sum(f.done() for f in burst)
+        assert job["status"] == "succeeded"
+        assert sync_done_meanwhile <= 10, f"the job waited for {sync_done_meanwhile} synchronous fits"
+        outcomes = [f.result(timeout=120) for f in cf.as_completed(burst, timeout=180)]
+        assert all(o["status"] == "succeeded" for o in outcomes)

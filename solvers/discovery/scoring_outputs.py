@@ -32,7 +32,7 @@ def _disturbed_step(oem: OutputErrorModel) -> ca.Function:
     p, t = ca.SX.sym("p", cm.np), ca.SX.sym("t")
     ud = ca.vertcat(u, d)
     rhs = ca.Function("rhs_d", [x, ud, p, t], [cm.rhs(x, u, p, t) + d])
-    disturbed = SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np)
+    disturbed = SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np, model=cm.model)
     step = make_step(disturbed, oem.options)
     xm = ca.MX.sym("x", cm.nx)
     u0m, u1m = ca.MX.sym("u0", cm.nu + cm.nx), ca.MX.sym("u1", cm.nu + cm.nx)

@@ -54,7 +54,15 @@ def _workflow_runners() -> dict[str, Callable[[dict, float], Any]]:
 
     def report(request: dict | str, cpu_seconds: float):
         from service.report import report_public
-        return report_public(_parse(ReportRequest, request))
+        from solvers.errors import DataError
+        parsed = _parse(ReportRequest, request)
+        try:
+            return report_public(parsed)
+        except (ValueError, OverflowError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
+            # a result that was not made by greyfit (odd keys, values near the float limits) cannot
+            # be drawn: that is the caller's input, not a server fault
+            raise DataError(f"this result cannot be drawn ({type(exc).__name__}: {exc}); send a result "
+                            "as greyfit returned it", "result") from exc
 
     return {"simulate": simulate, "report": report}
 

@@ -33,7 +33,7 @@ class Candidate:
     key: str = ""              # identifies the same term found by either scorer
     refit_only: bool = False   # its linearisation at this fit says nothing (e.g. |h| where h > 0): refit decides
     fresh_start: bool = False  # refit from the declared initial values, not from the fit it replaces
-    generic: bool = False      # a catch-all shape (a coefficient switching at a threshold), not a named law
+    generic: bool = False      # a catch-all shape (a switching coefficient, a shift in time), not a named law
 
     def __post_init__(self):
         self.key = self.key or f"{self.family}|{self.term}"
@@ -365,7 +365,7 @@ def _input_effects(model: Model, trace: TraceData, effects: list[str]) -> list[C
                 # so the delayed input enters as data (returned in `added_inputs`)
                 out.append(Candidate("input_delay", reg, f"{u}(t) -> {delayed} = {u}(t - {_fmt(lag * dt)})",
                                      f"input {u} acts {lag} sample(s) ({_fmt(lag * dt)} s) late", apply_delay,
-                                     sign=1.0, family=f"input_delay:{u}", refit_variants=True,
+                                     sign=1.0, family=f"input_delay:{u}", refit_variants=True, generic=True,
                                      transform_experiments=delay_data))
     return out
 

@@ -29,17 +29,22 @@ def add_term(model: Model, equation: str, term: str, sign: str = "+") -> Model:
 
 def replace_parameter(model: Model, name: str, replacement: str) -> Model:
     """Replace parameter `name` by an expression everywhere it is used (equations, definitions, outputs)."""
+    return _substitute_name(model, name, replacement, in_outputs=True)
+
+
+def _substitute_name(model: Model, name: str, replacement: str, in_outputs: bool) -> Model:
     rep = parse(replacement, "replacement")
 
     def rewrite(text: str, where: str) -> str:
         return unparse(substitute(parse(text, where), name, rep))
 
-    return model.model_copy(update={
+    update = {
         "equations": {k: rewrite(v, f"equations.{k}") for k, v in model.equations.items()},
         "definitions": {k: rewrite(v, f"definitions.{k}") for k, v in model.definitions.items()},
-        "outputs": None if model.outputs is None else {k: rewrite(v, f"outputs.{k}")
-                                                       for k, v in model.outputs.items()},
-    })
+    }
+    if in_outputs and model.outputs is not None:
+        update["outputs"] = {k: rewrite(v, f"outputs.{k}") for k, v in model.outputs.items()}
+    return model.model_copy(update=update)
 
 
 def with_parameter(model: Model, name: str, value: float, lower=None, upper=None, unit=None,
@@ -66,15 +71,7 @@ def replace_in_equations(model: Model, name: str, replacement: str) -> Model:
 
     The output equations keep measuring the state itself (a level sensor still reads the level).
     """
-    rep = parse(replacement, "replacement")
-
-    def rewrite(text: str, where: str) -> str:
-        return unparse(substitute(parse(text, where), name, rep))
-
-    return model.model_copy(update={
-        "equations": {k: rewrite(v, f"equations.{k}") for k, v in model.equations.items()},
-        "definitions": {k: rewrite(v, f"definitions.{k}") for k, v in model.definitions.items()},
-    })
+    return _substitute_name(model, name, replacement, in_outputs=False)
 
 
 def rewrite_output(model: Model, output: str, template: str) -> Model:

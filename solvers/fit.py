@@ -21,7 +21,7 @@ from solvers.fit_checks import (
 )
 from solvers.extensions import prepare_batch
 from solvers.model_compiler import CompiledModel, compile_model
-from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
+from solvers.nlp import NlpOutcome, make_solver, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
 from solvers.preprocess import prepare_request
 from solvers.shooting import (
@@ -66,7 +66,7 @@ def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int]:
         outcome = solve_linear_least_squares(problem, options)
         if outcome is not None:
             return outcome, 1
-    solver = LeastSquaresSolver(problem, options)
+    solver = make_solver(problem, options)
     best, used = None, 0
     cpu0 = time.process_time()
     for theta0 in starts:

@@ -26,6 +26,8 @@ class NlpOutcome:
 class LeastSquaresSolver:
     """Builds the Ipopt instance once; `solve(w0)` may be called for every multistart."""
 
+    compiled = False   # CasADi evaluates the whole graph in its interpreter
+
     def __init__(self, problem: LeastSquaresProblem, options: FitOptions):
         self.problem = problem
         w, r = problem.w, problem.residual

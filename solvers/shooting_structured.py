@@ -13,6 +13,7 @@ lengths: a worker builds it once and reuses it (`_SOLVERS`).
 """
 from __future__ import annotations
 
+import os
 from collections import OrderedDict
 from dataclasses import dataclass
 
@@ -28,9 +29,12 @@ _SOLVERS: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
 def supports(oem) -> bool:
-    """Structured path: a node at every sample, Gauss-Newton Hessian, an SX step (RK4 or discrete)."""
+    """Structured path: a node at every sample, Gauss-Newton Hessian, an SX step (RK4 or discrete).
+
+    `GREYFIT_STRUCTURED_SHOOTING=0` forces the generic graph (for benchmarks and diagnosis).
+    """
     opts = oem.options
-    return (opts.shooting_interval == 1 and opts.hessian == "gauss_newton"
+    return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0" and opts.shooting_interval == 1 and opts.hessian == "gauss_newton"
             and (opts.integrator == "rk4" or oem.cm.model.discrete is not None)
             and all(d.n >= 2 for d in oem.data))
 

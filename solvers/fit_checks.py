@@ -37,14 +37,18 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
 
 def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
     """Per input, the free parameters that act on it in some equation (∂²f/∂u∂p ≠ 0)."""
+    acting = cm.derive(("input_parameters",), lambda: _parameters_on_inputs(cm))
+    free = set(layout.base_names)
+    return {name: sorted(acting[name] & free) for name in cm.inputs}
+
+
+def _parameters_on_inputs(cm: CompiledModel) -> dict[str, set[str]]:
     x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
     f = cm.rhs(x, u, p, t)
-    free = set(layout.base_names)
     out = {}
     for k, name in enumerate(cm.inputs):
-        cross = ca.jacobian(ca.jacobian(f, u[k]), p)
-        _, cols = cross.sparsity().get_triplet()
-        out[name] = sorted({cm.parameters[j] for j in cols} & free)
+        _, cols = ca.jacobian(ca.jacobian(f, u[k]), p).sparsity().get_triplet()
+        out[name] = {cm.parameters[j] for j in cols}
     return out
 
 

@@ -14,6 +14,8 @@ def _input_at(u0, u1, tau, interpolation: str):
 
 def make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     """Function step(x, u0, u1, p, t0, dt) -> x(t0 + dt), built once per model and options."""
+    if not isinstance(cm, CompiledModel):   # a stand-in (e.g. discovery's disturbed model)
+        return _make_step(cm, options)
     key = ("step", options.integrator, options.substeps, options.input_interpolation)
     return cm.derive(key, lambda: _make_step(cm, options))
 

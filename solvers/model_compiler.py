@@ -29,10 +29,10 @@ class CompiledModel:
     direct_outputs: dict[str, str] = field(default_factory=dict)  # output name -> state it measures
     # Functions derived from this model (integrator steps by their options, ∂f/∂x, ...), built once;
     # init=False: dataclasses.replace gives a changed model a fresh, empty cache
-    derived: dict[tuple, ca.Function] = field(default_factory=dict, init=False, repr=False, compare=False)
+    derived: dict[tuple, object] = field(default_factory=dict, init=False, repr=False, compare=False)
 
-    def derive(self, key: tuple, build) -> ca.Function:
-        """The Function `build()` makes from this model, built on first use."""
+    def derive(self, key: tuple, build):
+        """What `build()` makes from this model (Functions, structure facts), built on first use."""
         if key not in self.derived:
             self.derived[key] = build()
         return self.derived[key]

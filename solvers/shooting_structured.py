@@ -88,6 +88,16 @@ class _Blocks:
         return out
 
 
+def _stacked(count: int, nr: int, nc: int, row0: int, col0: int, col_step: int):
+    """(rows, cols) of the entries of `count` blocks nr × nc stored side by side, in vec order.
+
+    Block k covers rows row0 + k·nr … and columns col0 + k·col_step …: col_step = nx for the
+    node columns of sample k, 0 for the θ columns every block shares.
+    """
+    kk, jj, ii = np.meshgrid(np.arange(count), np.arange(nc), np.arange(nr), indexing="ij")
+    return (row0 + kk * nr + ii).ravel(), (col0 + kk * col_step + jj).ravel()
+
+
 def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca.MX) -> ca.MX:
     """MX sparse matrix from triplets (no duplicates); `values` in triplet order."""
     order = np.lexsort((rows, cols))   # CasADi stores column-major
@@ -136,32 +146,19 @@ def _build_nlp(oem, gap_fn, out_fn, penalty) -> _Nlp:
         R, RX, RT = out_fn.map(n, "serial")(X, U, T, theta, M, off, xs, Y, W)
         gaps.append(ca.vec(G))
         r_parts.append(ca.vec(R))
-        k = np.arange(m)
-        # ∂gap[i, k]/∂x[j, k] = GX[i, k·nx + j]; vec order (k, j, i)
-        kk, jj, ii = np.meshgrid(k, np.arange(nx), np.arange(nx), indexing="ij")
-        g_rows.append((row_g + kk * nx + ii).ravel())
-        g_cols.append((col + kk * nx + jj).ravel())
-        g_vals.append(ca.vec(GX))
-        # ∂gap[i, k]/∂x[i, k+1] = −1
-        kk, ii = np.meshgrid(k, np.arange(nx), indexing="ij")
+        # ∂gap_k/∂x_k, ∂gap_k/∂x_k+1 = −I, ∂gap_k/∂θ; ∂r_k/∂x_k, ∂r_k/∂θ
+        for rows, cols in (_stacked(m, nx, nx, row_g, col, nx), _stacked(m, nx, nth, row_g, 0, 0)):
+            g_rows.append(rows)
+            g_cols.append(cols)
+        g_vals += [ca.vec(GX), ca.vec(GT)]
+        kk, ii = np.meshgrid(np.arange(m), np.arange(nx), indexing="ij")
         g_rows.append((row_g + kk * nx + ii).ravel())
         g_cols.append((col + (kk + 1) * nx + ii).ravel())
         g_vals.append(ca.MX(ca.DM(-np.ones(m * nx))))
-        # ∂gap[i, k]/∂θ_c = GT[i, k·nθ + c]
-        kk, cc, ii = np.meshgrid(k, np.arange(nth), np.arange(nx), indexing="ij")
-        g_rows.append((row_g + kk * nx + ii).ravel())
-        g_cols.append(cc.ravel())
-        g_vals.append(ca.vec(GT))
-        # residual rows (k, o): ∂r/∂x_k and ∂r/∂θ
-        k = np.arange(n)
-        kk, jj, oo = np.meshgrid(k, np.arange(nx), np.arange(ny), indexing="ij")
-        r_rows.append((row_r + kk * ny + oo).ravel())
-        r_cols.append((col + kk * nx + jj).ravel())
-        r_vals.append(ca.vec(RX))
-        kk, cc, oo = np.meshgrid(k, np.arange(nth), np.arange(ny), indexing="ij")
-        r_rows.append((row_r + kk * ny + oo).ravel())
-        r_cols.append(cc.ravel())
-        r_vals.append(ca.vec(RT))
+        for rows, cols in (_stacked(n, ny, nx, row_r, col, nx), _stacked(n, ny, nth, row_r, 0, 0)):
+            r_rows.append(rows)
+            r_cols.append(cols)
+        r_vals += [ca.vec(RX), ca.vec(RT)]
         row_g += m * nx
         row_r += n * ny
         col += n * nx

@@ -196,6 +196,11 @@ class RlsOptions(BaseModel):
                                       description="γ in P₀ = γI (parameters scaled by their guesses)")
     trajectory_every: int = Field(default=1, ge=1, le=100_000,
                                   description="keep every n-th sample of θ(t) in the result")
+    noise: Literal["equation", "measurement"] = Field(
+        default="equation",
+        description="what the ±2σ band assumes: equation: white equation error; measurement: white noise on "
+                    "the measured output of a discrete-time model, which makes the equation error a moving "
+                    "average (taken from the model at the current estimate)")
 
 
 class MrasOptions(BaseModel):

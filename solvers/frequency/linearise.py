@@ -134,8 +134,20 @@ class CompiledLinearisedModel(CompiledTransferFunction):
     def plant(self, constants: dict[str, float]) -> tuple[Poly, Poly]:
         key = tuple(sorted(constants.items()))
         if key not in self._plants:
-            self._plants[key] = self._linearise(self._compiled(constants))
+            cm = self._compiled(constants)
+            if self.solve and constants and self._changes_equations(cm):
+                raise ModelDefinitionError(
+                    f"data-set constants {sorted(constants)} change the model's equations, so each data set "
+                    "would have its own equilibrium; use equilibrium 'given' or keep them to the controller",
+                    "model.operating_point.equilibrium")
+            self._plants[key] = self._linearise(cm)
         return self._plants[key]
+
+    def _changes_equations(self, cm: CompiledModel) -> bool:
+        base = self._compiled({})
+        rng = np.random.default_rng(0)
+        x, u, p = rng.normal(size=cm.nx), rng.normal(size=cm.nu), rng.uniform(0.5, 1.5, size=cm.np)
+        return not np.allclose(np.array(base.rhs(x, u, p, 0)), np.array(cm.rhs(x, u, p, 0)), equal_nan=True)
 
     def check_plant(self) -> None:
         num, _ = self.plant({})

@@ -150,3 +150,11 @@ def test_two_inputs_need_the_input_named():
     assert info.value.field == "model.input"
     model["input"] = "tau"
     assert _fit(model, data).success
+
+
+def test_data_set_constants_that_move_the_equilibrium_are_refused_with_solve():
+    om = np.logspace(-1, 1, 5)
+    data = [dict(response_data(pendulum_response(PENDULUM_TRUTH, om), om, 0.0, 0), constants={"g": 5.0})]
+    with pytest.raises(ModelDefinitionError, match="own equilibrium") as info:
+        _fit(_pendulum(), data)
+    assert info.value.field == "model.operating_point.equilibrium"

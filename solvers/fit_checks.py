@@ -31,8 +31,9 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
         labels = list(layout.labels) + oem.x0_labels()
     inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
-    return information_warnings(jac, labels) + input_warnings(inputs, options.input_interpolation,
-                                                              input_parameters(cm, layout))
+    # a difference equation reads u[k] only: nothing is interpolated between samples
+    interpolation = "zoh" if cm.model.discrete is not None else options.input_interpolation
+    return information_warnings(jac, labels) + input_warnings(inputs, interpolation, input_parameters(cm, layout))
 
 
 def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
@@ -51,7 +52,7 @@ def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, li
 def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                          theta_s: np.ndarray, states: list[np.ndarray], options: FitOptions) -> list[FitWarning]:
     """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
-    if options.integrator != "rk4":
+    if options.integrator != "rk4" or cm.model.discrete is not None:   # no integration step to judge
         return []
     x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
     jac_fn = ca.Function("dfdx", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])

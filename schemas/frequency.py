@@ -6,12 +6,12 @@ the parameters and constants in the same whitelist grammar as ODE models.
 from __future__ import annotations
 
 import math
-from typing import Literal, Optional, Union
+from typing import Annotated, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
 from schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
-from schemas.model import RESERVED_NAMES, Expression, Name, Parameter
+from schemas.model import RESERVED_NAMES, Expression, Model, Name, Parameter
 
 MAX_DEGREE = 40
 Coefficients = list[Expression]
@@ -67,6 +67,46 @@ class TransferFunctionModel(BaseModel):
             if not math.isfinite(value):
                 raise ValueError(f"constants.{name}: must be a finite number")
         return self
+
+
+class OperatingPoint(BaseModel):
+    """Where an ODE model is linearised: the inputs u0 and the states x0.
+
+    `equilibrium: "solve"`: x0 is only the start of a Newton search; the point is the equilibrium
+    f(x*, u0, θ) = 0 for every θ the fit tries (an implicit function of θ, differentiated exactly).
+    `"given"`: x0 is the (measured) equilibrium itself; f(x0, u0, θ) = 0 becomes an equality
+    constraint on θ (a row that no θ can satisfy is refused).
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    inputs: dict[Name, float] = Field(default_factory=dict, description="u0: a value for every model input")
+    states: dict[Name, float] = Field(default_factory=dict, description="x0 (given) or the search start (solve)")
+    equilibrium: Literal["solve", "given"] = "solve"
+
+
+class LinearisedOdeModel(Model):
+    """The usual ODE model, linearised at an operating point: G(s) = C (sI − A)⁻¹ B + D.
+
+    A = ∂f/∂x, B = ∂f/∂u, C = ∂h/∂x, D = ∂h/∂u at the operating point, as expressions of the
+    parameters; `input` and `output` pick the channel the data measure (default: the only one).
+    """
+
+    kind: Literal["linearised_ode"] = "linearised_ode"
+    operating_point: OperatingPoint
+    input: Optional[Name] = Field(default=None, description="the input the response is to")
+    output: Optional[Name] = Field(default=None, description="the output measured")
+    feedback: Optional[Feedback] = None
+
+
+def _model_kind(value) -> str:
+    kind = value.get("kind") if isinstance(value, dict) else getattr(value, "kind", None)
+    return kind if kind == "linearised_ode" else "transfer_function"
+
+
+FrequencyModel = Annotated[Union[Annotated[TransferFunctionModel, Tag("transfer_function")],
+                                 Annotated[LinearisedOdeModel, Tag("linearised_ode")]],
+                           Discriminator(_model_kind)]
 
 
 class SineTest(BaseModel):
@@ -136,7 +176,7 @@ class FrequencyFitOptions(BaseModel):
 class FrequencyFitRequest(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    model: TransferFunctionModel
+    model: FrequencyModel
     data: list[FrequencyData] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
     options: FrequencyFitOptions = Field(default_factory=FrequencyFitOptions)
 
@@ -175,3 +215,6 @@ class FrequencyResponseResult(BaseModel):
     stability_handling: str
     levy_start: Optional[dict[str, float]] = Field(
         default=None, description="parameters of the linearised (Levy / Sanathanan-Koerner) start")
+    operating_point: Optional[dict[str, float]] = Field(
+        default=None, description="linearised ODE models: the states and inputs of the operating point "
+                                  "at the fitted parameters")

@@ -2,15 +2,17 @@
 from __future__ import annotations
 
 import math
-from typing import Annotated, Optional
+from typing import Annotated, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, StringConstraints, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, StringConstraints, Tag, model_validator
 
 from schemas.templates import LinearStateSpace, expand_linear_state_space
 from schemas.limits import (
     MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
 )
-from schemas.online import ArxTemplate, DiscreteTime, TimeVarying, expand_arx_template
+from schemas.online import (
+    ArmaxTemplate, ArxTemplate, DiscreteTime, TimeVarying, expand_arx_template, template_kind,
+)
 
 Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
 Expression = Annotated[str, StringConstraints(min_length=1, max_length=MAX_EXPRESSION_LENGTH)]
@@ -84,8 +86,9 @@ class Model(BaseModel):
 
     discrete: Optional[DiscreteTime] = Field(
         default=None, description="difference equations: equations[x] is x[k+1]")
-    template: Optional[ArxTemplate] = Field(
-        default=None, description="ARX template expanded into states/equations (needs discrete)")
+    template: Optional[Annotated[Union[Annotated[ArxTemplate, Tag("arx")], Annotated[ArmaxTemplate, Tag("armax")]],
+                                 Discriminator(template_kind)]] = Field(
+        default=None, description="ARX or ARMAX template expanded into states/equations (needs discrete)")
 
     @model_validator(mode="before")
     @classmethod

@@ -45,11 +45,17 @@ class ArxTemplate(BaseModel):
 
 def expand_arx_template(data: dict) -> dict:
     """Fill states, inputs, equations, outputs and parameters of a model dict from its template."""
-    tpl = ArxTemplate.model_validate(data["template"])
+    raw = data["template"]
+    kind = template_kind(raw)
+    tpl = (ArmaxTemplate if kind == "armax" else ArxTemplate).model_validate(raw)
     if data.get("states") or data.get("equations"):
         raise ValueError("template: give either a template or states/equations, not both")
     if data.get("discrete") is None:
-        raise ValueError("template: an ARX model is discrete time; add discrete: {sample_time: Ts}")
+        raise ValueError(f"template: an {kind.upper()} model is discrete time; add discrete: {{sample_time: Ts}}")
+    if isinstance(tpl, ArmaxTemplate):
+        if data.get("inputs") not in (None, [], [tpl.input]):
+            raise ValueError(f"template: the ARMAX model's inputs are [{tpl.input}] (and the measured output)")
+        return _expand_armax(data, tpl)
     y, u = tpl.output, tpl.input
     y_lags = [f"{y}_{i}" for i in range(1, tpl.na)]
     u_lag_max = tpl.nk - 1 + tpl.nb - 1
@@ -74,6 +80,75 @@ def expand_arx_template(data: dict) -> dict:
     out.update(states=[y, *y_lags, *u_lags], inputs=data.get("inputs") or [u], equations=equations,
                outputs=data.get("outputs") or {y: y},
                parameters=[declared.get(n, {"name": n, "value": 0.0}) for n in names])
+    return out
+
+
+class ArmaxTemplate(BaseModel):
+    """ARMAX template A(q) y = B(q) u + C(q) e, fitted by prediction error.
+
+    A = 1 + a1 q⁻¹ + … + a_na q⁻ⁿᵃ, B = b1 q⁻ⁿᵏ + … + b_nb q⁻⁽ⁿᵏ⁺ⁿᵇ⁻¹⁾, C = 1 + c1 q⁻¹ + … + c_nc q⁻ⁿᶜ,
+    e white. Expanded into the one-step predictor ŷ = (1 − A/C) y + (B/C) u in observer canonical
+    form, n = max(na, nk + nb − 1, nc) states `<output>_x1..` (x1 = ŷ):
+
+        x_i[k+1] = x_{i+1}[k] − c_i x1[k] + (c_i − a_i) y[k] + b̃_i u[k],   ŷ[k] = x1[k],
+
+    driven by the measured output (input `<output>_measured`, read from the experiment's output
+    `<output>`). Output error on this model (single or multiple shooting) minimises Σ (y − ŷ)²: the
+    prediction-error method, with the n initial states estimated. The predictor is stable when C's
+    roots lie inside the unit circle.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+
+    kind: Literal["armax"] = "armax"
+    na: int = Field(ge=1, le=20)
+    nb: int = Field(ge=1, le=20)
+    nc: int = Field(ge=1, le=20)
+    nk: int = Field(default=1, ge=1, le=50, description="input delay in samples (>= 1)")
+    output: _Name = "y"
+    input: _Name = "u"
+
+
+def template_kind(value) -> str:
+    """'arx' (the default when kind is left out) or 'armax'."""
+    kind = value.get("kind", "arx") if isinstance(value, dict) else getattr(value, "kind", "arx")
+    return "armax" if kind == "armax" else "arx"
+
+
+def measured_output_inputs(template) -> dict[str, str]:
+    """Inputs that carry a measured output (ARMAX predictor): input name -> output name."""
+    if isinstance(template, ArmaxTemplate):
+        return {f"{template.output}_measured": template.output}
+    return {}
+
+
+def _expand_armax(data: dict, tpl: ArmaxTemplate) -> dict:
+    y, u = tpl.output, tpl.input
+    n = max(tpl.na, tpl.nk + tpl.nb - 1, tpl.nc)
+    x = [f"{y}_x{i}" for i in range(1, n + 1)]
+    y_in = f"{y}_measured"
+    equations = {}
+    for i in range(1, n + 1):
+        terms = [x[i]] if i < n else []
+        a = f"a{i}" if i <= tpl.na else None
+        c = f"c{i}" if i <= tpl.nc else None
+        if c:
+            terms.append(f"- {c}*{x[0]}")
+        if a or c:
+            terms.append(f"+ ({c or 0} - {a or 0})*{y_in}")
+        j = i - tpl.nk + 1                      # b_j multiplies u[k-i] in the q⁻ⁱ coefficient
+        if 1 <= j <= tpl.nb:
+            terms.append(f"+ b{j}*{u}")
+        equations[x[i - 1]] = " ".join(terms).lstrip("+ ") or "0"
+    names = ([f"a{i}" for i in range(1, tpl.na + 1)] + [f"b{j}" for j in range(1, tpl.nb + 1)]
+             + [f"c{i}" for i in range(1, tpl.nc + 1)])
+    declared = {p["name"]: p for p in data.get("parameters") or []}
+    unknown = sorted(set(declared) - set(names))
+    if unknown:
+        raise ValueError(f"template: parameter '{unknown[0]}' is not part of the ARMAX template ({names})")
+    out = dict(data)
+    out.update(states=x, inputs=[u, y_in], equations=equations, outputs={y: x[0]},
+               parameters=[declared.get(nm, {"name": nm, "value": 0.0}) for nm in names])
     return out
 
 
@@ -121,6 +196,11 @@ class RlsOptions(BaseModel):
                                       description="γ in P₀ = γI (parameters scaled by their guesses)")
     trajectory_every: int = Field(default=1, ge=1, le=100_000,
                                   description="keep every n-th sample of θ(t) in the result")
+    noise: Literal["equation", "measurement"] = Field(
+        default="equation",
+        description="what the ±2σ band assumes: equation: white equation error; measurement: white noise on "
+                    "the measured output of a discrete-time model, which makes the equation error a moving "
+                    "average (taken from the model at the current estimate)")
 
 
 class MrasOptions(BaseModel):

@@ -27,7 +27,7 @@ def cmd_fit(args) -> int:
     from solvers.fit import fit_model
     body = _read_json(args.request)
     if isinstance(body, dict) and isinstance(body.get("model"), dict) and \
-            body["model"].get("kind") == "transfer_function":   # a frequency-response fit
+            body["model"].get("kind") in ("transfer_function", "linearised_ode"):   # a frequency-response fit
         from schemas.frequency import FrequencyFitRequest
         from solvers.frequency import fit_frequency_response
         result = fit_frequency_response(FrequencyFitRequest.model_validate(body))

@@ -7,6 +7,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from schemas.experiment import Experiment
+from schemas.online import measured_output_inputs
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel
 
@@ -76,7 +77,11 @@ def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> Experi
         raise DataError(f"'{unknown[0]}' is not an input of the model (inputs: {cm.inputs})",
                         f"{base}.inputs.{unknown[0]}")
     u = np.zeros((cm.nu, n))
+    fed = measured_output_inputs(cm.model.template)   # ARMAX: the predictor reads the measured output
     for i, name in enumerate(cm.inputs):
+        if name not in exp.inputs and fed.get(name) in exp.outputs:
+            u[i] = _series(exp.outputs[fed[name]], f"{base}.outputs.{fed[name]}", n, allow_missing=False)
+            continue
         if name not in exp.inputs:
             raise DataError(f"no data for model input '{name}'; every input needs a series",
                             f"{base}.inputs.{name}")

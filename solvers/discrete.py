@@ -90,3 +90,37 @@ def next_state_data(cm: CompiledModel, d: ExperimentData, e: int) -> tuple[np.nd
     nxt = np.full_like(x, np.nan)
     nxt[:, :-1] = x[:, 1:]
     return x, nxt
+
+
+def armax_start(model, data: list[ExperimentData]):
+    """An ARMAX template's model with its a, b guesses left at 0 started from the ARX least-squares fit.
+
+    At a = b = c = 0 the predictor's output is zero, so ∂ŷ/∂a_i = −y[k−i] and ∂ŷ/∂c_i = y[k−i] are
+    collinear and the start tells nothing apart; the ARX estimate (c = 0) is the classical start of
+    the prediction-error fit. Declared non-zero guesses and fixed parameters are kept.
+    """
+    tpl = model.template
+    if tpl is None or tpl.kind != "armax":
+        return model
+    y_name, u_name = tpl.output, tpl.input
+    rows, targets = [], []
+    for d in data:
+        iy, iu = model.inputs.index(f"{y_name}_measured"), model.inputs.index(u_name)
+        y, u = d.u[iy], d.u[iu]
+        first = max(tpl.na, tpl.nk + tpl.nb - 1)
+        for k in range(first, y.size):
+            rows.append([-y[k - i] for i in range(1, tpl.na + 1)]
+                        + [u[k - tpl.nk - j + 1] for j in range(1, tpl.nb + 1)])
+            targets.append(y[k])
+    if len(rows) <= tpl.na + tpl.nb:
+        return model
+    coef = np.linalg.lstsq(np.array(rows), np.array(targets), rcond=None)[0]
+    start = dict(zip([f"a{i}" for i in range(1, tpl.na + 1)] + [f"b{j}" for j in range(1, tpl.nb + 1)], coef))
+    params = []
+    for p in model.parameters:
+        if p.name in start and p.value == 0.0 and not p.fixed and np.isfinite(start[p.name]):
+            lo = -np.inf if p.lower is None else p.lower
+            hi = np.inf if p.upper is None else p.upper
+            p = p.model_copy(update={"value": float(np.clip(start[p.name], lo, hi))})
+        params.append(p)
+    return model.model_copy(update={"parameters": params})

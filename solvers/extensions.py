@@ -9,7 +9,7 @@ import numpy as np
 from schemas.fit import FitMethod, FitRequest, FitResult
 from schemas.model import Model
 from solvers.data import ExperimentData
-from solvers.discrete import check_sample_time, is_discrete
+from solvers.discrete import armax_start, check_sample_time, is_discrete
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
@@ -58,7 +58,8 @@ def prepare_batch(request: FitRequest, cm: CompiledModel, data: list[ExperimentD
             raise DataError("a prefilter serves equation error and recursive least squares; output "
                             "error needs none (its residual is not built from noisy regressors)", "options.prefilter")
         data, note = apply_prefilter(cm, data, request.options.prefilter)
-    varying = expand_time_varying(request.model, cm, data)
+    model = armax_start(request.model, data)    # ARMAX templates: a, b from the ARX estimate
+    varying = expand_time_varying(model, cm, data)
     if varying is not None:
         return BatchExtensions(varying.cm, data, varying.model, varying, note)
-    return BatchExtensions(cm, data, request.model, None, note)
+    return BatchExtensions(cm, data, model, None, note)

@@ -31,8 +31,9 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
         labels = list(layout.labels) + oem.x0_labels()
     inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
-    return information_warnings(jac, labels) + input_warnings(inputs, options.input_interpolation,
-                                                              input_parameters(cm, layout))
+    # a difference equation reads u[k] only: nothing is interpolated between samples
+    interpolation = "zoh" if cm.model.discrete is not None else options.input_interpolation
+    return information_warnings(jac, labels) + input_warnings(inputs, interpolation, input_parameters(cm, layout))
 
 
 def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
@@ -55,7 +56,7 @@ def _parameters_on_inputs(cm: CompiledModel) -> dict[str, set[str]]:
 def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                          theta_s: np.ndarray, states: list[np.ndarray], options: FitOptions) -> list[FitWarning]:
     """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
-    if options.integrator != "rk4":
+    if options.integrator != "rk4" or cm.model.discrete is not None:   # no integration step to judge
         return []
     jac_fn = cm.derive(("dfdx",), lambda: _state_jacobian(cm))
     rate, dt = 0.0, np.inf

@@ -26,6 +26,7 @@ from solvers.parameters import build_layout
 from solvers.prefilter import apply_prefilter
 from solvers.recursive import OnlineRun, excitation_report, recursive_least_squares
 from solvers.reparametrize import LinearForm, linear_form, to_physical
+from solvers.rls_noise import measurement_noise
 from solvers.statistics import information_criteria, student_t_quantile
 
 
@@ -69,7 +70,8 @@ def fit_online(request: FitRequest) -> FitResult:
     y = -r0.reshape(ed.rows.size, neq)
     eta0 = form.layout.initial / form.layout.scale
     if request.method == FitMethod.recursive_least_squares:
-        run = recursive_least_squares(y, phi, eta0, opts.rls)
+        noise = measurement_noise(form, eep.equations, ed.rows) if opts.rls.noise == "measurement" else None
+        run = recursive_least_squares(y, phi, eta0, opts.rls, noise)
         every = opts.rls.trajectory_every
     else:
         from solvers.mras import model_reference_adaptive

@@ -10,13 +10,14 @@ from schemas.fit import (
     CovariancePublic, FitMethod, FitMetrics, FitOptions, FitResult, ParameterEstimate, SolverInfo,
 )
 from schemas.frequency import (
-    DataSetResponse, FrequencyFitRequest, FrequencyResponseResult, LoopStability,
+    DataSetResponse, FrequencyFitRequest, FrequencyResponseResult, LinearisedOdeModel, LoopStability,
 )
 from solvers.covariance import correlation_from, estimate_covariance
 from solvers.errors import DataError
 from solvers.fit import _at_bound, _message, draw_starts
 from solvers.frequency.data import prepare_frequency_data
 from solvers.frequency.levy import levy_fit
+from solvers.frequency.linearise import compile_linearised_model
 from solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
 from solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
 from solvers.frequency.response import numeric_response
@@ -79,7 +80,10 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     started = time.perf_counter()
     opts = request.options
     engine_opts = _engine_options(request)
-    tf = compile_transfer_function(request.model)
+    if isinstance(request.model, LinearisedOdeModel):
+        tf = compile_linearised_model(request.model)
+    else:
+        tf = compile_transfer_function(request.model)
     sets = prepare_frequency_data(request.data, request.model)
     unknown = [(k, name) for k, c in enumerate(opts.also_stable_with) for name in c
                if name not in request.model.constants]
@@ -116,6 +120,10 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
             levy_theta = levy.theta
             starts.insert(0, _interior(levy.theta, layout))
     outcome, n_starts = _solve_multistart(fp, starts, engine_opts)
+    if not np.all(np.isfinite(np.array(fp.data_residual(outcome.w), dtype=float))):
+        # e.g. a linearised model whose equilibrium does not exist there: report the start instead
+        outcome.w, outcome.success = fp.problem.initial_guess(layout.initial), False
+        outcome.status = "Invalid_Number_Detected"
 
     theta_s = outcome.w[:layout.size]
     theta = layout.physical(theta_s)
@@ -127,7 +135,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     keep = np.array([b is None for b in bounds])
     cov = estimate_covariance(jac, res, list(layout.labels), theta, layout.scale, keep, layout.size,
                               opts.confidence_level)
-    notes = list(fp.notes)
+    notes = list(fp.notes) + list(getattr(tf, "notes", []))
     if cov.note:
         notes.insert(0, cov.note)
     active = _active_stability(fp, outcome.w, opts.stability_margin)
@@ -144,6 +152,8 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         params[name] = ParameterEstimate(value=value, fixed=True, initial=value)
 
     response = _response_report(loops, extra, sets, layout, theta_s, opts, levy_theta)
+    if isinstance(request.model, LinearisedOdeModel):
+        response.operating_point = tf.operating_point(np.array(layout.full(0, theta_s), dtype=float).ravel())
     nvarys = int(keep.sum())
     cost = 0.5 * float(res @ res)
     aic, bic = information_criteria(2 * cost, ndata, nvarys)

@@ -31,19 +31,32 @@ class ClosedLoop:
 
 @dataclass
 class CompiledTransferFunction:
-    model: TransferFunctionModel
+    model: TransferFunctionModel           # or a LinearisedOdeModel (solvers.frequency.linearise)
     parameters: list[str]
-    p: ca.SX
+    p: ca.SX                               # what the coefficients are expressions of
     constraint: ca.SX | None          # g(p) >= 0 (== 0 where equality)
     constraint_equality: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     probe_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def arguments(self, p):
+        """What the coefficient expressions take (``self.p``) from the physical parameter vector."""
+        return p
+
+    def plant(self, constants: dict[str, float]) -> tuple[Poly, Poly]:
+        """Numerator and denominator of P(s) with these constant values."""
+        env = self._env(constants)
+        return (_coefficients(self.model.numerator, env, "model.numerator"),
+                _coefficients(self.model.denominator, env, "model.denominator"))
+
+    def coefficient_function(self, name: str, poly: Poly) -> ca.Function:
+        """p (physical parameters) -> coefficient column."""
+        return ca.Function(name, [self.p], [ca.vertcat(*poly)])
 
     def loop(self, name: str, constants: dict[str, float]) -> ClosedLoop:
         """The response measured with these constant values (e.g. this data set's Kp, Ki)."""
         env = self._env(constants)
         m = self.model
-        num = _coefficients(m.numerator, env, "model.numerator")
-        den = _coefficients(m.denominator, env, "model.denominator")
+        num, den = self.plant(constants)
         if m.feedback is not None:
             c_num = _coefficients(m.feedback.controller.num, env, "model.feedback.controller.num")
             c_den = _coefficients(m.feedback.controller.den, env, "model.feedback.controller.den")
@@ -55,8 +68,8 @@ class CompiledTransferFunction:
         if not den:
             raise ModelDefinitionError(f"the closed-loop denominator of '{name}' is identically zero",
                                        "model.denominator")
-        return ClosedLoop(name, num, den, ca.Function("num", [self.p], [ca.vertcat(*num)]),
-                          ca.Function("den", [self.p], [ca.vertcat(*den)]), cancelled)
+        return ClosedLoop(name, num, den, self.coefficient_function("num", num),
+                          self.coefficient_function("den", den), cancelled)
 
     def check_plant(self) -> None:
         env = self._env({})

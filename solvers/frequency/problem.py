@@ -80,7 +80,7 @@ def build_frequency_problem(tf: CompiledTransferFunction, loops: list[ClosedLoop
     if tf.constraint is not None:
         fn = ca.Function("user_g", [tf.p], [tf.constraint])
         for e in _distinct_parameter_vectors(layout):
-            g.append(fn(layout.full(e, theta)))
+            g.append(fn(tf.arguments(layout.full(e, theta))))
             lbg.append(np.zeros(tf.constraint_equality.size))
             ubg.append(np.where(tf.constraint_equality, 0.0, np.inf))
 
@@ -98,7 +98,7 @@ def build_frequency_problem(tf: CompiledTransferFunction, loops: list[ClosedLoop
             if not cond.expressions:
                 continue
             fn = ca.Function("hurwitz", [tf.p], [ca.vertcat(*cond.expressions)])
-            h_rows.append(fn(layout.full(e, theta)))
+            h_rows.append(fn(tf.arguments(layout.full(e, theta))))
             labels += [f"{loop.name}: {lab}" for lab in cond.labels]
             if len(loop.den) - 1 > 8:
                 notes.append(f"loop '{loop.name}' has degree {len(loop.den) - 1}: only coefficient signs are "

@@ -182,23 +182,31 @@ def _x0_reader(oem: OutputErrorModel, offset: int, stride_of):
 
 
 def build_single_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
-    theta, x0_free, r = oem.single_shooting_residual()
-    g, lbg, ubg = parameter_constraints(oem.cm, oem.layout, theta)
+    nfree = sum(len(f) for f in oem.free_x0)
     lo, hi = theta_bounds(oem.layout)
-    nfree = x0_free.numel()
     offsets = np.cumsum([0] + [len(f) for f in oem.free_x0])
 
     def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
         x0 = [oem.x0_guess(e)[f] / oem.xscale[f] for e, f in enumerate(oem.free_x0)]
         return np.concatenate([theta_phys / oem.layout.scale, *x0]) if nfree else theta_phys / oem.layout.scale
 
+    common = dict(lbw=np.concatenate([lo, -np.inf * np.ones(nfree)]), ubw=np.concatenate([hi, np.inf * np.ones(nfree)]),
+                  n_theta=oem.layout.size, initial_guess=initial_guess,
+                  x0_of=_x0_reader(oem, oem.layout.size, lambda e: int(offsets[e])),
+                  extra_labels=oem.x0_labels())
+    if shooting_structured.supports(oem, single=True):
+        n_par = shooting_structured.constraint_count(oem)
+        problem = LeastSquaresProblem(
+            w=ca.MX.sym("w", oem.layout.size + nfree), residual_builder=lambda: None,
+            g=ca.MX.sym("g", n_par), lbg=shooting_structured.constraint_lower(oem),
+            ubg=shooting_structured.constraint_upper(oem), **common)
+        return shooting_structured.attach_solver(oem, problem, single=True)
+    theta, x0_free, r = oem.single_shooting_residual()
+    g, lbg, ubg = parameter_constraints(oem.cm, oem.layout, theta)
     return LeastSquaresProblem(
         w=ca.vertcat(theta, x0_free), residual_builder=lambda: r, g=ca.vertcat(*g),
         lbg=np.concatenate(lbg) if lbg else np.zeros(0), ubg=np.concatenate(ubg) if ubg else np.zeros(0),
-        lbw=np.concatenate([lo, -np.inf * np.ones(nfree)]), ubw=np.concatenate([hi, np.inf * np.ones(nfree)]),
-        n_theta=oem.layout.size, initial_guess=initial_guess,
-        x0_of=_x0_reader(oem, oem.layout.size, lambda e: int(offsets[e])),
-        extra_labels=oem.x0_labels())
+        **common)
 
 
 def _node_indices(n: int, interval: int) -> np.ndarray:

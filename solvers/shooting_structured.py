@@ -28,30 +28,35 @@ SOLVER_CACHE_SIZE = 16
 _SOLVERS: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 
-def supports(oem) -> bool:
-    """Structured path: a node at every sample, Gauss-Newton Hessian, an SX step (RK4 or discrete).
+def supports(oem, single: bool = False) -> bool:
+    """Structured path: single shooting, or multiple shooting with a node at every sample; the
+    Gauss-Newton Hessian; an SX step (RK4 or discrete).
 
     `GREYFIT_STRUCTURED_SHOOTING=0` forces the generic graph (for benchmarks and diagnosis).
     """
     opts = oem.options
-    return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0" and opts.shooting_interval == 1 and opts.hessian == "gauss_newton"
+    return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0"
+            and (single or opts.shooting_interval == 1) and opts.hessian == "gauss_newton"
             and (opts.integrator == "rk4" or oem.cm.model.discrete is not None)
             and all(d.n >= 2 for d in oem.data))
 
 
-def _stage_functions(oem, samples: int) -> tuple[ca.Function, ca.Function, bool]:
-    """gap(x_k, x_k+1, u0, u1, t0, dt, θ, M, off, xs) and out(x_k, u, t, θ, M, off, xs, y, wt),
-    each with its Jacobians in x_k and θ; compiled C where it pays (see `solvers.compiled`)."""
+def _stage_functions(oem, samples: int, single: bool) -> tuple[list[ca.Function], bool]:
+    """The per-sample Functions of one formulation, compiled C where it pays (`solvers.compiled`).
+
+    Multiple shooting: gap(x_k, x_k+1, u0, u1, t0, dt, θ, M, off, xs) and out(x_k, u, t, θ, M, off,
+    xs, y, wt), each with its Jacobians in x_k and θ. Single shooting adds sens(z_k, …) -> z_k+1,
+    z = [x; vec(S)], S = ∂x/∂[θ, x0], and jrow(∂r/∂x, ∂r/∂θ, vec(S)) -> (∂r/∂[θ, x0])ᵀ.
+    """
     o = oem.options
-    gap_fn, out_fn = oem.cm.derive(
-        ("stages", o.integrator, o.substeps, o.input_interpolation, oem.layout.size),
-        lambda: _build_stages(oem))
-    gap_c, gc = compiled(gap_fn, samples * EXPECTED_ITERATIONS)
-    out_c, oc = compiled(out_fn, samples * EXPECTED_ITERATIONS)
-    return gap_c, out_c, gc and oc
+    fns = oem.cm.derive(("stages", o.integrator, o.substeps, o.input_interpolation, oem.layout.size),
+                        lambda: _build_stages(oem))
+    fns = [fns[1], fns[2], fns[3]] if single else [fns[0], fns[1]]
+    out = [compiled(fn, samples * EXPECTED_ITERATIONS) for fn in fns]
+    return [fn for fn, _ in out], all(c for _, c in out)
 
 
-def _build_stages(oem) -> tuple[ca.Function, ca.Function]:
+def _build_stages(oem) -> tuple[ca.Function, ...]:
     cm, nth = oem.cm, oem.layout.size
     sx = ca.SX.sym
     xk, xk1, xs = sx("xk", cm.nx), sx("xk1", cm.nx), sx("xs", cm.nx)
@@ -59,13 +64,23 @@ def _build_stages(oem) -> tuple[ca.Function, ca.Function]:
     theta, mat, off = sx("theta", nth), sx("M", cm.np, nth), sx("off", cm.np)
     y, wt = sx("y", cm.ny), sx("wt", cm.ny)
     p = off + ca.mtimes(mat, theta)
-    gap = (oem.step(xs * xk, u0, u1, p, t0, dt) - xs * xk1) / xs
+    xn = oem.step(xs * xk, u0, u1, p, t0, dt) / xs
+    gap = xn - xk1
     gap_fn = ca.Function("greyfit_gap", [xk, xk1, u0, u1, t0, dt, theta, mat, off, xs],
                          [gap, ca.jacobian(gap, xk), ca.jacobian(gap, theta)])
     r = wt * (cm.output(xs * xk, u0, p, t0) - y)
-    out_fn = ca.Function("greyfit_out", [xk, u0, t0, theta, mat, off, xs, y, wt],
-                         [r, ca.jacobian(r, xk), ca.jacobian(r, theta)])
-    return gap_fn, out_fn
+    rx, rt = ca.jacobian(r, xk), ca.jacobian(r, theta)
+    out_fn = ca.Function("greyfit_out", [xk, u0, t0, theta, mat, off, xs, y, wt], [r, rx, rt])
+    nv = nth + cm.nx
+    sens = sx("S", cm.nx, nv)
+    s_next = ca.mtimes(ca.jacobian(xn, xk), sens) + ca.horzcat(ca.jacobian(xn, theta), ca.SX(cm.nx, cm.nx))
+    z = ca.vertcat(xk, ca.vec(sens))
+    sens_fn = ca.Function("greyfit_sens", [z, u0, u1, t0, dt, theta, mat, off, xs],
+                          [ca.vertcat(xn, ca.vec(s_next))])
+    rx_in, rt_in, s_in = sx("rx", cm.ny, cm.nx), sx("rt", cm.ny, nth), sx("s", cm.nx * nv)
+    jrow = ca.mtimes(rx_in, ca.reshape(s_in, cm.nx, nv)) + ca.horzcat(rt_in, ca.SX(cm.ny, cm.nx))
+    jrow_fn = ca.Function("greyfit_jrow", [rx_in, rt_in, s_in], [jrow.T])
+    return gap_fn, out_fn, sens_fn, jrow_fn
 
 
 class _Blocks:
@@ -112,26 +127,29 @@ class _Nlp:
     n_g: int
 
 
-def _build_nlp(oem, gap_fn, out_fn, penalty) -> _Nlp:
-    cm, layout, nth = oem.cm, oem.layout, oem.layout.size
-    nx, nu, ny, npar = cm.nx, cm.nu, cm.ny, cm.np
+def _data_blocks(oem) -> tuple[ca.MX, dict[str, ca.MX]]:
+    """The data parameter vector and its named views (layout of `_data_vector`)."""
+    cm, nth = oem.cm, oem.layout.size
     pb = _Blocks()
     for e, d in enumerate(oem.data):
-        pb.add(f"U{e}", nu, d.n)
+        pb.add(f"U{e}", cm.nu, d.n)
         pb.add(f"T{e}", 1, d.n)
-        pb.add(f"Y{e}", ny, d.n)
-        pb.add(f"W{e}", ny, d.n)
-        pb.add(f"M{e}", npar, nth)
-    pb.add("off", npar, 1)
-    pb.add("xs", nx, 1)
-    # θ and the nodes as separate symbols: the θ-only parts are differentiated by CasADi
-    theta = ca.MX.sym("theta", nth)
-    wv = {f"X{e}": ca.MX.sym(f"X{e}", nx, d.n) for e, d in enumerate(oem.data)}
-    w = ca.vertcat(theta, *[ca.vec(wv[f"X{e}"]) for e in range(len(oem.data))])
+        pb.add(f"Y{e}", cm.ny, d.n)
+        pb.add(f"W{e}", cm.ny, d.n)
+        pb.add(f"M{e}", cm.np, nth)
+        pb.add(f"X0{e}", cm.nx, 1)
+    pb.add("off", cm.np, 1)
+    pb.add("xs", cm.nx, 1)
     pvec = ca.MX.sym("data", pb.size)
-    pv = pb.views(pvec)
-    off, xs = pv["off"], pv["xs"]
+    return pvec, pb.views(pvec)
 
+
+def _multiple_shooting_terms(oem, gap_fn, out_fn, theta, pv):
+    """(w, r, ∂r/∂w, gaps, ∂gaps/∂w): nodes at every sample, blocks placed in sparse matrices."""
+    nx, ny, nth = oem.cm.nx, oem.cm.ny, oem.layout.size
+    nodes = [ca.MX.sym(f"X{e}", nx, d.n) for e, d in enumerate(oem.data)]
+    w = ca.vertcat(theta, *[ca.vec(X) for X in nodes])
+    off, xs = pv["off"], pv["xs"]
     gaps, r_parts = [], []
     g_rows, g_cols, g_vals = [], [], []
     r_rows, r_cols, r_vals = [], [], []
@@ -139,8 +157,7 @@ def _build_nlp(oem, gap_fn, out_fn, penalty) -> _Nlp:
     col = nth
     for e, d in enumerate(oem.data):
         n, m = d.n, d.n - 1
-        X, U, T, Y, W, M = (wv[f"X{e}"], pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"],
-                            pv[f"M{e}"])
+        X, U, T, Y, W, M = nodes[e], pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
         G, GX, GT = gap_fn.map(m, "serial")(X[:, :-1], X[:, 1:], U[:, :-1], U[:, 1:], T[:, :-1],
                                             T[:, 1:] - T[:, :-1], theta, M, off, xs)
         R, RX, RT = out_fn.map(n, "serial")(X, U, T, theta, M, off, xs, Y, W)
@@ -165,18 +182,54 @@ def _build_nlp(oem, gap_fn, out_fn, penalty) -> _Nlp:
     nw = w.numel()
     jac_gap = _sparse(row_g, nw, np.concatenate(g_rows), np.concatenate(g_cols), ca.vertcat(*g_vals))
     jac_r = _sparse(row_r, nw, np.concatenate(r_rows), np.concatenate(r_cols), ca.vertcat(*r_vals))
-    r = ca.vertcat(*r_parts)
+    return w, ca.vertcat(*r_parts), jac_r, ca.vertcat(*gaps), jac_gap
 
+
+def _single_shooting_terms(oem, sens_fn, jrow_fn, out_fn, theta, pv):
+    """(w, r, ∂r/∂w, no gaps): one simulation per experiment carrying its sensitivities S_k =
+    ∂x_k/∂[θ, x0] (the nodes of multiple shooting condensed away), J_k = ∂r_k/∂x S_k + ∂r_k/∂θ."""
+    nx, nth = oem.cm.nx, oem.layout.size
+    free = [ca.MX.sym(f"x0_{e}", len(f)) for e, f in enumerate(oem.free_x0)]
+    w = ca.vertcat(theta, *free)
+    nw = w.numel()
+    off, xs = pv["off"], pv["xs"]
+    seed = np.vstack([np.zeros((nth, nx)), np.eye(nx)]).T.ravel(order="F")   # S_0 = [0 | I]
+    r_parts, jac_parts, col = [], [], nth
+    for e, d in enumerate(oem.data):
+        U, T, Y, W, M = pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
+        place = np.zeros((nx, len(oem.free_x0[e])))
+        place[oem.free_x0[e], np.arange(len(oem.free_x0[e]))] = 1.0
+        x0 = pv[f"X0{e}"] + ca.mtimes(ca.DM(place), free[e])   # the data block is 0 where x0 is free
+        z0 = ca.vertcat(x0, ca.DM(seed))
+        Z = sens_fn.mapaccum("sim", d.n - 1)(z0, U[:, :-1], U[:, 1:], T[:, :-1], T[:, 1:] - T[:, :-1],
+                                             theta, M, off, xs)
+        Z = ca.horzcat(z0, Z)
+        R, RX, RT = out_fn.map(d.n, "serial")(Z[:nx, :], U, T, theta, M, off, xs, Y, W)
+        JT = jrow_fn.map(d.n, "serial")(RX, RT, Z[nx:, :])           # (nθ + nx) × (ny·n)
+        jac = JT.T
+        cols = [jac[:, :nth]]
+        if free[e].numel():
+            cols += [ca.MX(jac.size1(), col - nth), jac[:, [nth + i for i in oem.free_x0[e]]]]
+            col += free[e].numel()
+        cols.append(ca.MX(jac.size1(), nw - col if free[e].numel() else nw - nth))
+        jac_parts.append(ca.horzcat(*cols))
+        r_parts.append(ca.vec(R))
+    return w, ca.vertcat(*r_parts), ca.vertcat(*jac_parts), ca.MX(0, 1), ca.MX(0, nw)
+
+
+def _build_nlp(oem, terms, theta, pvec, pv, penalty) -> _Nlp:
+    """The Ipopt instance over (w, r, ∂r/∂w, gaps, ∂gaps/∂w) plus the user's parameter constraints."""
+    cm, layout, nth = oem.cm, oem.layout, oem.layout.size
+    w, r, jac_r, gaps, jac_gap = terms
+    nw = w.numel()
     g_par = []
     if cm.constraint is not None:
-        shared = all(ex is None for ex in layout.experiment)
-        for e in range(1 if shared else len(oem.data)):
-            g_par.append(cm.constraint(off + ca.mtimes(pv[f"M{e}"], theta)))
+        for e in range(_constraint_copies(oem)):
+            g_par.append(cm.constraint(pv["off"] + ca.mtimes(pv[f"M{e}"], theta)))
     g_par = ca.vertcat(*g_par) if g_par else ca.MX(0, 1)
     jac_par = ca.horzcat(ca.jacobian(g_par, theta), ca.MX(g_par.numel(), nw - nth))
-    g = ca.vertcat(*gaps, g_par)
+    g = ca.vertcat(gaps, g_par)
     jac_g = ca.vertcat(jac_gap, jac_par)
-
     if penalty is not None:
         pen = penalty(theta)
         jac_pen = ca.horzcat(ca.jacobian(pen, theta), ca.MX(pen.numel(), nw - nth))
@@ -192,7 +245,7 @@ def _build_nlp(oem, gap_fn, out_fn, penalty) -> _Nlp:
                        [sigma * ca.triu(ca.mtimes(jac_all.T, jac_all))],
                        ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
     opts = oem.options
-    solver = ca.nlpsol("greyfit_ms", "ipopt", {"x": w, "p": pvec, "f": f, "g": g}, {
+    solver = ca.nlpsol("greyfit_structured", "ipopt", {"x": w, "p": pvec, "f": f, "g": g}, {
         "grad_f": grad_f, "jac_g": jac_g_fn, "hess_lag": hess,
         "ipopt.max_iter": opts.max_iter, "ipopt.max_cpu_time": opts.max_cpu_time, "ipopt.tol": opts.tol,
         # QAMD ordering copes with the dense θ columns: the automatic choice spent 8 s of 10 in
@@ -207,8 +260,11 @@ def _data_vector(oem) -> np.ndarray:
     parts = []
     for e, d in enumerate(oem.data):
         mask = d.mask
+        x0 = np.zeros(oem.cm.nx)
+        for i, v in d.x0_known.items():
+            x0[i] = v / oem.xscale[i]
         parts += [d.u.ravel(order="F"), d.t, np.where(mask, d.y, 0.0).ravel(order="F"),
-                  (mask * oem.weights[:, None]).ravel(order="F"), oem.layout.matrix[e].ravel(order="F")]
+                  (mask * oem.weights[:, None]).ravel(order="F"), oem.layout.matrix[e].ravel(order="F"), x0]
     parts += [oem.layout.offset, oem.xscale]
     return np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts])
 
@@ -244,28 +300,34 @@ def constraint_upper(oem) -> np.ndarray:
     return np.tile(np.where(oem.cm.constraint_equality, 0.0, np.inf), _constraint_copies(oem))
 
 
-def attach_solver(oem, problem: LeastSquaresProblem) -> LeastSquaresProblem:
-    """Give `problem` (bounds, guesses and readers of multiple shooting) the structured solver.
-
-    The solver is made when first asked for, after a time-varying penalty may have been attached.
-    """
+def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> LeastSquaresProblem:
+    """Give `problem` (bounds, guesses and readers of single or multiple shooting) the structured
+    solver, made when first asked for (after a time-varying penalty may have been attached)."""
     samples = sum(d.n for d in oem.data)
-    lengths = tuple(d.n for d in oem.data)
+    structure = (single, tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
     o = oem.options
 
     def make_solver():
-        gap_fn, out_fn, is_c = _stage_functions(oem, samples)
+        fns, is_c = _stage_functions(oem, samples, single)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
         # the NLP; the entry holds those objects, so an id is never reused while it is cached
-        owners = (gap_fn, out_fn, oem.cm.constraint)
-        nlp_key = (*map(id, owners), lengths, o.max_iter, o.max_cpu_time, o.tol)
+        owners = (*fns, oem.cm.constraint)
+        nlp_key = (*map(id, owners), structure, o.max_iter, o.max_cpu_time, o.tol)
         entry = _SOLVERS.get(nlp_key) if penalty is None else None
         if entry is not None and all(a is b for a, b in zip(entry[0], owners)):
             _SOLVERS.move_to_end(nlp_key)
             nlp = entry[1]
         else:
-            nlp = _build_nlp(oem, gap_fn, out_fn, penalty)
+            pvec, pv = _data_blocks(oem)
+            theta = ca.MX.sym("theta", oem.layout.size)
+            if single:
+                out_fn, sens_fn, jrow_fn = fns
+                terms = _single_shooting_terms(oem, sens_fn, jrow_fn, out_fn, theta, pv)
+            else:
+                gap_fn, out_fn = fns
+                terms = _multiple_shooting_terms(oem, gap_fn, out_fn, theta, pv)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:

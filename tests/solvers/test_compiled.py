@@ -18,13 +18,14 @@ from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
 needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C compiler on this machine")
 
 
-def _request(truth=MSD_TRUTH, n=801, seed=1, guess=(0.4, 3.0), mass=2.0, outputs=("x",)):
+def _request(truth=MSD_TRUTH, n=801, seed=1, guess=(0.4, 3.0), mass=2.0, outputs=("x",),
+             method="multiple_shooting"):
     t = np.arange(n) * 0.02
     states = simulate_msd(t, truth=truth)
     model = msd_model(c=guess[0], k=guess[1], m=mass)
     model["outputs"] = {o: o for o in outputs}
-    return FitRequest.model_validate({"model": model, "experiments": [msd_experiment(t, states, 0.002, seed,
-                                                                                     outputs=outputs)]})
+    return FitRequest.model_validate({"model": model, "method": method,
+                                      "experiments": [msd_experiment(t, states, 0.002, seed, outputs=outputs)]})
 
 
 @pytest.fixture
@@ -35,8 +36,9 @@ def cache(tmp_path, monkeypatch):
 
 
 @needs_cc
-def test_compiled_and_interpreted_fits_agree(cache, monkeypatch):
-    req = _request()
+@pytest.mark.parametrize("method", ["multiple_shooting", "single_shooting"])
+def test_compiled_and_interpreted_fits_agree(cache, monkeypatch, method):
+    req = _request(method=method)
     monkeypatch.setenv("GREYFIT_COMPILE", "never")
     plain = fit_model(req)
     monkeypatch.setenv("GREYFIT_COMPILE", "always")
@@ -71,16 +73,17 @@ def test_without_a_compiler_the_interpreter_runs_and_says_so(cache, monkeypatch)
     assert not list(cache.glob("*.so")) if cache.exists() else True
 
 
-@pytest.mark.parametrize("mode", ["never", pytest.param("always", marks=needs_cc)])
-def test_a_reused_solver_fits_the_new_data_guess_and_fixed_values(cache, monkeypatch, mode):
+@pytest.mark.parametrize("mode,method", [("never", "multiple_shooting"), ("never", "single_shooting"),
+                                         pytest.param("always", "multiple_shooting", marks=needs_cc)])
+def test_a_reused_solver_fits_the_new_data_guess_and_fixed_values(cache, monkeypatch, mode, method):
     """Same model structure and record length three times: the cached NLP must take each request's
     own data (another truth), own starting values and own fixed mass."""
     monkeypatch.setenv("GREYFIT_COMPILE", mode)
-    first = fit_model(_request())
+    first = fit_model(_request(method=method))
     other_truth = {"m": 2.0, "c": 1.3, "k": 7.0}
-    second = fit_model(_request(truth=other_truth, seed=5, guess=(2.0, 12.0)))
+    second = fit_model(_request(truth=other_truth, seed=5, guess=(2.0, 12.0), method=method))
     heavy = {"m": 3.0, "c": 0.5, "k": 4.0}
-    third = fit_model(_request(truth=heavy, seed=6, mass=3.0))
+    third = fit_model(_request(truth=heavy, seed=6, mass=3.0, method=method))
     for result, truth in ((first, MSD_TRUTH), (second, other_truth), (third, heavy)):
         assert result.quality == "good"
         for name in ("c", "k"):
@@ -88,8 +91,10 @@ def test_a_reused_solver_fits_the_new_data_guess_and_fixed_values(cache, monkeyp
     assert third.parameters["m"].value == 3.0
 
 
-def test_missing_samples_and_two_experiments_on_the_structured_path():
-    """Masked (null) output samples weigh nothing; per-experiment parameters get their own columns."""
+@pytest.mark.parametrize("method", ["multiple_shooting", "single_shooting"])
+def test_missing_samples_and_two_experiments_on_the_structured_path(method):
+    """Masked (null) output samples weigh nothing; per-experiment parameters get their own columns;
+    a known initial state in one experiment, a free one in the other."""
     t = np.arange(601) * 0.02
     exps = []
     for e, c in enumerate((0.8, 1.1)):
@@ -97,12 +102,15 @@ def test_missing_samples_and_two_experiments_on_the_structured_path():
         exp = msd_experiment(t, simulate_msd(t, truth=truth), 0.002, e, name=f"e{e}", outputs=("x",))
         exp["outputs"]["x"] = [None if i % 7 == 3 else v for i, v in enumerate(exp["outputs"]["x"])]
         exps.append(exp)
+    exps[1]["initial_state"] = {"v": 0.0}
     model = msd_model()
     model["outputs"] = {"x": "x"}
     model["parameters"][1]["per_experiment"] = True
-    result = fit_model(FitRequest.model_validate({"model": model, "experiments": exps}))
+    result = fit_model(FitRequest.model_validate({"model": model, "experiments": exps, "method": method}))
     assert result.quality == "good"
     assert result.parameters["c[e0]"].value == pytest.approx(0.8, rel=5e-3)
     assert result.parameters["c[e1]"].value == pytest.approx(1.1, rel=5e-3)
     assert result.parameters["k"].value == pytest.approx(MSD_TRUTH["k"], rel=5e-3)
+    assert result.initial_states["e1"]["v"] == 0.0
+    assert result.initial_states["e0"]["x"] == pytest.approx(0.1, abs=0.01)
     assert result.metrics.ndata == sum(1 for e in exps for v in e["outputs"]["x"] if v is not None)

@@ -87,10 +87,11 @@ def main() -> None:
     args = parser.parse_args()
     rows = []
     with tempfile.TemporaryDirectory() as cache:
-        for variant, env in VARIANTS.items():
-            env = dict(env, GREYFIT_CACHE_DIR=os.path.join(cache, variant), OPENBLAS_NUM_THREADS="1")
-            rows.append((f"seat MS, 1000 samples, {variant}",
-                         in_fresh_process(run_case, "seat", "multiple_shooting", env), 8000))
+        for method, tag in (("multiple_shooting", "MS"), ("single_shooting", "SS")):
+            for variant, env in VARIANTS.items():
+                env = dict(env, GREYFIT_CACHE_DIR=os.path.join(cache, variant), OPENBLAS_NUM_THREADS="1")
+                rows.append((f"seat {tag}, 1000 samples, {variant}",
+                             in_fresh_process(run_case, "seat", method, env), 8000))
         for variant in ("compiled", "interpreted"):
             env = dict(VARIANTS[variant], GREYFIT_CACHE_DIR=os.path.join(cache, variant), OPENBLAS_NUM_THREADS="1")
             rows.append((f"seat equation error, {variant}",
@@ -120,6 +121,8 @@ def main() -> None:
         print(f"  seat MS compiled vs scipy: {scipy[0] / base:6.0f}x faster (scipy's wall time)")
     if base:
         print(f"  seat MS compiled vs generic graph: {warm['seat MS, 1000 samples, generic graph'] / base:6.1f}x")
+        ss = warm["seat SS, 1000 samples, compiled"]
+        print(f"  seat SS compiled vs generic graph: {warm['seat SS, 1000 samples, generic graph'] / ss:6.1f}x")
     per = {n: warm.get(f"2-state MS, {n} samples, compiled") for n in args.sizes}
     if len(args.sizes) >= 2 and all(per.values()):
         lo, hi = min(args.sizes), max(args.sizes)

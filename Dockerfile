@@ -1,6 +1,11 @@
 # greyfit service image. Build: docker build -t greyfit .   Run: docker run -p 8000:8000 -v greyfit-data:/data greyfit
 FROM python:3.11-slim
 
+# gcc compiles each model's per-sample functions once (cached under /data/cache); without it greyfit
+# falls back to CasADi's interpreter, 2-3x slower on long records
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+ && rm -rf /var/lib/apt/lists/*
+
 RUN useradd --create-home --uid 10001 greyfit && mkdir /data && chown greyfit /data
 WORKDIR /app
 RUN chown greyfit /app

@@ -170,6 +170,9 @@ class SolverInfo(BaseModel):
     starts: int = 1
     derivative_filter: Optional[str] = None
     linear_in_parameters: Optional[bool] = None
+    compiled: Optional[bool] = Field(
+        default=None, description="whether the per-sample model functions ran as compiled C (true) or "
+        "in CasADi's interpreter (false); null where the method has no such functions")
 
 
 class ResidualTest(BaseModel):

@@ -2,8 +2,10 @@
 from __future__ import annotations
 
 import logging
+import os
 import uuid
 from contextlib import asynccontextmanager
+from pathlib import Path
 from typing import Optional
 
 from fastapi import FastAPI
@@ -57,6 +59,8 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        # compiled model functions live beside the job store; workers spawned below inherit this
+        os.environ.setdefault("GREYFIT_CACHE_DIR", str(Path(settings.data_dir).resolve() / "cache"))
         store = JobStore(make_engine(settings.resolved_database_url()))
         executor = make_executor(settings)
         dispatcher = Dispatcher(store, executor, settings, app.state.metrics)

@@ -21,7 +21,7 @@ from solvers.fit_checks import (
 )
 from solvers.extensions import prepare_batch
 from solvers.model_compiler import CompiledModel, compile_model
-from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
+from solvers.nlp import NlpOutcome, make_solver, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
 from solvers.preprocess import prepare_request
 from solvers.shooting import (
@@ -61,12 +61,13 @@ def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
     return starts
 
 
-def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int]:
+def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int, bool | None]:
+    """(best outcome, starts used, whether compiled C evaluated the model)."""
     if linear:
         outcome = solve_linear_least_squares(problem, options)
         if outcome is not None:
-            return outcome, 1
-    solver = LeastSquaresSolver(problem, options)
+            return outcome, 1, None
+    solver = make_solver(problem, options)
     best, used = None, 0
     cpu0 = time.process_time()
     for theta0 in starts:
@@ -76,7 +77,7 @@ def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int]:
         used += 1
         if best is None or (out.success, -out.cost) > (best.success, -best.cost):
             best = out
-    return best, used
+    return best, used, getattr(solver, "compiled", None)
 
 
 def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
@@ -138,10 +139,11 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         ext.attach(problem, layout)
     before = pre_fit_warnings(cm, data, layout, opts, problem, eep, oem)
     if eep is not None:
-        outcome, n_starts = (ext.solve_affine(problem, layout, eep.linear)
-                             or _solve(problem, opts, starts, eep.linear and problem.penalty is None))
+        affine = ext.solve_affine(problem, layout, eep.linear)
+        outcome, n_starts, is_c = ((*affine, None) if affine
+                                   else _solve(problem, opts, starts, eep.linear and problem.penalty is None))
     else:
-        outcome, n_starts = _solve(problem, opts, starts, False)
+        outcome, n_starts, is_c = _solve(problem, opts, starts, False)
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
         outcome.w, outcome.success = problem.initial_guess(layout.initial), False
 
@@ -224,7 +226,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts,
                           derivative_filter=eep.derivative_filter if eep else None,
-                          linear_in_parameters=eep.linear if eep else None),
+                          linear_in_parameters=eep.linear if eep else None, compiled=is_c),
         residual_analysis=analyses, traces=traces,
         covariance_classical=None if cov.classical is None else CovariancePublic(
             names=cov.names, matrix=cov.classical.tolist()),

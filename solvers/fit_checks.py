@@ -38,14 +38,18 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
 
 def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
     """Per input, the free parameters that act on it in some equation (∂²f/∂u∂p ≠ 0)."""
+    acting = cm.derive(("input_parameters",), lambda: _parameters_on_inputs(cm))
+    free = set(layout.base_names)
+    return {name: sorted(acting[name] & free) for name in cm.inputs}
+
+
+def _parameters_on_inputs(cm: CompiledModel) -> dict[str, set[str]]:
     x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
     f = cm.rhs(x, u, p, t)
-    free = set(layout.base_names)
     out = {}
     for k, name in enumerate(cm.inputs):
-        cross = ca.jacobian(ca.jacobian(f, u[k]), p)
-        _, cols = cross.sparsity().get_triplet()
-        out[name] = sorted({cm.parameters[j] for j in cols} & free)
+        _, cols = ca.jacobian(ca.jacobian(f, u[k]), p).sparsity().get_triplet()
+        out[name] = {cm.parameters[j] for j in cols}
     return out
 
 
@@ -54,20 +58,26 @@ def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: 
     """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
     if options.integrator != "rk4" or cm.model.discrete is not None:   # no integration step to judge
         return []
-    x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
-    jac_fn = ca.Function("dfdx", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])
+    jac_fn = cm.derive(("dfdx",), lambda: _state_jacobian(cm))
     rate, dt = 0.0, np.inf
     for e, d in enumerate(data):
         pe = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
-        xs = states[e]
-        for k in np.linspace(0, d.n - 1, min(d.n, 20)).astype(int):
-            if not np.all(np.isfinite(xs[:, k])):
-                continue
-            a = np.array(jac_fn(xs[:, k], d.u[:, k], pe, d.t[k]))
-            if np.all(np.isfinite(a)):
-                rate = max(rate, float(np.max(np.abs(np.linalg.eigvals(a)))))
+        ks = np.linspace(0, d.n - 1, min(d.n, 20)).astype(int)
+        ks = ks[np.all(np.isfinite(states[e][:, ks]), axis=0)]
+        if ks.size:
+            a = np.array(jac_fn.map(ks.size)(states[e][:, ks], d.u[:, ks], np.repeat(pe[:, None], ks.size, 1),
+                                             d.t[None, ks]))
+            blocks = a.reshape(cm.nx, ks.size, cm.nx).transpose(1, 0, 2)
+            blocks = blocks[np.all(np.isfinite(blocks), axis=(1, 2))]
+            if blocks.size:
+                rate = max(rate, float(np.max(np.abs(np.linalg.eigvals(blocks)))))
         dt = min(dt, float(np.median(np.diff(d.t))))
     return step_size_warning(rate, dt, options.substeps, options.integrator)
+
+
+def _state_jacobian(cm: CompiledModel) -> ca.Function:
+    x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    return ca.Function("dfdx", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])
 
 
 def row_keys(data: list[ExperimentData], eep: EquationErrorProblem | None,

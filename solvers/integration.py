@@ -13,7 +13,14 @@ def _input_at(u0, u1, tau, interpolation: str):
 
 
 def make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
-    """Function step(x, u0, u1, p, t0, dt) -> x(t0 + dt)."""
+    """Function step(x, u0, u1, p, t0, dt) -> x(t0 + dt), built once per model and options."""
+    if not isinstance(cm, CompiledModel):   # a stand-in (e.g. discovery's disturbed model)
+        return _make_step(cm, options)
+    key = ("step", options.integrator, options.substeps, options.input_interpolation)
+    return cm.derive(key, lambda: _make_step(cm, options))
+
+
+def _make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     if cm.model.discrete is not None:   # difference equation: the step is f itself
         from solvers.discrete import make_discrete_step
         return make_discrete_step(cm)

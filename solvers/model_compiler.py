@@ -1,6 +1,7 @@
 """Compile a `schemas.Model` once into CasADi Functions f(x,u,p,t) and h(x,u,p,t)."""
 from __future__ import annotations
 
+from collections import OrderedDict
 from dataclasses import dataclass, field
 
 import casadi as ca
@@ -26,6 +27,15 @@ class CompiledModel:
     constraint: ca.Function | None  # (p) -> g, with g >= 0 (or g == 0 where marked)
     constraint_equality: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     direct_outputs: dict[str, str] = field(default_factory=dict)  # output name -> state it measures
+    # Functions derived from this model (integrator steps by their options, ∂f/∂x, ...), built once;
+    # init=False: dataclasses.replace gives a changed model a fresh, empty cache
+    derived: dict[tuple, object] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def derive(self, key: tuple, build):
+        """What `build()` makes from this model (Functions, structure facts), built on first use."""
+        if key not in self.derived:
+            self.derived[key] = build()
+        return self.derived[key]
 
     @property
     def nx(self) -> int:
@@ -57,8 +67,28 @@ def _symbols(cm: "CompiledModel"):
     return (ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t"))
 
 
+_COMPILED: "OrderedDict[str, CompiledModel]" = OrderedDict()
+COMPILED_CACHE_SIZE = 64
+
+
 def compile_model(model: Model) -> CompiledModel:
-    """Build rhs/output/constraint Functions; raises ModelDefinitionError naming the field."""
+    """Build rhs/output/constraint Functions; raises ModelDefinitionError naming the field.
+
+    A worker keeps the last models it compiled (keyed by their full JSON): a batch of fits of one
+    model parses it once, and the Functions built from it (steps, compiled C) are found again.
+    """
+    key = model.model_dump_json()
+    if key in _COMPILED:
+        _COMPILED.move_to_end(key)
+        return _COMPILED[key]
+    cm = _compile(model)
+    _COMPILED[key] = cm
+    while len(_COMPILED) > COMPILED_CACHE_SIZE:
+        _COMPILED.popitem(last=False)
+    return cm
+
+
+def _compile(model: Model) -> CompiledModel:
     x = ca.SX.sym("x", len(model.states))
     u = ca.SX.sym("u", len(model.inputs))
     params = [p.name for p in model.parameters]

@@ -26,6 +26,8 @@ class NlpOutcome:
 class LeastSquaresSolver:
     """Builds the Ipopt instance once; `solve(w0)` may be called for every multistart."""
 
+    compiled = False   # CasADi evaluates the whole graph in its interpreter
+
     def __init__(self, problem: LeastSquaresProblem, options: FitOptions):
         self.problem = problem
         w, r = problem.w, problem.residual
@@ -51,21 +53,36 @@ class LeastSquaresSolver:
         self.residual = ca.Function("residual", [w], [r])
 
     def solve(self, w0: np.ndarray) -> NlpOutcome:
-        p = self.problem
-        lbw, ubw = p.lbw, p.ubw
-        w0 = np.clip(w0, lbw, ubw)
-        start = time.perf_counter()
-        try:
-            sol = self.solver(x0=w0, lbx=lbw, ubx=ubw, lbg=p.lbg, ubg=p.ubg)
-        except RuntimeError as exc:   # e.g. CVODES cannot integrate at the start point
-            reason = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "error"
-            return NlpOutcome(w0, float("nan"), f"Evaluation_Failed: {reason}", False, 0,
-                              time.perf_counter() - start)
-        stats = self.solver.stats()
-        w = np.array(sol["x"]).ravel()
-        status = str(stats.get("return_status", "unknown"))
-        return NlpOutcome(w, float(sol["f"]), status, status in SUCCESS_STATUSES,
-                          int(stats.get("iter_count", 0)), time.perf_counter() - start)
+        return run_ipopt(self.solver, w0, self.problem)
+
+
+def make_solver(problem: LeastSquaresProblem, options: FitOptions):
+    """The problem's own solver where it has one, else Ipopt over its residual graph."""
+    if problem.solver_factory is not None:
+        return problem.solver_factory()
+    return LeastSquaresSolver(problem, options)
+
+
+def run_ipopt(solver: ca.Function, w0: np.ndarray, problem: LeastSquaresProblem,
+              p: np.ndarray | None = None) -> NlpOutcome:
+    """One Ipopt solve from w0 (clipped into the bounds); an evaluation error is a failed outcome."""
+    lbw, ubw = problem.lbw, problem.ubw
+    w0 = np.clip(w0, lbw, ubw)
+    start = time.perf_counter()
+    args = dict(x0=w0, lbx=lbw, ubx=ubw, lbg=problem.lbg, ubg=problem.ubg)
+    if p is not None:
+        args["p"] = p
+    try:
+        sol = solver(**args)
+    except RuntimeError as exc:   # e.g. CVODES cannot integrate at the start point
+        reason = str(exc).strip().splitlines()[0][:200] if str(exc).strip() else "error"
+        return NlpOutcome(w0, float("nan"), f"Evaluation_Failed: {reason}", False, 0,
+                          time.perf_counter() - start)
+    stats = solver.stats()
+    w = np.array(sol["x"]).ravel()
+    status = str(stats.get("return_status", "unknown"))
+    return NlpOutcome(w, float(sol["f"]), status, status in SUCCESS_STATUSES,
+                      int(stats.get("iter_count", 0)), time.perf_counter() - start)
 
 
 def solve_linear_least_squares(problem: LeastSquaresProblem, options: FitOptions) -> NlpOutcome | None:

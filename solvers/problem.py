@@ -39,6 +39,9 @@ class LeastSquaresProblem:
     # extra residual rows of θ (scaled), e.g. a total-variation penalty; in the NLP only, not in
     # the data Jacobian used for the covariance
     penalty: Callable[[ca.MX], ca.MX] | None = None
+    # a solver over a different formulation of the same NLP (e.g. structured multiple shooting);
+    # `w` and `g` then only give the sizes, the residual graph is never built
+    solver_factory: Callable[[], object] | None = None
 
     @cached_property
     def residual(self) -> ca.MX:

@@ -7,6 +7,8 @@ import numpy as np
 from schemas.fit import FitOptions
 from solvers.data import ExperimentData, fill_missing
 from solvers.integration import make_step
+from solvers import shooting_structured
+from solvers.compiled import compiled
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
 from solvers.problem import (
@@ -34,18 +36,17 @@ class OutputErrorModel:
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
-        """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once."""
+        """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once (compiled C
+        where the step is an SX expression and a compiler is present)."""
         if self._sensitivities is None:
-            cm = self.cm
-            x, u0, u1 = ca.MX.sym("x", cm.nx), ca.MX.sym("u0", cm.nu), ca.MX.sym("u1", cm.nu)
-            p, t0, dt = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
-            xn = self.step(x, u0, u1, p, t0, dt)
-            step_sens = ca.Function("step_sens", [x, u0, u1, p, t0, dt],
-                                    [xn, ca.jacobian(xn, x), ca.jacobian(xn, p)])
-            xs, us = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu)
-            ps, ts = ca.SX.sym("p", cm.np), ca.SX.sym("t")
-            y = cm.output(xs, us, ps, ts)
-            out_sens = ca.Function("out_sens", [xs, us, ps, ts], [y, ca.jacobian(y, xs), ca.jacobian(y, ps)])
+            o = self.options
+            step_sens, out_sens = self.cm.derive(
+                ("sensitivities", o.integrator, o.substeps, o.input_interpolation),
+                lambda: _sensitivity_functions(self.cm, self.step, o))
+            samples = sum(d.n for d in self.data)
+            if step_sens.is_a("SXFunction"):   # CVODES cannot be generated as C
+                step_sens, _ = compiled(step_sens, 2 * samples)
+            out_sens, _ = compiled(out_sens, 2 * samples)
             self._sensitivities = (step_sens, out_sens)
         return self._sensitivities
 
@@ -142,6 +143,21 @@ class OutputErrorModel:
         return out
 
 
+def _sensitivity_functions(cm: CompiledModel, step: ca.Function, options: FitOptions):
+    sym = ca.MX.sym if options.integrator == "cvodes" and cm.model.discrete is None else ca.SX.sym
+    x, u0, u1 = sym("x", cm.nx), sym("u0", cm.nu), sym("u1", cm.nu)
+    p, t0, dt = sym("p", cm.np), sym("t0"), sym("dt")
+    xn = step(x, u0, u1, p, t0, dt)
+    step_sens = ca.Function("greyfit_step_sens", [x, u0, u1, p, t0, dt],
+                            [xn, ca.jacobian(xn, x), ca.jacobian(xn, p)])
+    xs, us = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu)
+    ps, ts = ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    y = cm.output(xs, us, ps, ts)
+    out_sens = ca.Function("greyfit_out_sens", [xs, us, ps, ts],
+                           [y, ca.jacobian(y, xs), ca.jacobian(y, ps)])
+    return step_sens, out_sens
+
+
 def _first_line(exc: Exception) -> str:
     text = str(exc).strip().splitlines()
     return text[0][:200] if text else type(exc).__name__
@@ -166,23 +182,31 @@ def _x0_reader(oem: OutputErrorModel, offset: int, stride_of):
 
 
 def build_single_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
-    theta, x0_free, r = oem.single_shooting_residual()
-    g, lbg, ubg = parameter_constraints(oem.cm, oem.layout, theta)
+    nfree = sum(len(f) for f in oem.free_x0)
     lo, hi = theta_bounds(oem.layout)
-    nfree = x0_free.numel()
     offsets = np.cumsum([0] + [len(f) for f in oem.free_x0])
 
     def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
         x0 = [oem.x0_guess(e)[f] / oem.xscale[f] for e, f in enumerate(oem.free_x0)]
         return np.concatenate([theta_phys / oem.layout.scale, *x0]) if nfree else theta_phys / oem.layout.scale
 
+    common = dict(lbw=np.concatenate([lo, -np.inf * np.ones(nfree)]), ubw=np.concatenate([hi, np.inf * np.ones(nfree)]),
+                  n_theta=oem.layout.size, initial_guess=initial_guess,
+                  x0_of=_x0_reader(oem, oem.layout.size, lambda e: int(offsets[e])),
+                  extra_labels=oem.x0_labels())
+    if shooting_structured.supports(oem, single=True):
+        n_par = shooting_structured.constraint_count(oem)
+        problem = LeastSquaresProblem(
+            w=ca.MX.sym("w", oem.layout.size + nfree), residual_builder=lambda: None,
+            g=ca.MX.sym("g", n_par), lbg=shooting_structured.constraint_lower(oem),
+            ubg=shooting_structured.constraint_upper(oem), **common)
+        return shooting_structured.attach_solver(oem, problem, single=True)
+    theta, x0_free, r = oem.single_shooting_residual()
+    g, lbg, ubg = parameter_constraints(oem.cm, oem.layout, theta)
     return LeastSquaresProblem(
         w=ca.vertcat(theta, x0_free), residual_builder=lambda: r, g=ca.vertcat(*g),
         lbg=np.concatenate(lbg) if lbg else np.zeros(0), ubg=np.concatenate(ubg) if ubg else np.zeros(0),
-        lbw=np.concatenate([lo, -np.inf * np.ones(nfree)]), ubw=np.concatenate([hi, np.inf * np.ones(nfree)]),
-        n_theta=oem.layout.size, initial_guess=initial_guess,
-        x0_of=_x0_reader(oem, oem.layout.size, lambda e: int(offsets[e])),
-        extra_labels=oem.x0_labels())
+        **common)
 
 
 def _node_indices(n: int, interval: int) -> np.ndarray:
@@ -190,28 +214,72 @@ def _node_indices(n: int, interval: int) -> np.ndarray:
     return np.array(idx)
 
 
+def _node_guess(oem: OutputErrorModel, node_sets: list[np.ndarray]):
+    """w0 of multiple shooting: nodes from the data where a state is measured, else from a
+    simulation at the guess."""
+    cm, layout = oem.cm, oem.layout
+
+    def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
+        parts = [theta_phys / layout.scale]
+        x0s = [oem.x0_guess(e) for e in range(len(oem.data))]
+        sims = oem.simulate(theta_phys, x0s)
+        for e, d in enumerate(oem.data):
+            states = sims[e][0]
+            states = np.where(np.isfinite(states) & (np.abs(states) < 1e12), states, 0.0)
+            for out, state in cm.direct_outputs.items():
+                states[cm.states.index(state)] = fill_missing(d.y[cm.outputs.index(out)], d.t)
+            for i, v in d.x0_known.items():
+                states[i, 0] = v
+            parts.append((states[:, node_sets[e]] / oem.xscale[:, None]).ravel(order="F"))
+        return np.concatenate(parts)
+    return initial_guess
+
+
+def _node_bounds(oem: OutputErrorModel, node_sets: list[np.ndarray]) -> tuple[list, list]:
+    """Node bounds (scaled): the known initial states are fixed, the rest free."""
+    lbw_x, ubw_x = [], []
+    for d, nodes in zip(oem.data, node_sets):
+        lo = np.full((oem.cm.nx, nodes.size), -np.inf)
+        hi = np.full((oem.cm.nx, nodes.size), np.inf)
+        for i, v in d.x0_known.items():
+            lo[i, 0] = hi[i, 0] = v / oem.xscale[i]
+        lbw_x.append(lo.ravel(order="F"))
+        ubw_x.append(hi.ravel(order="F"))
+    return lbw_x, ubw_x
+
+
 def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
     """Nodes every `shooting_interval` samples; continuity gaps as equality constraints."""
     cm, layout = oem.cm, oem.layout
+    node_sets = [_node_indices(d.n, oem.options.shooting_interval) for d in oem.data]
+    node_offsets = list(layout.size + np.cumsum([0] + [cm.nx * ns.size for ns in node_sets])[:-1])
+    lbw_x, ubw_x = _node_bounds(oem, node_sets)
+    lo, hi = theta_bounds(layout)
+
+    def x0_of(w: np.ndarray) -> list[dict[str, float]]:
+        return [{s: float(w[node_offsets[e] + i] * oem.xscale[i]) for i, s in enumerate(cm.states)}
+                for e in range(len(oem.data))]
+
+    n_gap = sum(cm.nx * (ns.size - 1) for ns in node_sets)
+    if shooting_structured.supports(oem):
+        n_par = shooting_structured.constraint_count(oem)
+        problem = LeastSquaresProblem(
+            w=ca.MX.sym("w", layout.size + sum(cm.nx * ns.size for ns in node_sets)),
+            residual_builder=lambda: None, g=ca.MX.sym("g", n_gap + n_par),
+            lbg=np.concatenate([np.zeros(n_gap), shooting_structured.constraint_lower(oem)]),
+            ubg=np.concatenate([np.zeros(n_gap), shooting_structured.constraint_upper(oem)]),
+            lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
+            n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of)
+        return shooting_structured.attach_solver(oem, problem)
+
     theta = ca.MX.sym("theta", layout.size)
     w_parts, res, gaps = [theta], [], []
-    lbw_x, ubw_x, node_offsets = [], [], []
-    offset = layout.size
-    node_sets = [_node_indices(d.n, oem.options.shooting_interval) for d in oem.data]
     xs = ca.DM(oem.xscale)
     for e, d in enumerate(oem.data):
         nodes = node_sets[e]
         xn_s = ca.MX.sym(f"X{e}", cm.nx, nodes.size)
         w_parts.append(ca.vec(xn_s))
-        node_offsets.append(offset)
-        offset += cm.nx * nodes.size
         xn = ca.repmat(xs, 1, nodes.size) * xn_s
-        lo = np.full((cm.nx, nodes.size), -np.inf)
-        hi = np.full((cm.nx, nodes.size), np.inf)
-        for i, v in d.x0_known.items():
-            lo[i, 0] = hi[i, 0] = v / oem.xscale[i]
-        lbw_x.append(lo.ravel(order="F"))
-        ubw_x.append(hi.ravel(order="F"))
         p = layout.full(e, theta)
         if oem.options.shooting_interval == 1:
             # a node at every sample: contiguous slices only, outputs on the nodes themselves
@@ -239,33 +307,11 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
 
     g_par, lbg_par, ubg_par = parameter_constraints(cm, layout, theta)
     g = ca.vertcat(*[ca.vec(gp) for gp in gaps], *g_par)
-    n_gap = sum(cm.nx * (ns.size - 1) for ns in node_sets)
-    lo, hi = theta_bounds(layout)
-
-    def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
-        """Nodes from the data where a state is measured, else from a simulation at the guess."""
-        parts = [theta_phys / layout.scale]
-        x0s = [oem.x0_guess(e) for e in range(len(oem.data))]
-        sims = oem.simulate(theta_phys, x0s)
-        for e, d in enumerate(oem.data):
-            states = sims[e][0]
-            states = np.where(np.isfinite(states) & (np.abs(states) < 1e12), states, 0.0)
-            for out, state in cm.direct_outputs.items():
-                states[cm.states.index(state)] = fill_missing(d.y[cm.outputs.index(out)], d.t)
-            for i, v in d.x0_known.items():
-                states[i, 0] = v
-            parts.append((states[:, node_sets[e]] / oem.xscale[:, None]).ravel(order="F"))
-        return np.concatenate(parts)
-
-    def x0_of(w: np.ndarray) -> list[dict[str, float]]:
-        return [{s: float(w[node_offsets[e] + i] * oem.xscale[i]) for i, s in enumerate(cm.states)}
-                for e in range(len(oem.data))]
-
     return LeastSquaresProblem(
         w=ca.vertcat(*[ca.vec(v) for v in w_parts]), residual_builder=lambda: ca.vertcat(*res), g=g,
         lbg=np.concatenate([np.zeros(n_gap), *lbg_par]), ubg=np.concatenate([np.zeros(n_gap), *ubg_par]),
         lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
-        n_theta=layout.size, initial_guess=initial_guess, x0_of=x0_of,
+        n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of,
         extra_labels=[])
 
 

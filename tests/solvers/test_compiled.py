@@ -1,0 +1,116 @@
+"""Compiled per-sample functions and the cached structured multiple-shooting NLP.
+
+Truth: the same fits by the interpreted path, and simulated records with known parameters. The
+cache tests guard what caching can break: a reused Ipopt instance must see the new record's data,
+the new guesses and the new fixed values, never the previous fit's.
+"""
+import os
+import time
+
+import numpy as np
+import pytest
+
+from schemas import FitRequest
+from solvers import compiled as compiled_mod
+from solvers.fit import fit_model
+from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
+
+needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C compiler on this machine")
+
+
+def _request(truth=MSD_TRUTH, n=801, seed=1, guess=(0.4, 3.0), mass=2.0, outputs=("x",),
+             method="multiple_shooting"):
+    t = np.arange(n) * 0.02
+    states = simulate_msd(t, truth=truth)
+    model = msd_model(c=guess[0], k=guess[1], m=mass)
+    model["outputs"] = {o: o for o in outputs}
+    return FitRequest.model_validate({"model": model, "method": method,
+                                      "experiments": [msd_experiment(t, states, 0.002, seed, outputs=outputs)]})
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(compiled_mod, "_memory", {})
+    return tmp_path / "compiled"
+
+
+@needs_cc
+@pytest.mark.parametrize("method", ["multiple_shooting", "single_shooting"])
+def test_compiled_and_interpreted_fits_agree(cache, monkeypatch, method):
+    req = _request(method=method)
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")
+    plain = fit_model(req)
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    fast = fit_model(req)
+    assert plain.solver.compiled is False and fast.solver.compiled is True
+    assert sorted(p.name for p in cache.iterdir() if p.suffix == ".so")   # libraries on disk
+    for name in ("c", "k"):
+        assert fast.parameters[name].value == pytest.approx(plain.parameters[name].value, rel=1e-8)
+        assert fast.parameters[name].stderr == pytest.approx(plain.parameters[name].stderr, rel=1e-6)
+        assert fast.parameters[name].value == pytest.approx(MSD_TRUTH[name], rel=5e-3)
+
+
+@needs_cc
+def test_a_library_on_disk_is_loaded_not_rebuilt(cache, monkeypatch):
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    fit_model(_request())
+    libraries = {p: p.stat().st_mtime_ns for p in cache.glob("*.so")}
+    assert libraries
+    monkeypatch.setattr(compiled_mod, "_memory", {})     # a fresh worker process: memory cache empty
+    time.sleep(0.01)
+    again = fit_model(_request(seed=2))
+    assert again.solver.compiled is True
+    assert {p: p.stat().st_mtime_ns for p in cache.glob("*.so")} == libraries
+
+
+def test_without_a_compiler_the_interpreter_runs_and_says_so(cache, monkeypatch):
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    result = fit_model(_request())
+    assert result.solver.compiled is False
+    assert result.parameters["k"].value == pytest.approx(MSD_TRUTH["k"], rel=5e-3)
+    assert not list(cache.glob("*.so")) if cache.exists() else True
+
+
+@pytest.mark.parametrize("mode,method", [("never", "multiple_shooting"), ("never", "single_shooting"),
+                                         pytest.param("always", "multiple_shooting", marks=needs_cc)])
+def test_a_reused_solver_fits_the_new_data_guess_and_fixed_values(cache, monkeypatch, mode, method):
+    """Same model structure and record length three times: the cached NLP must take each request's
+    own data (another truth), own starting values and own fixed mass."""
+    monkeypatch.setenv("GREYFIT_COMPILE", mode)
+    first = fit_model(_request(method=method))
+    other_truth = {"m": 2.0, "c": 1.3, "k": 7.0}
+    second = fit_model(_request(truth=other_truth, seed=5, guess=(2.0, 12.0), method=method))
+    heavy = {"m": 3.0, "c": 0.5, "k": 4.0}
+    third = fit_model(_request(truth=heavy, seed=6, mass=3.0, method=method))
+    for result, truth in ((first, MSD_TRUTH), (second, other_truth), (third, heavy)):
+        assert result.quality == "good"
+        for name in ("c", "k"):
+            assert result.parameters[name].value == pytest.approx(truth[name], rel=5e-3)
+    assert third.parameters["m"].value == 3.0
+
+
+@pytest.mark.parametrize("method", ["multiple_shooting", "single_shooting"])
+def test_missing_samples_and_two_experiments_on_the_structured_path(method):
+    """Masked (null) output samples weigh nothing; per-experiment parameters get their own columns;
+    a known initial state in one experiment, a free one in the other."""
+    t = np.arange(601) * 0.02
+    exps = []
+    for e, c in enumerate((0.8, 1.1)):
+        truth = dict(MSD_TRUTH, c=c)
+        exp = msd_experiment(t, simulate_msd(t, truth=truth), 0.002, e, name=f"e{e}", outputs=("x",))
+        exp["outputs"]["x"] = [None if i % 7 == 3 else v for i, v in enumerate(exp["outputs"]["x"])]
+        exps.append(exp)
+    exps[1]["initial_state"] = {"v": 0.0}
+    model = msd_model()
+    model["outputs"] = {"x": "x"}
+    model["parameters"][1]["per_experiment"] = True
+    result = fit_model(FitRequest.model_validate({"model": model, "experiments": exps, "method": method}))
+    assert result.quality == "good"
+    assert result.parameters["c[e0]"].value == pytest.approx(0.8, rel=5e-3)
+    assert result.parameters["c[e1]"].value == pytest.approx(1.1, rel=5e-3)
+    assert result.parameters["k"].value == pytest.approx(MSD_TRUTH["k"], rel=5e-3)
+    assert result.initial_states["e1"]["v"] == 0.0
+    assert result.initial_states["e0"]["x"] == pytest.approx(0.1, abs=0.01)
+    assert result.metrics.ndata == sum(1 for e in exps for v in e["outputs"]["x"] if v is not None)

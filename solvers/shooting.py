@@ -320,8 +320,11 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
 
     Forward sensitivities S_{k+1} = A_k S_k + B_k are propagated in numpy from per-step Jacobians
     evaluated by one mapped call: much cheaper than differentiating the whole MX graph, and the
-    same quantity (the constrained multiple-shooting problem reduced to θ and x0).
+    same quantity (the constrained multiple-shooting problem reduced to θ and x0). Where the
+    structured formulation applies, the same recursion runs as one compiled pass instead.
     """
+    if shooting_structured.supports(oem, single=True):
+        return shooting_structured.condensed_jacobian(oem, theta_s, x0s)
     cm, layout = oem.cm, oem.layout
     step_sens, out_sens = oem.sensitivity_functions()
     n_theta = layout.size

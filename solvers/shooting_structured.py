@@ -336,3 +336,31 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
 
     problem.solver_factory = make_solver
     return problem
+
+
+_JACOBIANS: "OrderedDict[tuple, tuple]" = OrderedDict()
+
+
+def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+    """(J, r, output of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled), at
+    the measured samples: `shooting.sensitivity_jacobian` by one compiled pass per experiment."""
+    cm = oem.cm
+    fns, _ = _stage_functions(oem, sum(d.n for d in oem.data), single=True)
+    structure = (tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
+    key = (*map(id, fns), structure)
+    entry = _JACOBIANS.get(key)
+    if entry is None or not all(a is b for a, b in zip(entry[0], fns)):
+        pvec, pv = _data_blocks(oem)
+        theta = ca.MX.sym("theta", oem.layout.size)
+        out_fn, sens_fn, jrow_fn = fns
+        w, r, jac, _, _ = _single_shooting_terms(oem, sens_fn, jrow_fn, out_fn, theta, pv)
+        entry = (fns, ca.Function("condensed_jacobian", [w, pvec], [r, jac]))
+        _JACOBIANS[key] = entry
+        while len(_JACOBIANS) > SOLVER_CACHE_SIZE:
+            _JACOBIANS.popitem(last=False)
+    free = [np.array([x0s[e][cm.states[i]] / oem.xscale[i] for i in f]) for e, f in enumerate(oem.free_x0)]
+    w0 = np.concatenate([np.asarray(theta_s, dtype=float).ravel(), *free])
+    r, jac = entry[1](w0, _data_vector(oem))
+    keep = np.concatenate([d.mask.T.ravel() for d in oem.data])     # sample-major, like r
+    groups = np.concatenate([np.broadcast_to(np.arange(cm.ny), (d.n, cm.ny)).ravel() for d in oem.data])
+    return np.array(jac)[keep], np.array(r).ravel()[keep], groups[keep]

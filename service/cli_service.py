@@ -26,7 +26,9 @@ def cmd_serve(args) -> int:
     if args.data_dir:
         overrides["data_dir"] = Path(args.data_dir)
     settings = Settings(**overrides)
-    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info")
+    # httptools (a dependency): h11, uvicorn's pure-Python fallback, would hold the interpreter for
+    # every chunk of a large body and stall /healthz during uploads
+    uvicorn.run(create_app(settings), host=args.host, port=args.port, log_level="info", http="httptools")
     return 0
 
 

@@ -3,7 +3,7 @@ from typing import Any, Optional
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskPublic, TaskResult
-from service.json_body import StrictJSONRoute
+from service.json_body import StrictJSONRoute, request_texts
 from service.limits import check_limits
 from service.problems import LimitExceeded
 from service.store import job_status
@@ -38,7 +38,7 @@ def submit_job(request: Request, response: Response, kind: str, requests: list, 
                             "split the batch")
     for i, req in enumerate(requests):
         check_limits(req, settings, prefix=f"requests[{i}].")
-    job_id = state.store.create_job(kind, [r.model_dump(mode="json") for r in requests], label)
+    job_id = state.store.create_job(kind, request_texts(request, requests), label)
     state.dispatcher.wake()
     response.status_code = 202
     response.headers["Location"] = f"/v1/jobs/{job_id}"

@@ -1,7 +1,6 @@
 """The FastAPI application factory."""
 from __future__ import annotations
 
-import gc
 import logging
 import uuid
 from contextlib import asynccontextmanager
@@ -65,10 +64,6 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
         app.state.store, app.state.dispatcher = store, dispatcher
         dispatcher.start()
         log.info("greyfit ready: %s executor, store %s", settings.executor, store.engine.url)
-        # what is loaded by now lives as long as the server: keep it out of the collector's full
-        # passes, which otherwise stall the event loop ~0.1 s each (longer on a busy machine)
-        gc.collect()
-        gc.freeze()
         try:
             yield
         finally:

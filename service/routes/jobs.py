@@ -1,5 +1,5 @@
 import json
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskPublic, TaskResult
@@ -30,14 +30,16 @@ def job_public(record: dict[str, Any]) -> JobPublic:
                           error=json.loads(r["error"]) if r["error"] else None) for r in rows])
 
 
-def submit_job(request: Request, response: Response, kind: str, requests: list, label: Optional[str]) -> JobPublic:
+def submit_job(request: Request, response: Response, kind: str, requests: list, label: Optional[str],
+               check: Callable = check_limits) -> JobPublic:
+    """Store a job of one task per request (each checked against this server's limits by `check`)."""
     state = request.app.state
     settings = state.settings
     if len(requests) > settings.max_batch_requests:
         raise LimitExceeded("requests", f"{len(requests)} requests, the limit is {settings.max_batch_requests}; "
                             "split the batch")
     for i, req in enumerate(requests):
-        check_limits(req, settings, prefix=f"requests[{i}].")
+        check(req, settings, prefix=f"requests[{i}].")
     job_id = state.store.create_job(kind, request_texts(request, requests), label)
     state.dispatcher.wake()
     response.status_code = 202

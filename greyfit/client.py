@@ -20,10 +20,13 @@ from pydantic import BaseModel
 
 from schemas.discovery import DiscoverRequest, DiscoveryResult
 from schemas.fit import FitRequest, FitResult
+from schemas.frequency import FrequencyFitRequest
 from schemas.jobs import JobPublic, JobResults
 from schemas.simulate import SimulateRequest, SimulateResult
 
 FINISHED = ("succeeded", "failed", "cancelled")
+JOB_KINDS = {"fit": (FitRequest, "/v1/jobs"), "discover": (DiscoverRequest, "/v1/discover/jobs"),
+             "frequency_fit": (FrequencyFitRequest, "/v1/frequency-fits/jobs")}
 
 
 class GreyfitError(Exception):
@@ -83,10 +86,11 @@ class Client:
         return SimulateResult.model_validate(
             self._json("POST", "/v1/simulate", self._as(SimulateRequest, request)))
 
-    def submit_job(self, requests: Sequence[Union[FitRequest, DiscoverRequest, dict]], label: Optional[str] = None,
-                   kind: str = "fit") -> JobPublic:
-        """A batch job of fits (kind 'fit') or discoveries (kind 'discover'); returns at once."""
-        schema, path = (FitRequest, "/v1/jobs") if kind == "fit" else (DiscoverRequest, "/v1/discover/jobs")
+    def submit_job(self, requests: Sequence[Union[FitRequest, DiscoverRequest, FrequencyFitRequest, dict]],
+                   label: Optional[str] = None, kind: str = "fit") -> JobPublic:
+        """A batch job of fits (kind 'fit'), discoveries ('discover') or frequency-response fits
+        ('frequency_fit'); returns at once."""
+        schema, path = JOB_KINDS[kind]
         body = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
         if label is not None:
             body["label"] = label

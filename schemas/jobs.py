@@ -6,6 +6,7 @@ from typing import Any, Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field
 
 from schemas.fit import FitRequest
+from schemas.frequency import FrequencyFitRequest
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TaskStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
@@ -15,6 +16,15 @@ class JobCreate(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     requests: list[FitRequest] = Field(min_length=1)
+    label: Optional[str] = Field(default=None, max_length=200)
+
+
+class FrequencyJobCreate(BaseModel):
+    """A batch of frequency-response fits (POST /v1/frequency-fits/jobs)."""
+
+    model_config = ConfigDict(extra="forbid")
+
+    requests: list[FrequencyFitRequest] = Field(min_length=1)
     label: Optional[str] = Field(default=None, max_length=200)
 
 
@@ -43,7 +53,7 @@ class JobProgress(BaseModel):
 
 class JobPublic(BaseModel):
     id: str
-    kind: Literal["fit", "discover"]
+    kind: Literal["fit", "discover", "frequency_fit"]
     label: Optional[str] = None
     status: JobStatus
     progress: JobProgress

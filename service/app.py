@@ -15,6 +15,7 @@ from service.admission import BodyBudget
 from service.auth import ApiKeyGate
 from service.dispatcher import Dispatcher
 from service.executors import make_executor
+from service.json_body import BodyParser
 from service.metrics import Metrics
 from service.openapi import install_openapi
 from service.problems import install_handlers
@@ -70,6 +71,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
         try:
             yield
         finally:
+            app.state.body_parser.shutdown()
             dispatcher.stop()
             store.engine.dispose()
 
@@ -77,6 +79,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
                   description="Fit the physical parameters of ODE models to measured data.")
     app.state.settings = settings
     app.state.metrics = Metrics()
+    app.state.body_parser = BodyParser(settings.body_parser_processes, settings.retry_after_seconds)
     install_handlers(app)
     for router in (health.router, fits.router, discover.router, jobs.router, ops.router,
                    simulate_routes.router, report_routes.router, frequency.router):

@@ -1,64 +1,137 @@
-"""JSON bodies parsed strictly and off the event loop.
+"""JSON bodies parsed strictly, and large ones parsed and validated outside the web process.
 
-- A key twice in one object is an error (json.loads would silently keep the last value, so a
-  request could carry two different `experiments` and the reader of the JSON would see the first).
-- Bodies above a megabyte are parsed in a thread, so a large upload does not stall /healthz.
+- A key twice in one object is an error (service.json_parsing.loads_strict).
+- A body above LARGE_BODY_BYTES is parsed and validated as the route's body model in a parser
+  process. Parsing holds the interpreter lock (about a second for 30 MB): in a thread of the web
+  process it stalls the event loop all the same, and /healthz with it. The route receives the
+  validated model; FastAPI does not validate an instance of its body model again.
+  `GREYFIT_BODY_PARSER_PROCESSES=0` parses them in a thread instead (small deployments, benchmarks).
+- How many bodies are parsed at once is bounded by the parser processes; how many wait for them,
+  by the in-flight body budget (service.admission), which counts a body until its answer is sent.
 """
 from __future__ import annotations
 
-import json
-import re
-from typing import Any, Callable
+import asyncio
+import concurrent.futures as cf
+import multiprocessing as mp
+import os
+import threading
+from typing import Any, Callable, Optional
 
 import anyio
-from fastapi import Request, Response
+from fastapi import HTTPException, Request, Response
 from fastapi.routing import APIRoute
+from pydantic import BaseModel
 
-PARSE_IN_THREAD_BYTES = 1 << 20
+from service.json_parsing import exit_with_parent, loads_strict, parse_and_validate
 
-
-def _refuse_duplicates(pairs: list[tuple[str, Any]]) -> dict:
-    out: dict = {}
-    for key, value in pairs:
-        if key in out:
-            raise ValueError(key)
-        out[key] = value
-    return out
+LARGE_BODY_BYTES = 1 << 20
 
 
-def loads_strict(body: bytes) -> Any:
-    """json.loads that raises JSONDecodeError on a duplicate key (FastAPI reports it as a 422)."""
-    try:
-        return json.loads(body, object_pairs_hook=_refuse_duplicates)
-    except ValueError as exc:
-        if isinstance(exc, json.JSONDecodeError):
-            raise
-        text = body.decode("utf-8", "replace")
-        key = str(exc)
-        # point at the second occurrence of the key (the first one that is a key, not a value)
-        hits = [m.start() for m in re.finditer(re.escape(json.dumps(key)) + r"\s*:", text)]
-        raise json.JSONDecodeError(f"duplicate key {key!r} in one object: send each key once",
-                                   text, hits[1] if len(hits) > 1 else 0) from None
+class InvalidBody(HTTPException):
+    """A body that failed validation in a parser process: answered like FastAPI's own 422.
+
+    An HTTPException, because FastAPI passes those through from `Request.json()` (any other
+    exception there becomes a 400)."""
+
+    def __init__(self, errors: list[dict], body: bytes):
+        super().__init__(422, "invalid request")
+        self.errors, self.body = errors, body
+
+
+class BodyParser:
+    """Parser processes (started on the first large body); 0 processes parses in a thread."""
+
+    def __init__(self, processes: int, retry_after: int):
+        self.processes, self.retry_after = processes, retry_after
+        self._pool: Optional[cf.ProcessPoolExecutor] = None
+        self._lock = threading.Lock()
+
+    def _executor(self) -> cf.ProcessPoolExecutor:
+        with self._lock:
+            if self._pool is None:
+                self._pool = cf.ProcessPoolExecutor(self.processes, mp_context=mp.get_context("spawn"),
+                                                    initializer=exit_with_parent, initargs=(os.getpid(),))
+            return self._pool
+
+    async def parse(self, model: Optional[type[BaseModel]], body: bytes) -> tuple[Any, Optional[list[str]]]:
+        """The validated model (or, without one, the parsed JSON) and, for a job body, the JSON text
+        of each request; the same errors as in the web process."""
+        if self.processes == 0:
+            outcome = await anyio.to_thread.run_sync(parse_and_validate, model, body)
+        else:
+            pool = self._executor()
+            try:
+                outcome = await asyncio.wrap_future(pool.submit(parse_and_validate, model, body))
+            except cf.BrokenExecutor:      # a parser process died (e.g. out of memory): start afresh
+                with self._lock:
+                    if self._pool is pool:
+                        self._pool = None
+                pool.shutdown(wait=False, cancel_futures=True)
+                raise HTTPException(503, "the process parsing large bodies was lost (out of memory?); retry",
+                                    headers={"Retry-After": str(self.retry_after)}) from None
+        status, value = outcome
+        if status == "ok":
+            return value          # (the instance or parsed JSON, the requests' JSON texts or None)
+        if status == "json_invalid":
+            raise InvalidBody([{"type": "json_invalid", "loc": ("body", value[1]), "msg": "JSON decode error",
+                                "ctx": {"error": value[0]}}], body)
+        if status == "invalid":
+            raise InvalidBody([{**e, "loc": ("body", *e["loc"])} for e in value], body)
+        if status == "too_deep":
+            raise RecursionError("nested too deeply")
+        raise ValueError("unparsable body")   # FastAPI answers 400, as for a body it parsed itself
+
+    def shutdown(self) -> None:
+        with self._lock:
+            pool, self._pool = self._pool, None
+        if pool is not None:
+            pool.shutdown(wait=False, cancel_futures=True)
 
 
 class StrictJSONRequest(Request):
+    body_model: Optional[type[BaseModel]] = None
+
     async def json(self) -> Any:
         if not hasattr(self, "_json"):
             body = await self.body()
-            if len(body) > PARSE_IN_THREAD_BYTES:
-                self._json = await anyio.to_thread.run_sync(loads_strict, body)
+            if len(body) > LARGE_BODY_BYTES:
+                self._json, texts = await self.app.state.body_parser.parse(self.body_model, body)
+                if texts is not None:
+                    self.state.request_texts = texts   # see request_texts()
             else:
                 self._json = loads_strict(body)
         return self._json
 
 
+def request_texts(request: Request, requests: list[BaseModel]) -> list[str]:
+    """The JSON text of each request of a job body: made by the parser process when it parsed the
+    body, else here."""
+    texts = getattr(request.state, "request_texts", None)
+    if texts is not None and len(texts) == len(requests):
+        return texts
+    return [r.model_dump_json() for r in requests]
+
+
+def _body_model(route: APIRoute) -> Optional[type[BaseModel]]:
+    """The model of the route's single JSON body parameter, if it has exactly one."""
+    params = route.dependant.body_params
+    if len(params) != 1 or getattr(params[0].field_info, "embed", False):
+        return None
+    annotation = params[0].field_info.annotation
+    return annotation if isinstance(annotation, type) and issubclass(annotation, BaseModel) else None
+
+
 class StrictJSONRoute(APIRoute):
-    """Route class of every router: its handler sees a StrictJSONRequest."""
+    """Route class of every router: its handler sees a StrictJSONRequest that knows the body model."""
 
     def get_route_handler(self) -> Callable:
         handler = super().get_route_handler()
+        model = _body_model(self)
 
         async def strict_handler(request: Request) -> Response:
-            return await handler(StrictJSONRequest(request.scope, request.receive))
+            strict = StrictJSONRequest(request.scope, request.receive)
+            strict.body_model = model
+            return await handler(strict)
 
         return strict_handler

@@ -30,6 +30,50 @@ def check_limits(req: FitRequest, settings: Settings, prefix: str = "") -> None:
                                     f"is {settings.max_samples_per_experiment}; decimate or split the record")
 
 
+def check_simulate_limits(req, settings: Settings, prefix: str = "") -> None:
+    """A simulation's records against the sample limit (its model is checked when it is built)."""
+    for i, exp in enumerate(req.experiments):
+        if len(exp.time) > settings.max_samples_per_experiment:
+            raise LimitExceeded(f"{prefix}experiments[{i}].time", f"{len(exp.time)} samples, the limit is "
+                                f"{settings.max_samples_per_experiment}; decimate or split the record")
+
+
+def check_frequency_limits(req, settings: Settings, prefix: str = "") -> None:
+    """A frequency-response fit (FrequencyFitRequest) against this server's limits, naming the field."""
+    model = req.model
+    if len(model.parameters) > settings.max_parameters:
+        raise LimitExceeded(f"{prefix}model.parameters", f"{len(model.parameters)} parameters, the limit is "
+                            f"{settings.max_parameters}")
+    if len(req.data) > settings.max_experiments:
+        raise LimitExceeded(f"{prefix}data", f"{len(req.data)} data sets, this server accepts at most "
+                            f"{settings.max_experiments}; split the request")
+    texts = {f"model.{part}[{k}]": c for part in ("numerator", "denominator", "constraints")
+             for k, c in enumerate(getattr(model, part))}
+    if model.feedback is not None:
+        texts.update({f"model.feedback.controller.{part}[{k}]": c for part in ("num", "den")
+                      for k, c in enumerate(getattr(model.feedback.controller, part))})
+    for where, text in texts.items():
+        if len(text) > settings.max_expression_length:
+            raise LimitExceeded(f"{prefix}{where}", f"{len(text)} characters, the limit is "
+                                f"{settings.max_expression_length}")
+    series = [(f"data[{i}].omega", d.omega or []) for i, d in enumerate(req.data)]
+    series += [(f"data[{i}].sine_tests[{j}].time", t.time) for i, d in enumerate(req.data)
+               for j, t in enumerate(d.sine_tests or [])]
+    for where, values in series:
+        if len(values) > settings.max_samples_per_experiment:
+            raise LimitExceeded(f"{prefix}{where}", f"{len(values)} samples, the limit is "
+                                f"{settings.max_samples_per_experiment}; decimate the record")
+
+
+def frequency_values(req) -> int:
+    """How many numbers a frequency-response fit's data carry (the synchronous size measure)."""
+    total = 0
+    for d in req.data:
+        total += 3 * len(d.omega or [])
+        total += sum(3 * len(t.time) for t in d.sine_tests or [])
+    return total
+
+
 def data_values(req: FitRequest) -> int:
     """How many numbers the request's experiments carry (the synchronous size measure)."""
     total = 0

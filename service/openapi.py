@@ -25,7 +25,7 @@ ANSWERS = {
            "or shutting down; see Retry-After",
     "504": "the synchronous fit exceeded its wall-time limit",
 }
-SYNC_PATHS = ("/v1/fits", "/v1/discover")
+SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits")
 PUBLIC = ("/healthz", "/readyz")
 
 

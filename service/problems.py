@@ -12,6 +12,7 @@ from sqlalchemy.exc import InterfaceError, InternalError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from service.json_body import InvalidBody
 from service.store import StoreUnavailable
 from solvers.errors import DataError, FitError, ModelDefinitionError
 
@@ -107,11 +108,18 @@ def store_error_detail(exc: Exception) -> str:
 
 
 def install_handlers(app: FastAPI) -> None:
-    @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, exc: RequestValidationError):
-        errors = validation_errors(exc.errors(), exc.body)
+    def invalid_request(errors: list[dict], body) -> JSONResponse:
+        errors = validation_errors(errors, body)
         detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
         return problem(422, "Invalid request", detail, "validation-error", errors=errors)
+
+    @app.exception_handler(RequestValidationError)
+    async def _validation(_: Request, exc: RequestValidationError):
+        return invalid_request(exc.errors(), exc.body)
+
+    @app.exception_handler(InvalidBody)       # the same, for a body validated in a parser process
+    async def _invalid_body(_: Request, exc: InvalidBody):
+        return invalid_request(exc.errors, exc.body)
 
     # the solver's error tree: one problem type per class, 422 for all (the input must change)
     kinds = {ModelDefinitionError: ("Invalid model", "model-definition-error", "model"),

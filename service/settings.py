@@ -42,6 +42,10 @@ class Settings(BaseSettings):
         default=128 * 1024 * 1024, ge=1024,
         description="request bytes being received and parsed at once; a body beyond it gets 503 + Retry-After "
                     "(each byte of JSON costs about 3 bytes of memory while it is parsed)")
+    body_parser_processes: int = Field(
+        default=1, ge=0, le=64, description="processes that parse and validate bodies above 1 MB, so that "
+        "parsing (which holds the interpreter lock) never stalls the web process and /healthz; "
+        "0 parses them in a thread of the web process")
     max_sync_queue: int = Field(default=32, ge=1, description="synchronous fits waiting for a worker; "
                                                               "beyond it 503 + Retry-After")
     rate_limit_per_minute: Optional[int] = Field(

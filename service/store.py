@@ -127,7 +127,8 @@ class JobStore:
             raise StoreUnavailable(f"the job store does not take writes: {type(exc).__name__}: "
                                    f"{str(exc).splitlines()[0][:300]}") from exc
 
-    def create_job(self, kind: str, requests: list[dict], label: Optional[str]) -> str:
+    def create_job(self, kind: str, requests: list[dict | str], label: Optional[str]) -> str:
+        """A job of one task per request (a dict, or its JSON text, stored as it is)."""
         self.check_file()
         job_id = str(uuid.uuid4())
         now = time.time()
@@ -135,7 +136,8 @@ class JobStore:
             conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
                                               created_at=now, total=len(requests)))
             conn.execute(tasks.insert(), [
-                {"job_id": job_id, "idx": i, "status": "queued", "request": json.dumps(r), "attempts": 0}
+                {"job_id": job_id, "idx": i, "status": "queued", "attempts": 0,
+                 "request": r if isinstance(r, str) else json.dumps(r)}
                 for i, r in enumerate(requests)])
         return job_id
 

@@ -6,8 +6,7 @@ from schemas.discovery import DiscoverRequest, DiscoveryResult
 from schemas.jobs import JobPublic
 from service.json_body import StrictJSONRoute
 from service.limits import check_limits, data_values
-from service.problems import RequestTooLarge
-from service.routes.fits import run_sync
+from service.routes.sync import run_sync_request
 from service.routes.jobs import submit_job
 
 router = APIRouter(prefix="/v1", tags=["discovery"], route_class=StrictJSONRoute)
@@ -23,13 +22,8 @@ class DiscoverJobCreate(BaseModel):
 @router.post("/discover", response_model=DiscoveryResult)
 async def create_discovery(body: DiscoverRequest, request: Request):
     """Fit, trace the residual to a missing physical effect, add it, refit: before/after and evidence."""
-    settings = request.app.state.settings
-    check_limits(body, settings)
-    values = data_values(body)
-    if values > settings.sync_max_values:
-        raise RequestTooLarge(f"the experiments carry {values} numbers; synchronous requests take at most "
-                              f"{settings.sync_max_values}. Submit it as a job: POST /v1/discover/jobs")
-    return await run_sync(request, "discover", body.model_dump(mode="json"))
+    return await run_sync_request(request, "discover", body, check=check_limits, count=data_values,
+                                  elsewhere="Submit it as a job: POST /v1/discover/jobs")
 
 
 @router.post("/discover/jobs", response_model=JobPublic, status_code=202)

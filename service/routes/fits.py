@@ -1,63 +1,15 @@
-import asyncio
-
-from fastapi import APIRouter, HTTPException, Request, Response
+from fastapi import APIRouter, Request
 
 from schemas.fit import FitRequest, FitResult
 from service.json_body import StrictJSONRoute
 from service.limits import check_limits, data_values
-from service.problems import Overloaded, RequestTooLarge
-from service.runner import outcome_or_raise
+from service.routes.sync import run_sync_request
 
 router = APIRouter(prefix="/v1", tags=["fits"], route_class=StrictJSONRoute)
-
-DISCONNECT_POLL_SECONDS = 0.25
 
 
 @router.post("/fits", response_model=FitResult)
 async def create_fit(body: FitRequest, request: Request) -> FitResult:
     """Run one fit synchronously (small problems); larger ones belong in /v1/jobs."""
-    settings = request.app.state.settings
-    check_limits(body, settings)
-    values = data_values(body)
-    if values > settings.sync_max_values:
-        raise RequestTooLarge(f"the experiments carry {values} numbers; synchronous fits take at most "
-                              f"{settings.sync_max_values}. Submit it as a batch job: POST /v1/jobs "
-                              '{"requests": [<this body>]}')
-    return await run_sync(request, "fit", body.model_dump(mode="json"))
-
-
-async def run_sync(request: Request, kind: str, payload: dict):
-    """Hand the fit to the dispatcher and wait; stop its worker if the client goes away.
-
-    uvicorn does not cancel a handler whose client disconnected, so the wait polls for it.
-    """
-    state = request.app.state
-    dispatcher, settings = state.dispatcher, state.settings
-    if dispatcher.sync_waiting() >= settings.max_sync_queue:
-        raise Overloaded(f"{dispatcher.sync_waiting()} synchronous fits are waiting for a worker "
-                         f"(GREYFIT_MAX_SYNC_QUEUE); retry later or submit a job: POST /v1/jobs")
-    fut = dispatcher.submit_sync(kind, payload)
-    waiter = asyncio.wrap_future(fut)
-    loop = asyncio.get_running_loop()
-    deadline = loop.time() + settings.task_wall_seconds + 30
-    try:
-        while not waiter.done():
-            # asyncio.wait does not cancel the waiter when it times out
-            await asyncio.wait({waiter}, timeout=DISCONNECT_POLL_SECONDS)
-            if waiter.done():
-                break
-            if await request.is_disconnected():
-                dispatcher.cancel_sync(fut, kind)
-                return Response(status_code=499)   # nginx's "client closed request"; nobody reads it
-            if loop.time() > deadline:
-                dispatcher.cancel_sync(fut, kind)
-                raise HTTPException(504, "the fit did not finish in time; submit it as a job")
-    except asyncio.CancelledError:   # the server cancelled the handler: free the worker too
-        dispatcher.cancel_sync(fut, kind)
-        raise
-    if waiter.cancelled():
-        raise HTTPException(503, "the fit was cancelled: the server is shutting down")
-    exc = waiter.exception()
-    if exc is not None:               # the dispatcher stopped (shutdown) before the fit ran
-        raise HTTPException(503, f"{exc}; retry", headers={"Retry-After": str(settings.retry_after_seconds)})
-    return outcome_or_raise(waiter.result())
+    return await run_sync_request(request, "fit", body, check=check_limits, count=data_values, elsewhere=(
+        'Submit it as a batch job: POST /v1/jobs {"requests": [<this body>]}'))

@@ -1,32 +1,25 @@
-from fastapi import APIRouter, Depends, Request
+from fastapi import APIRouter, Request, Response
 
 from schemas.fit import FitResult
 from schemas.frequency import FrequencyFitRequest
-from service.deps import require_api_key
-from service.problems import LimitExceeded, RequestTooLarge
-from service.routes.fits import run_sync
+from schemas.jobs import FrequencyJobCreate, JobPublic
+from service.json_body import StrictJSONRoute
+from service.limits import check_frequency_limits, frequency_values
+from service.routes.jobs import submit_job
+from service.routes.sync import run_sync_request
 
-router = APIRouter(prefix="/v1", tags=["frequency fits"], dependencies=[Depends(require_api_key)])
-
-
-def frequency_values(body: FrequencyFitRequest) -> int:
-    """How many numbers the data carry (the synchronous size measure)."""
-    total = 0
-    for d in body.data:
-        total += 3 * len(d.omega or [])
-        total += sum(3 * len(t.time) for t in d.sine_tests or [])
-    return total
+router = APIRouter(prefix="/v1", tags=["frequency fits"], route_class=StrictJSONRoute)
 
 
 @router.post("/frequency-fits", response_model=FitResult)
 async def create_frequency_fit(body: FrequencyFitRequest, request: Request) -> FitResult:
     """Fit a transfer-function model (optionally in a known feedback loop) to frequency responses."""
-    settings = request.app.state.settings
-    if len(body.model.parameters) > settings.max_parameters:
-        raise LimitExceeded("model.parameters", f"{len(body.model.parameters)} parameters, the limit is "
-                            f"{settings.max_parameters}")
-    values = frequency_values(body)
-    if values > settings.sync_max_values:
-        raise RequestTooLarge(f"the data carry {values} numbers; synchronous fits take at most "
-                              f"{settings.sync_max_values}: decimate the sine-test records")
-    return await run_sync(request, "frequency_fit", body.model_dump(mode="json"))
+    return await run_sync_request(
+        request, "frequency_fit", body, check=check_frequency_limits, count=frequency_values,
+        elsewhere="Decimate the sine-test records, or submit it as a job: POST /v1/frequency-fits/jobs")
+
+
+@router.post("/frequency-fits/jobs", response_model=JobPublic, status_code=202)
+def create_frequency_job(body: FrequencyJobCreate, request: Request, response: Response) -> JobPublic:
+    """Frequency-response fits as a batch job; results at /v1/jobs/{id}/results."""
+    return submit_job(request, response, "frequency_fit", body.requests, body.label, check=check_frequency_limits)

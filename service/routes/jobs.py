@@ -1,9 +1,9 @@
 import json
-from typing import Any, Optional
+from typing import Any, Callable, Optional
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskPublic, TaskResult
-from service.json_body import StrictJSONRoute
+from service.json_body import StrictJSONRoute, request_texts
 from service.limits import check_limits
 from service.problems import LimitExceeded
 from service.store import job_status
@@ -30,15 +30,17 @@ def job_public(record: dict[str, Any]) -> JobPublic:
                           error=json.loads(r["error"]) if r["error"] else None) for r in rows])
 
 
-def submit_job(request: Request, response: Response, kind: str, requests: list, label: Optional[str]) -> JobPublic:
+def submit_job(request: Request, response: Response, kind: str, requests: list, label: Optional[str],
+               check: Callable = check_limits) -> JobPublic:
+    """Store a job of one task per request (each checked against this server's limits by `check`)."""
     state = request.app.state
     settings = state.settings
     if len(requests) > settings.max_batch_requests:
         raise LimitExceeded("requests", f"{len(requests)} requests, the limit is {settings.max_batch_requests}; "
                             "split the batch")
     for i, req in enumerate(requests):
-        check_limits(req, settings, prefix=f"requests[{i}].")
-    job_id = state.store.create_job(kind, [r.model_dump(mode="json") for r in requests], label)
+        check(req, settings, prefix=f"requests[{i}].")
+    job_id = state.store.create_job(kind, request_texts(request, requests), label)
     state.dispatcher.wake()
     response.status_code = 202
     response.headers["Location"] = f"/v1/jobs/{job_id}"

@@ -6,10 +6,12 @@ from sqlalchemy import select
 
 from schemas.report import ReportRequest
 from service.deps import require_api_key
-from service.routes.fits import run_sync
+from service.json_body import StrictJSONRoute
+from service.routes.sync import run_sync
 from service.store import tasks
 
-router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)])
+router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
+                   route_class=StrictJSONRoute)
 
 HTML = {200: {"content": {"text/html": {}}, "description": "one self-contained HTML page"}}
 

@@ -1,0 +1,122 @@
+"""Against a real `greyfit serve`: a burst of large bodies does not stall the probes.
+
+Parsing a 30 MB JSON body takes about a second of CPU with the interpreter lock held, so it cannot
+run in the web process (not even in a thread: the lock stalls the event loop just the same).
+/healthz is probed in open loop (one probe every 25 ms, each timed from when it was due), so a
+stall shows up in every probe it delays, not only in the one that was waiting.
+"""
+import asyncio
+import copy
+import json
+import threading
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from tests.service.conftest import msd_request
+from tests.service.test_real_server import free_port, start_server, stop_server, wait_until_finished
+
+HEALTHZ_P95_BOUND_S = 0.5   # measured ~0.03 s with parser processes; 1-3 s when parsed in the web process
+BODY_MEGABYTES = 20
+
+
+def large_fit_request(megabytes: float) -> dict:
+    """A fit request whose four time series make the body about this large."""
+    n = int(megabytes * 2 ** 20 / 80)
+    t = np.arange(n) * 1e-3
+    body = msd_request(0, n=11)
+    exp = body["experiments"][0]
+    exp["time"] = t.tolist()
+    exp["inputs"] = {"u": np.sin(t).tolist()}
+    exp["outputs"] = {"x": np.cos(t).tolist(), "v": np.sin(t).tolist()}
+    return body
+
+
+def probe_healthz(base: str, stop: threading.Event, every: float = 0.025) -> list[float]:
+    """Latencies of /healthz probes sent on a fixed schedule until `stop` is set."""
+    async def run() -> list[float]:
+        latencies: list[float] = []
+        async with httpx.AsyncClient(base_url=base, timeout=60) as http:
+            async def one(due: float) -> None:
+                await http.get("/healthz")
+                latencies.append(time.perf_counter() - due)
+
+            tasks, due = [], time.perf_counter()
+            while not stop.is_set():
+                tasks.append(asyncio.create_task(one(due)))
+                due += every
+                await asyncio.sleep(max(0.0, due - time.perf_counter()))
+            await asyncio.gather(*tasks)
+        return latencies
+
+    return asyncio.run(run())
+
+
+def split_in_two(request: dict) -> dict:
+    """The same data as two experiments of half the length (within the server's sample limit)."""
+    exp = request["experiments"][0]
+    half = len(exp["time"]) // 2
+    parts = [{k: ({s: v[sl] for s, v in val.items()} if isinstance(val, dict) else val[sl]) if k in
+              ("time", "inputs", "outputs") else val for k, val in exp.items()}
+             for sl in (slice(0, half), slice(half, 2 * half))]
+    return {**request, "experiments": parts}
+
+
+@pytest.mark.slow
+def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
+    fit = large_fit_request(BODY_MEGABYTES)
+    n = len(fit["experiments"][0]["time"])
+    accepted = split_in_two(fit)
+    accepted["experiments"][1]["name"] = "second"
+    accepted["experiments"][1]["outputs"]["x"].pop()     # valid JSON and schema; the worker says DataError
+    bad = copy.deepcopy(fit)
+    bad["experiments"][0]["outputs"]["x"][-1] = "not a number"   # found only at the very end of the parse
+    bodies = {"/v1/fits": fit, "/v1/jobs": {"requests": [bad]}, "/v1/jobs ": {"requests": [accepted]}}
+    bodies = {path: json.dumps(body).encode() for path, body in bodies.items()}   # ~20 MB each
+    port = free_port()
+    base = f"http://127.0.0.1:{port}"
+    server = start_server(tmp_path, port, workers=1, GREYFIT_MAX_SAMPLES_PER_EXPERIMENT=str(n - 1))
+    try:
+        answers: dict[str, httpx.Response] = {}
+        stop = threading.Event()
+        latencies: list[float] = []
+        prober = threading.Thread(target=lambda: latencies.extend(probe_healthz(base, stop)))
+        prober.start()
+
+        def post(path: str, content: bytes) -> None:
+            try:
+                answers[path] = httpx.post(base + path.strip(), content=content, timeout=120,
+                                           headers={"content-type": "application/json"})
+            except httpx.HTTPError as exc:
+                answers[path] = exc
+
+        posts = [threading.Thread(target=post, args=item) for item in bodies.items()]
+        time.sleep(0.2)
+        for t in posts:
+            t.start()
+        for t in posts:
+            t.join()
+        stop.set()
+        prober.join()
+        p95, worst = float(np.percentile(latencies, 95)), max(latencies)
+        print(f"/healthz during the burst: p50 {np.median(latencies) * 1e3:.0f} ms, p95 {p95 * 1e3:.0f} ms, "
+              f"max {worst * 1e3:.0f} ms over {len(latencies)} probes")
+
+        statuses = {path: getattr(a, "status_code", repr(a)) for path, a in answers.items()}
+        assert statuses == {"/v1/fits": 422, "/v1/jobs": 422, "/v1/jobs ": 202}, \
+            {p: getattr(a, "text", "")[:300] for p, a in answers.items()}
+        # field naming intact: this server's sample limit, and pydantic's error at its place
+        assert [e["loc"] for e in answers["/v1/fits"].json()["errors"]] == ["experiments[0].time"]
+        assert [e["loc"] for e in answers["/v1/jobs"].json()["errors"]] == \
+            [f"requests[0].experiments[0].outputs.x[{n - 1}]"]
+        assert p95 < HEALTHZ_P95_BOUND_S, f"/healthz p95 {p95:.2f} s, max {worst:.2f} s"
+
+        job = wait_until_finished(base, answers["/v1/jobs "].json()["id"], timeout=60)
+        assert job["status"] == "failed"
+        assert job["tasks"][0]["error"]["type"] == "DataError"
+        assert job["tasks"][0]["error"]["field"] == "experiments[1].outputs.x"
+        assert httpx.post(f"{base}/v1/fits", json=msd_request(0), timeout=60).status_code == 200
+    finally:
+        stop_server(server)

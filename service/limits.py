@@ -14,20 +14,28 @@ def check_limits(req: FitRequest, settings: Settings, prefix: str = "") -> None:
     if len(req.model.parameters) > settings.max_parameters:
         raise LimitExceeded(f"{prefix}model.parameters", f"{len(req.model.parameters)} parameters, "
                             f"the limit is {settings.max_parameters}")
-    texts = {f"equations.{k}": v for k, v in req.model.equations.items()}
-    texts.update({f"definitions.{k}": v for k, v in req.model.definitions.items()})
-    texts.update({f"outputs.{k}": v for k, v in (req.model.outputs or {}).items()})
-    texts.update({f"constraints[{i}]": v for i, v in enumerate(req.model.constraints)})
-    for where, text in texts.items():
-        if len(text) > settings.max_expression_length:
-            raise LimitExceeded(f"{prefix}model.{where}", f"{len(text)} characters, the limit is "
-                                f"{settings.max_expression_length}; split it with definitions")
+    _check_texts(_ode_texts(req.model), settings, f"{prefix}model.")
     records = [("experiments", req.experiments), ("validation", getattr(req, "validation", []))]
     for field, exps in records:
         for i, exp in enumerate(exps):
             if len(exp.time) > settings.max_samples_per_experiment:
                 raise LimitExceeded(f"{prefix}{field}[{i}].time", f"{len(exp.time)} samples, the limit "
                                     f"is {settings.max_samples_per_experiment}; decimate or split the record")
+
+
+def _ode_texts(model) -> dict[str, str]:
+    texts = {f"equations.{k}": v for k, v in model.equations.items()}
+    texts.update({f"definitions.{k}": v for k, v in model.definitions.items()})
+    texts.update({f"outputs.{k}": v for k, v in (model.outputs or {}).items()})
+    texts.update({f"constraints[{i}]": v for i, v in enumerate(model.constraints)})
+    return texts
+
+
+def _check_texts(texts: dict[str, str], settings: Settings, prefix: str) -> None:
+    for where, text in texts.items():
+        if len(text) > settings.max_expression_length:
+            raise LimitExceeded(f"{prefix}{where}", f"{len(text)} characters, the limit is "
+                                f"{settings.max_expression_length}; split it with definitions")
 
 
 def check_simulate_limits(req, settings: Settings, prefix: str = "") -> None:
@@ -47,15 +55,15 @@ def check_frequency_limits(req, settings: Settings, prefix: str = "") -> None:
     if len(req.data) > settings.max_experiments:
         raise LimitExceeded(f"{prefix}data", f"{len(req.data)} data sets, this server accepts at most "
                             f"{settings.max_experiments}; split the request")
-    texts = {f"model.{part}[{k}]": c for part in ("numerator", "denominator", "constraints")
-             for k, c in enumerate(getattr(model, part))}
+    if getattr(model, "kind", None) == "linearised_ode":   # an ODE model: its equations and outputs
+        texts = _ode_texts(model)
+    else:
+        texts = {f"{part}[{k}]": c for part in ("numerator", "denominator", "constraints")
+                 for k, c in enumerate(getattr(model, part))}
     if model.feedback is not None:
-        texts.update({f"model.feedback.controller.{part}[{k}]": c for part in ("num", "den")
+        texts.update({f"feedback.controller.{part}[{k}]": c for part in ("num", "den")
                       for k, c in enumerate(getattr(model.feedback.controller, part))})
-    for where, text in texts.items():
-        if len(text) > settings.max_expression_length:
-            raise LimitExceeded(f"{prefix}{where}", f"{len(text)} characters, the limit is "
-                                f"{settings.max_expression_length}")
+    _check_texts(texts, settings, f"{prefix}model.")
     series = [(f"data[{i}].omega", d.omega or []) for i, d in enumerate(req.data)]
     series += [(f"data[{i}].sine_tests[{j}].time", t.time) for i, d in enumerate(req.data)
                for j, t in enumerate(d.sine_tests or [])]

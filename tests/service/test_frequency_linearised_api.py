@@ -45,3 +45,11 @@ def test_cli_fit_accepts_a_linearised_model(tmp_path, capsys):
     assert cli_main(["fit", str(path)]) == 0
     result = json.loads(capsys.readouterr().out)
     assert result["parameters"]["m"]["value"] == pytest.approx(PENDULUM_TRUTH["m"], rel=0.02)
+
+
+def test_server_limits_apply_to_the_linearised_models_equations(client):
+    """The expression-length limit names the ODE equation (a linearised model has no numerator)."""
+    body = _body()
+    state = next(iter(body["model"]["equations"]))
+    body["model"]["equations"][state] += " + 0" * 1500
+    assert_problem(client.post("/v1/frequency-fits", json=body), 422, f"model.equations.{state}", "limit")

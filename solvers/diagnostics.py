@@ -3,14 +3,15 @@
 Both tests look at the largest |correlation| over many lags. A per-lag 99 % band (2.58/√N, what
 `resid` draws) tested at 25 lags at once rejects a white residual about 21 % of the time, so the band
 here is Šidák-corrected for the number of lags looked at: the residual passes when every lag is
-inside it, and a white residual fails with probability `LEVEL` (family-wise), whatever the lags.
+inside it, and a white residual fails with probability `LEVEL` (family-wise; at most `LEVEL` where
+the lags are correlated, as the cross-correlations with a slowly varying input are).
 """
 from __future__ import annotations
 
 import math
+from statistics import NormalDist
 
 import numpy as np
-from statistics import NormalDist
 
 from schemas.fit import ResidualAnalysis, ResidualTest
 

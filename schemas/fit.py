@@ -179,9 +179,12 @@ class ResidualTest(BaseModel):
     """Whiteness (autocorrelation) or independence (cross-correlation with an input) test."""
 
     max_abs: float
-    bound: float = Field(description="99% confidence band 2.58/sqrt(N)")
+    bound: float = Field(description="per-lag band z/sqrt(N), z Šidák-corrected for the number of lags "
+                                     "tested (3.54 for 25 lags at level 0.01); passed = max_abs <= bound")
     lags: int
     passed: bool
+    p_value: Optional[float] = Field(None, description="family-wise p-value of max_abs (white residual: uniform)")
+    level: float = Field(0.01, description="family-wise false-alarm rate of the test on a white residual")
 
 
 class ResidualAnalysis(BaseModel):

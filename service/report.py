@@ -134,7 +134,7 @@ def residual_figure(plt, fit: FitResult) -> Figure | None:
         ax = axes[r][0]
         lags = np.arange(len(a.autocorrelation))
         ax.bar(lags[1:], a.autocorrelation[1:], width=0.6, color="C0" if a.whiteness.passed else "C3")
-        ax.axhspan(-a.whiteness.bound, a.whiteness.bound, color="C2", alpha=0.15, label="99 % band")
+        ax.axhspan(-a.whiteness.bound, a.whiteness.bound, color="C2", alpha=0.15, label="band: all lags inside 99 %")
         ax.set_title(f"autocorrelation of e({a.output}): {'white' if a.whiteness.passed else 'not white'}", fontsize=9)
         ax.set_xlabel("lag")
         for c, u in enumerate(inputs, start=1):
@@ -148,7 +148,8 @@ def residual_figure(plt, fit: FitResult) -> Figure | None:
                 ax.set_title(f"cross-correlation e({a.output}) with {u}", fontsize=9)
             ax.set_xlabel("lag")
     fig.tight_layout()
-    return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs (99 % bands)")
+    return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs (bands: a white, independent "
+                 "residual stays inside at every lag with 99 % probability)")
 
 
 def parameter_figure(plt, fit: FitResult) -> Figure | None:

@@ -120,14 +120,16 @@ def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> Experi
     return ExperimentData(exp.name, t, u, y, x0, derivatives)
 
 
-def prepare_experiments(experiments: list[Experiment], cm: CompiledModel) -> list[ExperimentData]:
+def prepare_experiments(experiments: list[Experiment], cm: CompiledModel,
+                        require_outputs: bool = True) -> list[ExperimentData]:
+    """Checked arrays of every experiment; `require_outputs=False` when nothing is fitted (simulation)."""
     names = [e.name for e in experiments]
     for i, name in enumerate(names):
         if names.index(name) != i:
             raise DataError(f"name '{name}' is used twice; experiment names must be unique",
                             f"experiments[{i}].name")
     data = [prepare_experiment(e, cm, i) for i, e in enumerate(experiments)]
-    for j, out in enumerate(cm.outputs):
+    for j, out in enumerate(cm.outputs if require_outputs else []):
         if not any(np.isfinite(d.y[j]).any() for d in data):
             raise DataError(f"output '{out}' has no data in any experiment; give its samples "
                             "or remove it from model.outputs", f"experiments[*].outputs.{out}")

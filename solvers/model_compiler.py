@@ -8,8 +8,9 @@ import casadi as ca
 import numpy as np
 
 from schemas.model import Model
+from solvers.constraints import compile_constraints
 from solvers.errors import ModelDefinitionError
-from solvers.expressions import compile_expression, parse, names_in, to_casadi
+from solvers.expressions import compile_expression, parse, to_casadi
 
 
 @dataclass
@@ -117,27 +118,11 @@ def _compile(model: Model) -> CompiledModel:
     y = ca.vertcat(*y_list)
 
     constraint = None
-    equality = []
+    equality = np.zeros(0, dtype=bool)
     if model.constraints:
-        g = []
-        param_env = {k: v for k, v in env.items() if k not in model.states and k not in model.inputs}
-        for i, text in enumerate(model.constraints):
-            where = f"constraints[{i}]"
-            node = parse(text, where)
-            if node[0] != "cmp" or node[1] == "!=":
-                raise ModelDefinitionError(
-                    "a constraint is a comparison such as 'a1*a2 - a3 >= 0' (<=, >=, == allowed)", where)
-            used = names_in(node) - set(param_env) - {"pi", "e"}
-            if used:
-                raise ModelDefinitionError(
-                    f"constraints may use parameters, constants and parameter-only definitions; "
-                    f"'{sorted(used)[0]}' is not one", where)
-            lhs, rhs = to_casadi(node[2], env, where), to_casadi(node[3], env, where)
-            expr = lhs - rhs if node[1] in (">", ">=", "==") else rhs - lhs
-            if ca.depends_on(expr, ca.vertcat(x, u, t)):
-                raise ModelDefinitionError("constraints may only involve parameters", where)
-            g.append(expr)
-            equality.append(node[1] == "==")
+        param_names = {k for k in env if k not in model.states and k not in model.inputs}
+        g, equality = compile_constraints(model.constraints, env, param_names, "constraints",
+                                          forbidden=ca.vertcat(x, u, t))
         constraint = ca.Function("g", [p], [ca.vertcat(*g)])
 
     rhs = ca.Function("rhs", [x, u, p, t], [dx], ["x", "u", "p", "t"], ["dx"])
@@ -148,5 +133,5 @@ def _compile(model: Model) -> CompiledModel:
     return CompiledModel(
         model=model, states=list(model.states), inputs=list(model.inputs), parameters=params,
         outputs=list(outputs), output_expressions=outputs, rhs=rhs, output=out,
-        constraint=constraint, constraint_equality=np.array(equality, dtype=bool),
+        constraint=constraint, constraint_equality=equality,
         direct_outputs=direct)

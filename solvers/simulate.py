@@ -14,7 +14,7 @@ from schemas.fit import FitOptions
 from schemas.model import Model
 from schemas.simulate import SimulatedExperiment, SimulateRequest, SimulateResult
 from schemas.validation import ExperimentValidation, OutputMetrics, ValidationResult
-from solvers.data import ExperimentData, prepare_experiment
+from solvers.data import ExperimentData, prepare_experiments
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel, compile_model
 from solvers.parameters import ParameterLayout
@@ -76,16 +76,6 @@ def parameter_vector(model: Model, parameters: dict[str, float], experiment: str
             raise DataError("must be a finite number", f"parameters.{p.name}")
         values.append(float(v))
     return np.array(values, dtype=float)
-
-
-def prepare_for_simulation(experiments: list[Experiment], cm: CompiledModel) -> list[ExperimentData]:
-    """Like `prepare_experiments`, but outputs may be absent (nothing is fitted)."""
-    names = [e.name for e in experiments]
-    for i, name in enumerate(names):
-        if names.index(name) != i:
-            raise DataError(f"name '{name}' is used twice; experiment names must be unique",
-                            f"experiments[{i}].name")
-    return [prepare_experiment(e, cm, i) for i, e in enumerate(experiments)]
 
 
 def estimate_initial_state(cm: CompiledModel, d: ExperimentData, p: np.ndarray, known: dict[int, float],
@@ -203,7 +193,7 @@ def simulate_arrays(model: Model, parameters: dict[str, float], experiments: lis
                     cm: CompiledModel | None = None) -> list[Simulation]:
     """The numeric core of `simulate_experiments` (see there); returns arrays per experiment."""
     cm = cm or compile_model(model)
-    data = prepare_for_simulation(experiments, cm)
+    data = prepare_experiments(experiments, cm, require_outputs=False)
     initial_states = initial_states or {}
     provided_source = provided_source or {}
     known_names = {e.name for e in experiments}

@@ -11,8 +11,9 @@ import casadi as ca
 import numpy as np
 
 from schemas.frequency import TransferFunctionModel
+from solvers.constraints import compile_constraints
 from solvers.errors import ModelDefinitionError
-from solvers.expressions import compile_expression, names_in, parse, to_casadi
+from solvers.expressions import compile_expression
 
 Poly = list  # list of SX scalars, descending powers of s
 
@@ -149,20 +150,6 @@ def compile_transfer_function(model: TransferFunctionModel) -> CompiledTransferF
     tf.check_plant()
     if model.constraints:
         env = tf._env({})
-        g, equality = [], []
-        for i, text in enumerate(model.constraints):
-            where = f"model.constraints[{i}]"
-            node = parse(text, where)
-            if node[0] != "cmp" or node[1] == "!=":
-                raise ModelDefinitionError(
-                    "a constraint is a comparison such as 'a1*a2 - a3 >= 0.01' (<=, >=, == allowed)", where)
-            unknown = names_in(node) - set(env) - {"pi", "e"}
-            if unknown:
-                raise ModelDefinitionError(f"unknown name '{sorted(unknown)[0]}'; constraints use parameters "
-                                           "and constants", where)
-            lhs, rhs = to_casadi(node[2], env, where), to_casadi(node[3], env, where)
-            g.append(lhs - rhs if node[1] in (">", ">=", "==") else rhs - lhs)
-            equality.append(node[1] == "==")
+        g, tf.constraint_equality = compile_constraints(model.constraints, env, set(env), "model.constraints")
         tf.constraint = ca.vertcat(*g)
-        tf.constraint_equality = np.array(equality, dtype=bool)
     return tf

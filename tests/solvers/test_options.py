@@ -39,7 +39,7 @@ def test_traces_hold_simulation_and_residuals():
     resid = np.array(trace.residuals["x"], dtype=float)
     assert np.allclose(sim - resid, msd_experiment(T, STATES, noise=0.001, seed=4)["outputs"]["x"])
     assert np.sqrt(np.mean(resid ** 2)) == pytest.approx(res.metrics.rmse["x"])
-    # residuals of a correct model are white: MATLAB resid's test passes
+    # residuals of a correct model are white: the (calibrated) resid test passes
     assert all(a.whiteness.passed for a in res.residual_analysis)
 
 

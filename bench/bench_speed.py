@@ -4,8 +4,8 @@ long records, equation error — each against the obvious peer in the same run.
     python bench/bench_speed.py [--skip-scipy] [--sizes 4000 10000 40000]
 
 Every row runs in a fresh process (its peak memory is its own) with an empty compile cache, so
-"cold" includes generating and compiling C; "warm" is a second fit of the same model structure in
-that process, what a service worker sees from its second request on. Times are wall clock on a
+"cold" includes generating and compiling C; "warm" is the median of three more fits of the same
+model structure in that process, what a service worker sees from its second request on. Times are wall clock on a
 quiet machine; CPU time is printed beside them because this machine is often shared.
 
 Peers: greyfit's generic CasADi graph (what multiple shooting was before the structured NLP,
@@ -89,18 +89,21 @@ def main() -> None:
     with tempfile.TemporaryDirectory() as cache:
         for method, tag in (("multiple_shooting", "MS"), ("single_shooting", "SS")):
             for variant, env in VARIANTS.items():
-                env = dict(env, GREYFIT_CACHE_DIR=os.path.join(cache, variant), OPENBLAS_NUM_THREADS="1")
+                env = dict(env, GREYFIT_CACHE_DIR=os.path.join(cache, f"seat-{tag}-{variant}"),
+                           OPENBLAS_NUM_THREADS="1")
                 rows.append((f"seat {tag}, 1000 samples, {variant}",
                              in_fresh_process(run_case, "seat", method, env), 8000))
         for variant in ("compiled", "interpreted"):
-            env = dict(VARIANTS[variant], GREYFIT_CACHE_DIR=os.path.join(cache, variant), OPENBLAS_NUM_THREADS="1")
+            env = dict(VARIANTS[variant], GREYFIT_CACHE_DIR=os.path.join(cache, f"ee-{variant}"),
+                       OPENBLAS_NUM_THREADS="1")
             rows.append((f"seat equation error, {variant}",
                          in_fresh_process(run_case, "seat", "equation_error", env), 8000))
         for n in args.sizes:
             for variant, env in VARIANTS.items():
                 if variant == "generic graph" and n > 10000 and args.skip_generic_long:
                     continue
-                env = dict(env, GREYFIT_CACHE_DIR=os.path.join(cache, variant), OPENBLAS_NUM_THREADS="1")
+                env = dict(env, GREYFIT_CACHE_DIR=os.path.join(cache, f"msd-{n}-{variant}"),
+                           OPENBLAS_NUM_THREADS="1")
                 rows.append((f"2-state MS, {n} samples, {variant}", in_fresh_process(run_case, "msd", n, env), n))
     scipy = None if args.skip_scipy else in_fresh_process(run_scipy, 0.01)
 

@@ -123,7 +123,7 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         if c.refit_only:
             continue
         physical = c.sign == 0 or np.sign(s.beta) == np.sign(c.sign)
-        sc.significant = bool(s.p_value < alpha and s.explained >= opts.min_explained and physical)
+        sc.significant = bool(s.p_value * c.multiplicity < alpha and s.explained >= opts.min_explained and physical)
     out.scored = rank(out.scored)
     return out
 

@@ -45,6 +45,7 @@ class Candidate:
     # hypotheses behind the candidate beyond `tries`: a set of switch times chosen jointly from a grid is
     # one of C(grid, m) subsets, not one of grid·m columns; its p-value is multiplied by this
     multiplicity: float = 1.0
+    width: float = 0.0         # the ε of a smoothed switch tanh(v/ε): its variants differ only in it
 
     def __post_init__(self):
         self.key = self.key or f"{self.family}|{self.term}"
@@ -85,7 +86,7 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
 
     def term_candidate(effect: str, eq_state: str, regressor: list[np.ndarray], term_text: str,
                        pname: str, sign: str, lower, description: str, phys_sign: float,
-                       stiffness: float = 0.0, refit_variants: bool = False):
+                       stiffness: float = 0.0, refit_variants: bool = False, width: float = 0.0):
         eq = states.index(eq_state)
         if eq not in traced:
             return
@@ -97,7 +98,7 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
         # a '-' term with a positive parameter contributes -g: the regression coefficient is on +g
         out.append(Candidate(effect, {eq: regressor}, f"{sign} {pname}*{term_text}", description, apply,
                              sign=phys_sign, family=f"{effect}:{eq_state}", stiffness=stiffness,
-                             refit_variants=refit_variants))
+                             refit_variants=refit_variants, width=width))
 
     if "coulomb" in effects:
         for v in velocities:
@@ -115,7 +116,7 @@ def library(model: Model, trace: TraceData, effects: list[str], custom: list[Cus
                 term = f"tanh({v}/{_fmt(eps)})"
                 term_candidate("coulomb", v, [np.tanh(x / eps) for x in vals], term, f"Fc_{v}", "-", 0.0,
                                f"Coulomb friction on {v}: sign({v}) smoothed as {term}", -1.0, 1.0 / eps,
-                               refit_variants=True)
+                               refit_variants=True, width=eps)
     if "quadratic_drag" in effects:
         for v in velocities:
             vals = state_values(v)

@@ -74,6 +74,17 @@ class OutputScorer(RegressionScorer):
         # measured − model, as the equation residual: β > 0 then means "add +β·g to the model"
         super().__init__(-r[ok], jac[ok])
 
+    def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
+        """Physical changes of the shared free parameters from a step in the scorer's columns
+        (scaled θ, then free initial states)."""
+        layout = self.oem.layout
+        return {label: float(delta[i] * layout.scale[i]) for i, label in enumerate(layout.labels)
+                if layout.experiment[i] is None}
+
+    def trajectories(self):
+        """(states, inputs, times, experiment name) of the fitted simulation, per experiment."""
+        return [(x, d.u, d.t, d.name) for x, d in zip(self.states, self.oem.data)]
+
     def stack(self, regressor: dict[int, list[np.ndarray]] | None,
               outputs: dict[int, list[np.ndarray]] | None = None) -> np.ndarray | None:
         """Output sensitivity column(s) of a term: forcing on equations and/or direct on outputs."""

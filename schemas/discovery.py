@@ -48,6 +48,11 @@ class DiscoveryOptions(BaseModel):
                                         "0.1, 0.3, 1 and 3 % of the RMS of v")
     max_refits: int = Field(default=8, ge=1, le=50,
                             description="budget of confirming refits: rejected candidates count too")
+    time_budget_s: float = Field(
+        default=300.0, gt=0, le=86_400,
+        description="wall-time budget of the search (the base fit always runs): no screen or refit starts "
+                    "after it is spent, and a refit gets at most what is left as its max_cpu_time; "
+                    "the result says when the budget ended the search (`budget_exhausted`)")
     validation_tolerance: float = Field(
         default=0.01, ge=0, le=1,
         description="an effect is not kept if it raises the validation NRMSE of an output by more than this "
@@ -104,6 +109,14 @@ class Evidence(BaseModel):
     bic_after: float
     bic_drop: float
     t_value: Optional[float]
+    refit_p_value: Optional[float] = Field(
+        default=None,
+        description="likelihood-ratio test of the refit against the model before, both output residuals "
+                    "whitened by the AR noise model of the refit's residual (coloured noise is not evidence); "
+                    "the effect is kept only if it is below the screen's Bonferroni level. null for "
+                    "equation_error")
+    noise_model_order: Optional[int] = Field(
+        default=None, description="order of that AR noise model (BIC; 0: the residual is white)")
     residual_correlation_before: float
     residual_correlation_after: float
 
@@ -155,3 +168,10 @@ class DiscoveryResult(BaseModel):
                                           "(an input delayed by whole samples); send them with the data")
     fit: FitResult = Field(description="the final fit")
     wall_time_s: float
+    timings: dict[str, float] = Field(
+        default_factory=dict,
+        description="wall time per phase in seconds: base_fit, screening, refits (confirming and width "
+                    "refits), validation (simulation of the validation records), other")
+    budget_exhausted: bool = Field(
+        default=False, description="the search stopped because `discovery.time_budget_s` was spent; what was "
+                                   "found until then is reported")

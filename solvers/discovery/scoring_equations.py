@@ -128,6 +128,15 @@ class EquationScorer(RegressionScorer):
         self.ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
         super().__init__(r[self.ok], jac[self.ok])
 
+    def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
+        """Changes of the free parameters from a step in the scorer's columns (physical units)."""
+        return {name: float(d) for name, d in zip(self.trace.free, delta)}
+
+    def trajectories(self):
+        """(states, inputs, times, experiment name) the equation residuals were computed on."""
+        tr = self.trace
+        return [(x, u, t, "") for x, u, t in zip(tr.x, tr.u, tr.t)]
+
     def stack(self, regressor: dict[int, list[np.ndarray]], outputs=None) -> np.ndarray | None:
         """Rows of the candidate's column(s) in the scorer's order; (rows,) or (rows, m).
 

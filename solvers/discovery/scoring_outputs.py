@@ -74,6 +74,17 @@ class OutputScorer(RegressionScorer):
         # measured − model, as the equation residual: β > 0 then means "add +β·g to the model"
         super().__init__(-r[ok], jac[ok])
 
+    def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
+        """Physical changes of the shared free parameters from a step in the scorer's columns
+        (scaled θ, then free initial states)."""
+        layout = self.oem.layout
+        return {label: float(delta[i] * layout.scale[i]) for i, label in enumerate(layout.labels)
+                if layout.experiment[i] is None}
+
+    def trajectories(self):
+        """(states, inputs, times, experiment name) of the fitted simulation, per experiment."""
+        return [(x, d.u, d.t, d.name) for x, d in zip(self.states, self.oem.data)]
+
     def stack(self, regressor: dict[int, list[np.ndarray]] | None,
               outputs: dict[int, list[np.ndarray]] | None = None) -> np.ndarray | None:
         """Output sensitivity column(s) of a term: forcing on equations and/or direct on outputs."""
@@ -109,18 +120,28 @@ class OutputScorer(RegressionScorer):
             jy = direct
             active = np.flatnonzero(np.any(forcing != 0, axis=(0, 1)))
             if active.size:
-                f = forcing[:, :, active]
-                s = np.zeros((cm.nx, active.size))
-                a, d0, d1, hx = self.a[e], self.d0[e], self.d1[e], self.hx[e]
-                prop = np.empty((n, cm.ny, active.size))
-                for k in range(n):
-                    prop[k] = hx[k] @ s
-                    if k < n - 1:
-                        s = a[k] @ s + d0[k] @ f[k] + d1[k] @ f[k + 1]
-                jy[:, :, active] += prop
+                jy[:, :, active] += propagate(self.a[e], self.d0[e], self.d1[e], self.hx[e], forcing[:, :, active])
             blocks.append((jy * oem.weights[None, :, None])[d.mask.T])
         g = np.concatenate(blocks)[self.ok]
         out = []
         for w, vec, lo, hi in zip(widths, vectors, offsets[:-1], offsets[1:]):
             out.append(None if w == 0 else (g[:, lo] if vec else g[:, lo:hi]))
         return out
+
+
+def propagate(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, forcing: np.ndarray) -> np.ndarray:
+    """Output sensitivities (n, ny, w) of w forcing columns (n, nx, w), from S_0 = 0:
+    S_{k+1} = A_k S_k + D0_k f_k + D1_k f_{k+1}, ∂y_k = H_k S_k.
+
+    The forcing terms and the outputs are evaluated for all samples at once; only the recursion in
+    A_k is a loop, one small product per sample (the loop, not the arithmetic, is the cost)."""
+    n = forcing.shape[0]
+    drive = np.matmul(d0, forcing[:-1]) + np.matmul(d1, forcing[1:])
+    sens = np.empty((n,) + forcing.shape[1:])
+    sens[0] = 0.0
+    s = sens[0]
+    for k in range(n - 1):
+        s = a[k] @ s
+        s += drive[k]
+        sens[k + 1] = s
+    return np.matmul(hx, sens)

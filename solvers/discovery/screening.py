@@ -11,7 +11,7 @@ from schemas.fit import FitMethod, FitRequest, FitResult
 from solvers.data import prepare_experiments
 from solvers.discovery.effects import Candidate, library
 from solvers.discovery.output_effects import output_effects
-from solvers.discovery.scoring import Score
+from solvers.discovery.scoring import RegressionScorer, Score
 from solvers.discovery.scoring_equations import EquationScorer, build_trace
 from solvers.discovery.scoring_outputs import OutputScorer
 from solvers.model_compiler import compile_model
@@ -25,6 +25,7 @@ class Scored:
     score: Score
     scored_on: str            # "equations" | "outputs"
     significant: bool = False
+    scorer: RegressionScorer | None = None   # the regression it was scored in (a warm start's Gauss-Newton step)
 
 
 
@@ -55,8 +56,11 @@ def fitted_values(request: FitRequest, fit: FitResult):
     return cm, data, layout, theta / layout.scale, x0s
 
 
-def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude: set[str]) -> Screening:
-    """Score every candidate whose family is not in `exclude`; see the module docstring."""
+def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude: set[str],
+           output_scorer: OutputScorer | None = None) -> Screening:
+    """Score every candidate whose family is not in `exclude`; see the module docstring.
+
+    `output_scorer`: one already built at this fit (its sensitivities are most of a screen's cost)."""
     cm, data, layout, theta_s, x0s = fitted_values(request, fit)
     oem = OutputErrorModel(cm, data, layout, request.options)
     params = [np.asarray(layout.full(e, theta_s), dtype=float).ravel() for e in range(len(data))]
@@ -91,12 +95,12 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
             s = sc.score(sc.stack(c.equations))
             out.tries += c.tries
             if s is not None:
-                out.scored.append(Scored(c, s, "equations"))
+                out.scored.append(Scored(c, s, "equations", scorer=sc))
         out.equations_scored = [cm.states[i] for i in eq_trace.traced]
 
     # output residuals through the sensitivities: any state equation, measured or not, and the outputs
     if request.method != FitMethod.equation_error and np.all([np.all(np.isfinite(s)) for s in simulated]):
-        scorer = OutputScorer(oem, theta_s, x0s)
+        scorer = output_scorer if output_scorer is not None else OutputScorer(oem, theta_s, x0s)
         out.output_scorer = scorer
         sim_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=False)
         cands, notes = library(request.model, sim_trace, effects, opts.candidates, opts.coulomb_epsilon,
@@ -114,7 +118,7 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
                 continue
             s = scorer.score(g) if g is not None else None
             if s is not None:
-                out.scored.append(Scored(c, s, "outputs"))
+                out.scored.append(Scored(c, s, "outputs", scorer=scorer))
         out.outputs_scored = list(cm.outputs)
 
     alpha = opts.significance / max(out.tries, 1)
@@ -123,7 +127,7 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         if c.refit_only:
             continue
         physical = c.sign == 0 or np.sign(s.beta) == np.sign(c.sign)
-        sc.significant = bool(s.p_value < alpha and s.explained >= opts.min_explained and physical)
+        sc.significant = bool(s.p_value * c.multiplicity < alpha and s.explained >= opts.min_explained and physical)
     out.scored = rank(out.scored)
     return out
 

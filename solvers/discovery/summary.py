@@ -1,0 +1,67 @@
+"""Reporting pieces of the loop: validation metrics, before/after summaries, the public screen."""
+from __future__ import annotations
+
+from schemas.discovery import CandidateScore, DiscoverRequest, FitSummary, ValidationSummary
+from schemas.fit import FitRequest, FitResult
+from schemas.model import Model
+from solvers.discovery.effects import Candidate
+from solvers.discovery.screening import Scored, Screening
+from solvers.errors import FitError
+
+
+def equation_names(screening: Screening, cand: Candidate) -> str:
+    parts = []
+    if cand.equations:
+        parts.append(", ".join(screening.states[i] for i in sorted(cand.equations)))
+    if cand.outputs:
+        parts.append(", ".join(f"output {screening.outputs[j]}" for j in sorted(cand.outputs)))
+    return "; ".join(parts)
+
+
+def validate(request: DiscoverRequest, model: Model, fit: FitResult, experiments) -> ValidationSummary | None:
+    """Simulation metrics on the validation experiments (initial states estimated on a leading window)."""
+    if not experiments:
+        return None
+    from solvers.simulate import validation_metrics
+    values = {name: p.value for name, p in fit.parameters.items() if p.experiment is None}
+    try:
+        res = validation_metrics(model, values, experiments, request.options)
+    except (FitError, RuntimeError, ValueError):
+        return None
+    return ValidationSummary(rmse=res.rmse, fit_percent=res.fit_percent, nrmse=res.nrmse)
+
+
+def validation_worse(before: ValidationSummary | None, after: ValidationSummary | None, tol: float) -> str:
+    if before is None or after is None:
+        return ""
+    worse = [f"{o}: NRMSE {before.nrmse[o]:.4g} -> {after.nrmse[o]:.4g}" for o in before.nrmse
+             if o in after.nrmse and after.nrmse[o] > before.nrmse[o] * (1 + tol)]
+    return "; ".join(worse)
+
+
+def summarize(fit: FitResult, validation: ValidationSummary | None = None) -> FitSummary:
+    return FitSummary(success=fit.success, status=fit.status, rmse=fit.metrics.rmse,
+                      fit_percent=fit.metrics.fit_percent, cost=fit.metrics.cost, aic=fit.metrics.aic,
+                      bic=fit.metrics.bic, white={a.output: a.whiteness.passed for a in fit.residual_analysis},
+                      validation=validation)
+
+
+def public_scores(screening: Screening) -> list[CandidateScore]:
+    best_per_family: dict[str, Scored] = {}
+    for sc in screening.scored:
+        best_per_family.setdefault(f"{sc.candidate.family}|{sc.scored_on}", sc)
+    return [CandidateScore(effect=sc.candidate.effect, equation=equation_names(screening, sc.candidate),
+                           term=sc.candidate.term, explained_variance=sc.score.explained,
+                           bic_drop=sc.score.bic_drop, p_value=sc.score.p_value, significant=sc.significant,
+                           scored_on=sc.scored_on, record_specific=sc.candidate.record_specific)
+            for sc in list(best_per_family.values())[:15]]
+
+
+def added_inputs(request: DiscoverRequest, final: FitRequest) -> dict:
+    out = {}
+    original = {e.name: set(e.inputs) for e in request.experiments}
+    for exp in final.experiments:
+        extra = {k: v for k, v in exp.inputs.items() if k not in original[exp.name]}
+        if extra:
+            out[exp.name] = extra
+    return out

@@ -21,13 +21,15 @@ from solvers.fit_checks import (
 )
 from solvers.extensions import prepare_batch
 from solvers.model_compiler import CompiledModel, compile_model
-from solvers.nlp import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
+from solvers.node_initialisation import node_warnings
+from solvers.nlp import NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
 from solvers.preprocess import prepare_request
 from solvers.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
 from solvers.quality import QualityInputs, assess_fit
+from solvers.shooting_curvature import make_solver
 from solvers.statistics import information_criteria
 from solvers.validate import validate_fit
 
@@ -66,7 +68,7 @@ def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int]:
         outcome = solve_linear_least_squares(problem, options)
         if outcome is not None:
             return outcome, 1
-    solver = LeastSquaresSolver(problem, options)
+    solver = make_solver(problem, options)   # multiple shooting: with its gaps' curvature
     best, used = None, 0
     cpu0 = time.process_time()
     for theta0 in starts:
@@ -246,6 +248,7 @@ def _quality_inputs(result, outcome, request, cov, jac, labels, keep, channels, 
         fitted, guess = state_peaks(oem, channels.states, layout.initial)
         before = before + fastest_rate_warning(oem.cm, oem.data, layout, theta_s, channels.states, opts)
     failures = list(oem.simulation_failures) if oem is not None else []
+    before = before + node_warnings(oem)
     signed = {lab for i, lab in enumerate(layout.labels)
               if layout.lower[i] >= 0 or layout.upper[i] <= 0}
     return QualityInputs(

@@ -39,11 +39,18 @@ class LeastSquaresProblem:
     # extra residual rows of θ (scaled), e.g. a total-variation penalty; in the NLP only, not in
     # the data Jacobian used for the covariance
     penalty: Callable[[ca.MX], ca.MX] | None = None
+    # (λ) -> the constraints' curvature added to the Gauss-Newton Hessian (multiple shooting)
+    constraint_hessian: Callable[[ca.MX], ca.MX] | None = None
 
     @cached_property
     def residual(self) -> ca.MX:
         r = self.residual_builder()
         return r if self.penalty is None else ca.vertcat(r, self.penalty(self.w[:self.n_theta]))
+
+    def constraint_curvature(self, lam_g: ca.MX) -> ca.MX | None:
+        """What the Gauss-Newton Hessian adds for the constraints (nlp.py): multiple shooting's
+        gap curvature (solvers/shooting_curvature.py); None elsewhere (JᵀJ alone, as always)."""
+        return None if self.constraint_hessian is None else self.constraint_hessian(lam_g)
 
     def evaluate_jacobian(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.jacobian is not None:

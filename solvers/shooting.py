@@ -9,9 +9,11 @@ from solvers.data import ExperimentData, fill_missing
 from solvers.integration import make_step
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
+from solvers.node_initialisation import node_states
 from solvers.problem import (
     LeastSquaresProblem, output_weights, parameter_constraints, state_scales, theta_bounds,
 )
+from solvers.shooting_curvature import GapCurvature
 
 
 # "serial": measured faster than "thread" on 2 cores for per-sample intervals (thread start-up
@@ -32,6 +34,7 @@ class OutputErrorModel:
         self._sims: dict[int, ca.Function] = {}
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
+        self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
         """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once."""
@@ -198,6 +201,7 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
     lbw_x, ubw_x, node_offsets = [], [], []
     offset = layout.size
     node_sets = [_node_indices(d.n, oem.options.shooting_interval) for d in oem.data]
+    curvature = GapCurvature(oem, MAP_MODE)
     xs = ca.DM(oem.xscale)
     for e, d in enumerate(oem.data):
         nodes = node_sets[e]
@@ -219,6 +223,7 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
                                                    ca.repmat(p, 1, d.n - 1), d.t[None, :-1],
                                                    np.diff(d.t)[None, :])
             gaps.append((pred - xn[:, 1:]) / xs)
+            curvature.add(e, node_offsets[e], np.arange(d.n - 1), 1, np.arange(d.n - 1))
             res.append(oem.residual_of(e, oem.outputs_of(e, xn, p)))
             continue
         lengths = np.diff(nodes)
@@ -234,6 +239,7 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
             pieces.append(pred)
             ends = [(j + 1) * int(length) - 1 for j in range(ks.size)]
             gaps.append((pred[:, ends] - xn[:, (ks + 1).tolist()]) / xs)
+            curvature.add(e, node_offsets[e], ks, int(length), cols)
         states = ca.horzcat(xn[:, 0], *pieces)
         res.append(oem.residual_of(e, oem.outputs_of(e, states, p)))
 
@@ -243,17 +249,9 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
     lo, hi = theta_bounds(layout)
 
     def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
-        """Nodes from the data where a state is measured, else from a simulation at the guess."""
+        """Nodes from the data where a state is measured, else from a simulation at this start."""
         parts = [theta_phys / layout.scale]
-        x0s = [oem.x0_guess(e) for e in range(len(oem.data))]
-        sims = oem.simulate(theta_phys, x0s)
-        for e, d in enumerate(oem.data):
-            states = sims[e][0]
-            states = np.where(np.isfinite(states) & (np.abs(states) < 1e12), states, 0.0)
-            for out, state in cm.direct_outputs.items():
-                states[cm.states.index(state)] = fill_missing(d.y[cm.outputs.index(out)], d.t)
-            for i, v in d.x0_known.items():
-                states[i, 0] = v
+        for e, states in enumerate(node_states(oem, theta_phys)):
             parts.append((states[:, node_sets[e]] / oem.xscale[:, None]).ravel(order="F"))
         return np.concatenate(parts)
 
@@ -261,12 +259,13 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
         return [{s: float(w[node_offsets[e] + i] * oem.xscale[i]) for i, s in enumerate(cm.states)}
                 for e in range(len(oem.data))]
 
+    w = ca.vertcat(*[ca.vec(v) for v in w_parts])
     return LeastSquaresProblem(
-        w=ca.vertcat(*[ca.vec(v) for v in w_parts]), residual_builder=lambda: ca.vertcat(*res), g=g,
+        w=w, residual_builder=lambda: ca.vertcat(*res), g=g,
         lbg=np.concatenate([np.zeros(n_gap), *lbg_par]), ubg=np.concatenate([np.zeros(n_gap), *ubg_par]),
         lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
         n_theta=layout.size, initial_guess=initial_guess, x0_of=x0_of,
-        extra_labels=[])
+        extra_labels=[], constraint_hessian=curvature.bind(w, theta, g_par))
 
 
 def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]):

@@ -25,6 +25,7 @@ from solvers.node_initialisation import node_warnings
 from solvers.nlp import NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
 from solvers.preprocess import prepare_request
+from solvers.profile import check_profile_names, run_profiles
 from solvers.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
@@ -126,6 +127,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",
                         f"options.output_weights.{unknown_w[0]}")
     starts = draw_starts(layout, opts.multistart, opts.seed)
+    check_profile_names(opts.profile, list(layout.labels))
 
     eep: EquationErrorProblem | None = None
     oem: OutputErrorModel | None = None
@@ -231,6 +233,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         covariance_classical=None if cov.classical is None else CovariancePublic(
             names=cov.names, matrix=cov.classical.tolist()),
         active_constraints=active_constraints(cm, layout, theta_s))
+    result.profile = run_profiles(problem, opts, outcome, layout, ndata, nvarys, cov)
     result = ext.finish(result, layout, theta, cov)
     # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
     size = np.maximum(np.abs(values) / scale, 1.0)

@@ -65,3 +65,32 @@ def test_tanks_multiple_shooting_reaches_the_single_shooting_optimum(seed):
     # a linear law on sqrt outflows: the misfit is reported, neither result is `good`
     assert ms.quality == ss.quality == "suspect"
     assert "fit_below_noise_level" in {w.code for w in ms.warnings}
+
+
+def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
+    """tanh(v/ε) with ε a thousandth of the speed range: the exact curvature is huge and
+    indefinite (Ipopt's regularisation went to 1e15 at 13 s per iteration). The curvature-first
+    solver gives up on it quickly and keeps the better of it and plain Gauss-Newton."""
+    from solvers.nlp import LeastSquaresSolver
+    from solvers.shooting_curvature import CurvatureFirstSolver, make_solver
+    from tests.systems import msd_experiment, msd_model, simulate_msd
+    t = np.linspace(0, 10, 501)
+    states = simulate_msd(t, extra_force=lambda x, v: 0.5 * np.tanh(v / 1e-4))
+    eps = 1e-3 * float(np.sqrt(np.mean(states[1] ** 2)))
+    model = msd_model()
+    model["parameters"].append({"name": "Fc", "value": 0.0})
+    model["equations"]["v"] = f"(u - c*v - k*x - Fc*tanh(v/{eps:.4g}))/m"
+    req = FitRequest.model_validate({"model": model, "method": "multiple_shooting",
+                                     "experiments": [msd_experiment(t, states, noise=0.002, seed=1)]})
+    cm = compile_model(req.model)
+    data = prepare_experiments(req.experiments, cm)
+    layout = build_layout(req.model, [d.name for d in data])
+    problem = build_multiple_shooting(OutputErrorModel(cm, data, layout, req.options))
+    solver = make_solver(problem, req.options)
+    assert isinstance(solver, CurvatureFirstSolver)
+    w0 = problem.initial_guess(layout.initial)
+    both = solver.solve(w0)
+    plain = LeastSquaresSolver(problem, req.options, curvature=False).solve(w0)
+    assert solver.plain is not None                       # the curvature run failed, GN ran
+    assert both.status != "Maximum_CpuTime_Exceeded"
+    assert both.cost <= plain.cost * (1 + 1e-9)

@@ -36,3 +36,15 @@ def test_fit_percent_is_matlab_nrmse():
     rmse, fit = rmse_and_fit(y, np.array([0.1, -0.1, 0.1, -0.1]))
     assert rmse == pytest.approx(0.1)
     assert fit == pytest.approx(100 * (1 - 0.2 / np.sqrt(5.0)))
+
+
+def test_correlations_of_an_overflowing_residual_stay_finite():
+    """A diverged fit (seed 001's closed loop from a far start) left residuals near 1e200: their
+    squares overflowed into NaN correlations and the result failed its own schema (a 500)."""
+    rng = np.random.default_rng(0)
+    r = 1e200 * rng.standard_normal(500)
+    u = rng.standard_normal(500)
+    a = residual_analysis("y", [(np.ones(500), r, {"u": u})])
+    assert np.all(np.isfinite(a.autocorrelation)) and a.autocorrelation[0] == pytest.approx(1.0)
+    assert np.isfinite(a.whiteness.max_abs) and a.whiteness.passed
+    assert np.isfinite(a.independence["u"].max_abs)

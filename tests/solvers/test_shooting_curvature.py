@@ -72,7 +72,7 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     indefinite (Ipopt's regularisation went to 1e15 at 13 s per iteration). The curvature-first
     solver gives up on it quickly and keeps the better of it and plain Gauss-Newton."""
     from solvers.nlp import LeastSquaresSolver
-    from solvers.shooting_curvature import CurvatureFirstSolver, make_solver
+    from solvers.shooting_curvature import HybridShootingSolver, make_solver
     from tests.systems import msd_experiment, msd_model, simulate_msd
     t = np.linspace(0, 10, 501)
     states = simulate_msd(t, extra_force=lambda x, v: 0.5 * np.tanh(v / 1e-4))
@@ -87,7 +87,7 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     layout = build_layout(req.model, [d.name for d in data])
     problem = build_multiple_shooting(OutputErrorModel(cm, data, layout, req.options))
     solver = make_solver(problem, req.options)
-    assert isinstance(solver, CurvatureFirstSolver)
+    assert isinstance(solver, HybridShootingSolver)
     w0 = problem.initial_guess(layout.initial)
     both = solver.solve(w0)
     plain = LeastSquaresSolver(problem, req.options, curvature=False).solve(w0)

@@ -31,6 +31,7 @@ from solvers.statistics import student_t_quantile
 MAX_STEPS = 20        # per side
 REFINE = 4            # solves to locate a crossing
 TOLERANCE = 0.02      # of Δ, at the crossing
+MAX_FAILURES = 3      # unconverged re-optimisations on one side before giving up there
 
 
 @dataclass
@@ -103,7 +104,7 @@ def _walk(ctx: ProfileContext, i: int, direction: float, h0: float, delta: float
     bound = ctx.problem.lbw[i] if direction < 0 else ctx.problem.ubw[i]
     side = "lower" if direction < 0 else "upper"
     v_prev, rise_prev, w_prev = float(ctx.w_hat[i]), 0.0, ctx.w_hat
-    h, pts = h0, []
+    h, pts, failures = h0, [], 0
     for _ in range(MAX_STEPS):
         if time.process_time() - start > ctx.max_cpu_time:
             return None, pts, f"{side} end not reached within max_cpu_time"
@@ -113,7 +114,12 @@ def _walk(ctx: ProfileContext, i: int, direction: float, h0: float, delta: float
         if np.isfinite(bound) and (v - bound) * direction > 0:
             v = float(bound)
         out = _solve_fixed(ctx, i, v, w_prev)
-        if not np.isfinite(out.cost):
+        if not (out.success and np.isfinite(out.cost)):
+            # an unconverged point's cost is no profile value (multiple shooting: gaps still open)
+            failures += 1
+            if failures >= MAX_FAILURES:
+                return None, pts, (f"{side} end: the re-optimisation did not converge at "
+                                   f"{v * ctx.scale[i]:.6g} ({out.status})")
             h /= 4
             continue
         rise = out.cost - ctx.cost_hat
@@ -140,7 +146,7 @@ def _refine(ctx: ProfileContext, i: int, inside, outside, delta: float):
         s_in, s_out = math.sqrt(max(r_in, 0.0)), math.sqrt(r_out)
         v = v_in + (target - s_in) / (s_out - s_in) * (v_out - v_in) if s_out > s_in else 0.5 * (v_in + v_out)
         out = _solve_fixed(ctx, i, v, w_in)
-        if not np.isfinite(out.cost):
+        if not (out.success and np.isfinite(out.cost)):
             break
         rise = out.cost - ctx.cost_hat
         pts.append((v, float(out.cost)))
@@ -157,8 +163,8 @@ def run_profiles(problem, options, outcome, layout, ndata: int, nvarys: int, cov
     """`result.profile` for `options.profile` (None when empty); called by `fit_model`."""
     if not options.profile:
         return None
-    from solvers.shooting_curvature import make_solver
-    ctx = ProfileContext(problem, make_solver(problem, options), np.asarray(outcome.w, dtype=float),
+    from solvers.shooting_curvature import make_warm_solver
+    ctx = ProfileContext(problem, make_warm_solver(problem, options), np.asarray(outcome.w, dtype=float),
                          float(outcome.cost), layout.scale, ndata, nvarys, options.confidence_level,
                          options.max_cpu_time)
     stderr = {k: cov.classical_stderr.get(k, cov.stderr.get(k)) for k in layout.labels}

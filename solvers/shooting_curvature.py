@@ -153,6 +153,16 @@ def make_solver(problem: LeastSquaresProblem, options: FitOptions):
     return HybridShootingSolver(problem, options)
 
 
+def make_warm_solver(problem: LeastSquaresProblem, options: FitOptions):
+    """For re-optimisations that start next to an optimum (profile points): multiple shooting goes
+    straight to the curvature phase, where Gauss-Newton would first circle a misfitting optimum and
+    could wander into a degenerate region (an iteration there took 30 s)."""
+    if problem.constraint_hessian is None or options.hessian != "gauss_newton":
+        return LeastSquaresSolver(problem, options)
+    return LeastSquaresSolver(problem, options, curvature=True,
+                              ipopt={"max_hessian_perturbation": MAX_HESSIAN_PERTURBATION})
+
+
 class HybridShootingSolver:
     """Gauss-Newton to get near, the gaps' curvature to finish.
 

@@ -12,11 +12,11 @@ from solvers.statistics import student_t_quantile
 T = np.linspace(0, 3, 31)
 
 
-def decay_body(y: np.ndarray, profile=("k",)) -> dict:
+def decay_body(y: np.ndarray, profile=("k",), method="single_shooting") -> dict:
     """y = A exp(-k t): k a parameter, A the free initial state (re-optimised along the profile)."""
     return {"model": {"states": ["x"], "parameters": [{"name": "k", "value": 1.0, "lower": 0.0}],
                       "equations": {"x": "-k*x"}, "outputs": {"y": "x"}},
-            "method": "single_shooting", "options": {"profile": list(profile), "substeps": 4},
+            "method": method, "options": {"profile": list(profile), "substeps": 4},
             "experiments": [{"name": "e", "time": T.tolist(), "outputs": {"y": y.tolist()}}]}
 
 
@@ -49,6 +49,18 @@ def test_profile_interval_matches_a_brute_force_profile_and_is_asymmetric(seed):
     assert max(abs(wald[0] - lower), abs(wald[1] - upper)) > 0.03 * width
     assert prof.values == sorted(prof.values) and len(prof.values) == len(prof.costs)
     assert max(prof.costs) >= prof.threshold > min(prof.costs)
+
+
+def test_multiple_shooting_profile_is_the_single_shooting_profile():
+    """The nodes are re-optimised too; at each converged point the gaps are closed, so the profile
+    is the same function of k."""
+    y = np.exp(-1.5 * T) + 0.1 * np.random.default_rng(3).standard_normal(T.size)
+    ss = fit_model(FitRequest.model_validate(decay_body(y))).profile["k"]
+    ms = fit_model(FitRequest.model_validate(decay_body(y, method="multiple_shooting"))).profile["k"]
+    width = ss.upper - ss.lower
+    assert ms.lower == pytest.approx(ss.lower, abs=0.005 * width)
+    assert ms.upper == pytest.approx(ss.upper, abs=0.005 * width)
+    assert ms.note is None
 
 
 def test_profile_equals_wald_interval_for_a_linear_problem():

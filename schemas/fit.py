@@ -59,6 +59,10 @@ class FitOptions(BaseModel):
     robust_covariance: Literal["auto", "always", "never"] = Field(
         default="auto",
         description="HAC (Newey-West) covariance: when the whiteness test fails (auto), always, never")
+    profile: list[Name] = Field(
+        default_factory=list, max_length=20,
+        description="free parameters to profile (profile-likelihood interval at confidence_level; "
+                    "each costs a few dozen re-optimisations)")
 
     @field_validator("output_weights")
     @classmethod
@@ -212,6 +216,19 @@ class FitWarning(BaseModel):
     detail: dict[str, Any] = Field(default_factory=dict)
 
 
+class ProfileInterval(BaseModel):
+    """Profile likelihood of one parameter: the others re-optimised at each fixed value."""
+
+    lower: Optional[float] = Field(description="null: the cost stays below `threshold` up to a bound "
+                                   "or the step limit (the data do not bound the parameter there)")
+    upper: Optional[float]
+    values: list[float] = Field(description="the parameter values visited, ascending")
+    costs: list[Optional[float]] = Field(description="the re-optimised cost at each value")
+    threshold: Optional[float] = Field(description="cost + ½ t²(ν) σ²: the interval is where the profile "
+                                       "stays below it")
+    note: Optional[str] = None
+
+
 class FitResult(BaseModel):
     """Outcome of one fit; `success: false` is a result, not an error."""
 
@@ -241,5 +258,7 @@ class FitResult(BaseModel):
         default=None, description="sigma^2 (J^T J)^-1 when `covariance` holds the robust (HAC) one")
     active_constraints: list[str] = Field(
         default_factory=list, description="model.constraints that hold with equality at the solution")
+    profile: Optional[dict[str, ProfileInterval]] = Field(
+        default=None, description="profile-likelihood intervals of the parameters in options.profile")
     trajectory: Optional[ParameterTrajectory] = Field(
         default=None, description="θ(t) ± 2σ: online estimators and time-varying parameters")

@@ -32,7 +32,13 @@ def rmse_and_fit(measured: np.ndarray, residual: np.ndarray) -> tuple[float, flo
 
 
 def _xcorr(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
-    """Normalised cross-correlation r_ab(k) = Σ a(t) b(t-k) / (N σa σb), k = -lags..lags."""
+    """Normalised cross-correlation r_ab(k) = Σ a(t) b(t-k) / (N σa σb), k = -lags..lags.
+
+    Each series is first divided by its largest magnitude (the result does not change): a residual
+    of a diverged fit (1e200) would otherwise overflow into NaN correlations.
+    """
+    a = a / max(float(np.max(np.abs(a), initial=0.0)), 1e-300)
+    b = b / max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
     a = a - a.mean()
     b = b - b.mean()
     denom = np.sqrt(np.sum(a * a) * np.sum(b * b))

@@ -8,7 +8,7 @@ import numpy as np
 
 from schemas.fit import FitOptions
 from solvers.data import ExperimentData
-from solvers.derivatives import smooth_and_differentiate
+from solvers.derivatives import kernel_averages, smooth_and_differentiate, trapezoid_correction
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
@@ -17,11 +17,15 @@ from solvers.problem import LeastSquaresProblem, parameter_constraints, theta_bo
 
 @dataclass
 class EquationData:
-    """Per experiment: states X, derivatives DX and the rows (samples) usable for every equation."""
+    """Per experiment: states X, inputs U, derivatives DX and the rows usable for every equation.
+
+    U is the recorded input, or its average over the derivative's window (see `consistent`).
+    """
 
     x: np.ndarray
     dx: np.ndarray
     rows: np.ndarray
+    u: np.ndarray | None = None
 
 
 def equation_data(cm: CompiledModel, d: ExperimentData, e: int, options: FitOptions,
@@ -33,7 +37,7 @@ def equation_data(cm: CompiledModel, d: ExperimentData, e: int, options: FitOpti
         rows = np.flatnonzero(np.isfinite(x).all(axis=0) & np.isfinite(dx[equations]).all(axis=0))
         if rows.size == 0:
             raise DataError("no sample has every state and its next sample present", f"experiments[{e}]")
-        return EquationData(x, dx, rows), "next sample x[k+1] (discrete-time model)"
+        return EquationData(x, dx, rows, d.u), "next sample x[k+1] (discrete-time model)"
     state_to_output = {s: o for o, s in cm.direct_outputs.items()}
     x = np.full((cm.nx, d.n), np.nan)
     dx = np.full((cm.nx, d.n), np.nan)
@@ -52,10 +56,36 @@ def equation_data(cm: CompiledModel, d: ExperimentData, e: int, options: FitOpti
                                                          options.derivative_order)
         else:
             x[i] = raw
-    rows = np.flatnonzero(np.isfinite(x).all(axis=0) & np.isfinite(dx[equations]).all(axis=0))
+    u = d.u
+    if note is not None and not any(i in d.derivatives for i in equations):
+        x, u, note = consistent(cm, d, x, options, note)
+    rows = np.flatnonzero(np.isfinite(x).all(axis=0) & np.isfinite(dx[equations]).all(axis=0)
+                          & np.isfinite(u).all(axis=0))
     if rows.size == 0:
         raise DataError("no sample has every state and derivative present", f"experiments[{e}]")
-    return EquationData(x, dx, rows), note
+    return EquationData(x, dx, rows, u), note
+
+
+def consistent(cm: CompiledModel, d: ExperimentData, x: np.ndarray, options: FitOptions,
+               note: str) -> tuple[np.ndarray, np.ndarray, str]:
+    """States and inputs averaged with the kernel of the estimated derivative (derivatives.py).
+
+    The estimated derivative is a weighted average of ẋ over its window; the model's right side
+    must see the same average of x and u, with u held (zoh) or linear (foh) between samples as
+    `input_interpolation` says. Otherwise an input held between samples biases the estimates by
+    about half a sample, and any input that changes within the window by more.
+    """
+    state_to_output = {s: o for o, s in cm.direct_outputs.items()}
+    raw = np.vstack([d.y[cm.outputs.index(state_to_output[s])] for s in cm.states])
+    w, order = options.derivative_window, options.derivative_order
+    held = options.input_interpolation == "zoh"
+    xs = kernel_averages(raw, d.t, w, order, held=False)
+    if not held:
+        derivative = np.vstack([smooth_and_differentiate(r, d.t, w, order)[1] for r in raw])
+        xs = trapezoid_correction(xs, derivative, d.t)
+    u = kernel_averages(d.u, d.t, w, order, held=held) if cm.nu else d.u
+    how = "held (zoh)" if held else "linear (foh)"
+    return xs, u, f"{note}; states and inputs ({how}) averaged with the derivative's own kernel"
 
 
 def _sample_jacobian(cm: CompiledModel, layout: ParameterLayout, equations: list[int],
@@ -122,7 +152,7 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
         for e, (d, ed) in enumerate(zip(data, eqd)):
             n = ed.rows.size
             p = layout.full(e, theta)
-            f = cm.rhs.map(n)(ed.x[:, ed.rows], d.u[:, ed.rows], ca.repmat(p, 1, n), d.t[ed.rows][None, :])
+            f = cm.rhs.map(n)(ed.x[:, ed.rows], ed.u[:, ed.rows], ca.repmat(p, 1, n), d.t[ed.rows][None, :])
             r = (ed.dx[equations][:, ed.rows] - f[equations, :]) * weights[equations][:, None]
             res.append(ca.vec(r))
         return ca.vertcat(*res)
@@ -142,7 +172,7 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
         for e, (d, ed) in enumerate(zip(data, eqd)):
             n = ed.rows.size
             fe = sample_jacobian[e].map(n)
-            rr, jj = fe(ed.x[:, ed.rows], d.u[:, ed.rows], d.t[ed.rows][None, :],
+            rr, jj = fe(ed.x[:, ed.rows], ed.u[:, ed.rows], d.t[ed.rows][None, :],
                         ed.dx[equations][:, ed.rows], w)
             neq = len(equations)
             resids.append(np.array(rr).ravel(order="F"))

@@ -20,7 +20,8 @@ def information_warnings(jac: np.ndarray, labels: list[str]) -> list[FitWarning]
     """
     if not np.all(np.isfinite(jac)):
         return [FitWarning(code="initial_simulation_diverged",
-                           message="the model's simulation at the initial guess is not finite; "
+                           message="the model's simulation at the initial guess is not finite or runs away "
+                                   "(|x| > 1e12); "
                                    "the excitation could not be checked",
                            detail={})]
     norms = np.linalg.norm(jac, axis=0)

@@ -21,13 +21,16 @@ from solvers.fit_checks import (
 )
 from solvers.extensions import prepare_batch
 from solvers.model_compiler import CompiledModel, compile_model
-from solvers.nlp import NlpOutcome, make_solver, solve_linear_least_squares
+from solvers.node_initialisation import node_warnings
+from solvers.nlp import NlpOutcome, solve_linear_least_squares
 from solvers.parameters import ParameterLayout, build_layout
 from solvers.preprocess import prepare_request
+from solvers.profile import check_profile_names, run_profiles
 from solvers.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
 from solvers.quality import QualityInputs, assess_fit
+from solvers.shooting_curvature import make_solver
 from solvers.statistics import information_criteria
 from solvers.validate import validate_fit
 
@@ -67,7 +70,7 @@ def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int, boo
         outcome = solve_linear_least_squares(problem, options)
         if outcome is not None:
             return outcome, 1, None
-    solver = make_solver(problem, options)
+    solver = make_solver(problem, options)   # multiple shooting: with its gaps' curvature
     best, used = None, 0
     cpu0 = time.process_time()
     for theta0 in starts:
@@ -125,6 +128,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",
                         f"options.output_weights.{unknown_w[0]}")
     starts = draw_starts(layout, opts.multistart, opts.seed)
+    check_profile_names(opts.profile, list(layout.labels))
 
     eep: EquationErrorProblem | None = None
     oem: OutputErrorModel | None = None
@@ -231,6 +235,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         covariance_classical=None if cov.classical is None else CovariancePublic(
             names=cov.names, matrix=cov.classical.tolist()),
         active_constraints=active_constraints(cm, layout, theta_s))
+    result.profile = run_profiles(problem, opts, outcome, layout, ndata, nvarys, cov)
     result = ext.finish(result, layout, theta, cov)
     # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
     size = np.maximum(np.abs(values) / scale, 1.0)
@@ -248,6 +253,7 @@ def _quality_inputs(result, outcome, request, cov, jac, labels, keep, channels, 
         fitted, guess = state_peaks(oem, channels.states, layout.initial)
         before = before + fastest_rate_warning(oem.cm, oem.data, layout, theta_s, channels.states, opts)
     failures = list(oem.simulation_failures) if oem is not None else []
+    before = before + node_warnings(oem)
     signed = {lab for i, lab in enumerate(layout.labels)
               if layout.lower[i] >= 0 or layout.upper[i] <= 0}
     return QualityInputs(

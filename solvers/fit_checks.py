@@ -10,6 +10,7 @@ from solvers.data import ExperimentData
 from solvers.equation_error import EquationErrorProblem
 from solvers.excitation import information_warnings, input_warnings, step_size_warning
 from solvers.model_compiler import CompiledModel
+from solvers.node_initialisation import DIVERGED
 from solvers.parameters import ParameterLayout
 from solvers.shooting import OutputErrorModel, sensitivity_jacobian
 
@@ -28,12 +29,20 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
         x0s = [dict(zip(cm.states, oem.x0_guess(e))) for e in range(len(data))]
         failures = len(oem.simulation_failures)
         jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
+        if _runs_away(oem, layout):
+            jac = np.full_like(jac, np.nan)   # sensitivities of a run-away simulation say nothing
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
         labels = list(layout.labels) + oem.x0_labels()
     inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
     # a difference equation reads u[k] only: nothing is interpolated between samples
     interpolation = "zoh" if cm.model.discrete is not None else options.input_interpolation
     return information_warnings(jac, labels) + input_warnings(inputs, interpolation, input_parameters(cm, layout))
+
+
+def _runs_away(oem: OutputErrorModel, layout: ParameterLayout) -> bool:
+    """The simulation at the initial guess leaves every sane range (|x| > 1e12) or fails."""
+    sims = oem.simulate(layout.initial, [oem.x0_guess(e) for e in range(len(oem.data))])
+    return any(not np.all(np.isfinite(s)) or np.max(np.abs(s), initial=0.0) > DIVERGED for s, _ in sims)
 
 
 def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:

@@ -28,7 +28,10 @@ class LeastSquaresSolver:
 
     compiled = False   # CasADi evaluates the whole graph in its interpreter
 
-    def __init__(self, problem: LeastSquaresProblem, options: FitOptions):
+    def __init__(self, problem: LeastSquaresProblem, options: FitOptions, curvature: bool = True,
+                 ipopt: dict | None = None):
+        """`curvature`: add the problem's constraint curvature to Gauss-Newton (multiple shooting);
+        `ipopt`: extra Ipopt options (solvers/shooting_curvature.py)."""
         self.problem = problem
         w, r = problem.w, problem.residual
         nlp = {"x": w, "f": 0.5 * ca.sumsqr(r), "g": problem.g}
@@ -39,34 +42,37 @@ class LeastSquaresSolver:
             "ipopt.print_level": 0,
             "ipopt.sb": "yes",
             "print_time": False,
+            **{f"ipopt.{k}": v for k, v in (ipopt or {}).items()},
         }
         if options.hessian == "gauss_newton":
             jac = ca.jacobian(r, w)
             sigma = ca.MX.sym("sigma")
             lam_g = ca.MX.sym("lam_g", problem.g.numel())
+            hess = sigma * ca.mtimes(jac.T, jac)
+            curvature = problem.constraint_curvature(lam_g) if curvature else None
+            if curvature is not None:
+                # multiple shooting: without its gaps' curvature the step is unstable when the
+                # model misfits, and walked from the optimum to a degenerate point (#8)
+                hess = hess + curvature
             opts["hess_lag"] = ca.Function(
                 "nlp_hess_l",
                 {"x": w, "p": ca.MX.sym("p", 0), "lam_f": sigma, "lam_g": lam_g,
-                 "hess_gamma_x_x": sigma * ca.triu(ca.mtimes(jac.T, jac))},
+                 "hess_gamma_x_x": ca.triu(hess)},
                 ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
         self.solver = ca.nlpsol("greyfit", "ipopt", nlp, opts)
         self.residual = ca.Function("residual", [w], [r])
 
-    def solve(self, w0: np.ndarray) -> NlpOutcome:
-        return run_ipopt(self.solver, w0, self.problem)
-
-
-def make_solver(problem: LeastSquaresProblem, options: FitOptions):
-    """The problem's own solver where it has one, else Ipopt over its residual graph."""
-    if problem.solver_factory is not None:
-        return problem.solver_factory()
-    return LeastSquaresSolver(problem, options)
+    def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None) -> NlpOutcome:
+        """From w0, within the problem's bounds or those given (a profile fixes one entry)."""
+        return run_ipopt(self.solver, w0, self.problem, lbw=lbw, ubw=ubw)
 
 
 def run_ipopt(solver: ca.Function, w0: np.ndarray, problem: LeastSquaresProblem,
-              p: np.ndarray | None = None) -> NlpOutcome:
+              p: np.ndarray | None = None, lbw: np.ndarray | None = None,
+              ubw: np.ndarray | None = None) -> NlpOutcome:
     """One Ipopt solve from w0 (clipped into the bounds); an evaluation error is a failed outcome."""
-    lbw, ubw = problem.lbw, problem.ubw
+    lbw = problem.lbw if lbw is None else lbw
+    ubw = problem.ubw if ubw is None else ubw
     w0 = np.clip(w0, lbw, ubw)
     start = time.perf_counter()
     args = dict(x0=w0, lbx=lbw, ubx=ubw, lbg=problem.lbg, ubg=problem.ubg)

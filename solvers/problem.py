@@ -42,11 +42,31 @@ class LeastSquaresProblem:
     # a solver over a different formulation of the same NLP (e.g. structured multiple shooting);
     # `w` and `g` then only give the sizes, the residual graph is never built
     solver_factory: Callable[[], object] | None = None
+    # (λ) -> the constraints' curvature added to the Gauss-Newton Hessian (multiple shooting)
+    constraint_hessian: Callable[[ca.MX], ca.MX] | None = None
+    # where `solver_factory` is a structured form: the same NLP as one CasADi graph, built when a
+    # solver needs what only the graph has (the gaps' exact curvature)
+    graph_builder: Callable[[], "LeastSquaresProblem"] | None = None
+    _graph: "LeastSquaresProblem | None" = field(default=None, init=False, repr=False)
+
+    def graph(self) -> "LeastSquaresProblem":
+        """This problem as a CasADi graph (itself unless it is a structured form); same w, bounds."""
+        if self.graph_builder is None:
+            return self
+        if self._graph is None:
+            self._graph = self.graph_builder()
+        self._graph.penalty = self.penalty   # attached after building (time-varying parameters)
+        return self._graph
 
     @cached_property
     def residual(self) -> ca.MX:
         r = self.residual_builder()
         return r if self.penalty is None else ca.vertcat(r, self.penalty(self.w[:self.n_theta]))
+
+    def constraint_curvature(self, lam_g: ca.MX) -> ca.MX | None:
+        """What the Gauss-Newton Hessian adds for the constraints (nlp.py): multiple shooting's
+        gap curvature (solvers/shooting_curvature.py); None elsewhere (JᵀJ alone, as always)."""
+        return None if self.constraint_hessian is None else self.constraint_hessian(lam_g)
 
     def evaluate_jacobian(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         if self.jacobian is not None:

@@ -18,7 +18,7 @@ SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "pa
                  "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "input_faster_than_sampling", "integration_step_coarse", "initial_simulation_diverged",
-              "robust_covariance"}
+              "robust_covariance", "poor_excitation_at_start"}
 
 NOISE_FLOOR_RATIO = 5.0      # rmse this many times the data's own noise estimate ...
 NOISE_FLOOR_POINTS = 20.0    # ... and the fit % this many points below what that noise allows
@@ -174,6 +174,16 @@ def _residual_warnings(result: FitResult) -> list[FitWarning]:
     return out
 
 
+def _at_start_only(w: FitWarning) -> FitWarning:
+    """A start far from the answer can be poorly excited where the answer is not: when the
+    information matrix at the solution is well conditioned (no `hessian_singular`, `flat_cost`),
+    the warning from before the fit informs and does not make the result suspect (seed 001's closed
+    loop from a start at 0.3x the truth reached the truth and was called suspect for it)."""
+    return FitWarning(code="poor_excitation_at_start",
+                      message=w.message + " (at the initial guess only: at the solution the information "
+                                          "matrix is well conditioned)", detail=w.detail)
+
+
 def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
     """Attach warnings and the quality verdict; `success` becomes converged and good."""
     warnings = list(q.before)
@@ -189,7 +199,10 @@ def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
                                    detail={}))
     else:
         warnings += _fit_warnings(result, q) + _solution_warnings(result, q)
-        warnings += _curvature_warnings(q) + _residual_warnings(result)
+        curvature = _curvature_warnings(q)
+        warnings += curvature + _residual_warnings(result)
+        if q.covariance.matrix is not None and not curvature:
+            warnings = [_at_start_only(w) if w.code == "poor_excitation" else w for w in warnings]
     if q.covariance.robust_bandwidth is not None:
         warnings.append(FitWarning(code="robust_covariance", message=q.covariance.note or "",
                                    detail={"bandwidth": q.covariance.robust_bandwidth}))

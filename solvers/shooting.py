@@ -11,9 +11,11 @@ from solvers import shooting_structured
 from solvers.compiled import compiled
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
+from solvers.node_initialisation import node_states
 from solvers.problem import (
     LeastSquaresProblem, output_weights, parameter_constraints, state_scales, theta_bounds,
 )
+from solvers.shooting_curvature import GapCurvature
 
 
 # "serial": measured faster than "thread" on 2 cores for per-sample intervals (thread start-up
@@ -34,6 +36,7 @@ class OutputErrorModel:
         self._sims: dict[int, ca.Function] = {}
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
+        self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
         """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once (compiled C
@@ -216,20 +219,10 @@ def _node_indices(n: int, interval: int) -> np.ndarray:
 
 def _node_guess(oem: OutputErrorModel, node_sets: list[np.ndarray]):
     """w0 of multiple shooting: nodes from the data where a state is measured, else from a
-    simulation at the guess."""
-    cm, layout = oem.cm, oem.layout
-
+    simulation at this start (solvers/node_initialisation.py)."""
     def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
-        parts = [theta_phys / layout.scale]
-        x0s = [oem.x0_guess(e) for e in range(len(oem.data))]
-        sims = oem.simulate(theta_phys, x0s)
-        for e, d in enumerate(oem.data):
-            states = sims[e][0]
-            states = np.where(np.isfinite(states) & (np.abs(states) < 1e12), states, 0.0)
-            for out, state in cm.direct_outputs.items():
-                states[cm.states.index(state)] = fill_missing(d.y[cm.outputs.index(out)], d.t)
-            for i, v in d.x0_known.items():
-                states[i, 0] = v
+        parts = [theta_phys / oem.layout.scale]
+        for e, states in enumerate(node_states(oem, theta_phys)):
             parts.append((states[:, node_sets[e]] / oem.xscale[:, None]).ravel(order="F"))
         return np.concatenate(parts)
     return initial_guess
@@ -269,11 +262,21 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
             lbg=np.concatenate([np.zeros(n_gap), shooting_structured.constraint_lower(oem)]),
             ubg=np.concatenate([np.zeros(n_gap), shooting_structured.constraint_upper(oem)]),
             lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
-            n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of)
+            n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of,
+            graph_builder=lambda: _multiple_shooting_graph(oem, node_sets, node_offsets, x0_of))
         return shooting_structured.attach_solver(oem, problem)
+    return _multiple_shooting_graph(oem, node_sets, node_offsets, x0_of)
 
+
+def _multiple_shooting_graph(oem: OutputErrorModel, node_sets, node_offsets, x0_of) -> LeastSquaresProblem:
+    """Multiple shooting as one CasADi graph, with the gaps' curvature for the Hessian."""
+    cm, layout = oem.cm, oem.layout
+    lbw_x, ubw_x = _node_bounds(oem, node_sets)
+    lo, hi = theta_bounds(layout)
+    n_gap = sum(cm.nx * (ns.size - 1) for ns in node_sets)
     theta = ca.MX.sym("theta", layout.size)
     w_parts, res, gaps = [theta], [], []
+    curvature = GapCurvature(oem, MAP_MODE)
     xs = ca.DM(oem.xscale)
     for e, d in enumerate(oem.data):
         nodes = node_sets[e]
@@ -287,6 +290,7 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
                                                    ca.repmat(p, 1, d.n - 1), d.t[None, :-1],
                                                    np.diff(d.t)[None, :])
             gaps.append((pred - xn[:, 1:]) / xs)
+            curvature.add(e, node_offsets[e], np.arange(d.n - 1), 1, np.arange(d.n - 1))
             res.append(oem.residual_of(e, oem.outputs_of(e, xn, p)))
             continue
         lengths = np.diff(nodes)
@@ -302,17 +306,19 @@ def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
             pieces.append(pred)
             ends = [(j + 1) * int(length) - 1 for j in range(ks.size)]
             gaps.append((pred[:, ends] - xn[:, (ks + 1).tolist()]) / xs)
+            curvature.add(e, node_offsets[e], ks, int(length), cols)
         states = ca.horzcat(xn[:, 0], *pieces)
         res.append(oem.residual_of(e, oem.outputs_of(e, states, p)))
 
     g_par, lbg_par, ubg_par = parameter_constraints(cm, layout, theta)
     g = ca.vertcat(*[ca.vec(gp) for gp in gaps], *g_par)
+    w = ca.vertcat(*[ca.vec(v) for v in w_parts])
     return LeastSquaresProblem(
-        w=ca.vertcat(*[ca.vec(v) for v in w_parts]), residual_builder=lambda: ca.vertcat(*res), g=g,
+        w=w, residual_builder=lambda: ca.vertcat(*res), g=g,
         lbg=np.concatenate([np.zeros(n_gap), *lbg_par]), ubg=np.concatenate([np.zeros(n_gap), *ubg_par]),
         lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
         n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of,
-        extra_labels=[])
+        extra_labels=[], constraint_hessian=curvature.bind(w, theta, g_par))
 
 
 def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]):

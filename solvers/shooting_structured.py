@@ -217,7 +217,7 @@ def _single_shooting_terms(oem, sens_fn, jrow_fn, out_fn, theta, pv):
     return w, ca.vertcat(*r_parts), ca.vertcat(*jac_parts), ca.MX(0, 1), ca.MX(0, nw)
 
 
-def _build_nlp(oem, terms, theta, pvec, pv, penalty) -> _Nlp:
+def _build_nlp(oem, terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float) -> _Nlp:
     """The Ipopt instance over (w, r, ∂r/∂w, gaps, ∂gaps/∂w) plus the user's parameter constraints."""
     cm, layout, nth = oem.cm, oem.layout, oem.layout.size
     w, r, jac_r, gaps, jac_gap = terms
@@ -247,7 +247,7 @@ def _build_nlp(oem, terms, theta, pvec, pv, penalty) -> _Nlp:
     opts = oem.options
     solver = ca.nlpsol("greyfit_structured", "ipopt", {"x": w, "p": pvec, "f": f, "g": g}, {
         "grad_f": grad_f, "jac_g": jac_g_fn, "hess_lag": hess,
-        "ipopt.max_iter": opts.max_iter, "ipopt.max_cpu_time": opts.max_cpu_time, "ipopt.tol": opts.tol,
+        "ipopt.max_iter": max_iter, "ipopt.max_cpu_time": max_cpu_time, "ipopt.tol": opts.tol,
         # QAMD ordering copes with the dense θ columns: the automatic choice spent 8 s of 10 in
         # MUMPS' analysis at 40 000 samples (2 states), QAMD 0.3 s
         "ipopt.mumps_pivot_order": 6,
@@ -275,9 +275,9 @@ class StructuredSolver:
     def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool):
         self.nlp, self.data, self.problem, self.compiled = nlp, data, problem, compiled_c
 
-    def solve(self, w0: np.ndarray):
+    def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None):
         from solvers.nlp import run_ipopt
-        return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data)
+        return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
 
 
 def _constraint_copies(oem) -> int:
@@ -307,13 +307,16 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
     structure = (single, tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
     o = oem.options
 
-    def make_solver():
+    def make_solver(max_iter: int | None = None, max_cpu_time: float | None = None):
+        """`max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve)."""
+        iters = o.max_iter if max_iter is None else max_iter
+        cpu = o.max_cpu_time if max_cpu_time is None else max_cpu_time
         fns, is_c = _stage_functions(oem, samples, single)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
         # the NLP; the entry holds those objects, so an id is never reused while it is cached
         owners = (*fns, oem.cm.constraint)
-        nlp_key = (*map(id, owners), structure, o.max_iter, o.max_cpu_time, o.tol)
+        nlp_key = (*map(id, owners), structure, iters, cpu, o.tol)
         entry = _SOLVERS.get(nlp_key) if penalty is None else None
         if entry is not None and all(a is b for a, b in zip(entry[0], owners)):
             _SOLVERS.move_to_end(nlp_key)
@@ -327,7 +330,7 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             else:
                 gap_fn, out_fn = fns
                 terms = _multiple_shooting_terms(oem, gap_fn, out_fn, theta, pv)
-            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:

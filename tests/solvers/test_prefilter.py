@@ -55,7 +55,7 @@ def test_prefilter_in_batch_equation_error_second_order():
     assert max(filtered.values()) < 0.1
 
 
-def test_state_variable_filter_beats_savitzky_golay_in_continuous_equation_error():
+def test_state_variable_filter_is_as_good_as_savitzky_golay_in_continuous_equation_error():
     """Mass-spring-damper, x and v measured with noise 0.02 (2 % of their range), 3 seeds:
     the SVF (w/(s+w))^2 at 2 Hz against the default Savitzky-Golay derivative (window 11)."""
     from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
@@ -71,4 +71,7 @@ def test_state_variable_filter_beats_savitzky_golay_in_continuous_equation_error
             errs.append([abs(res.parameters[k].value / MSD_TRUTH[k] - 1) for k in ("c", "k")])
         errors[label] = np.mean(errs, axis=0)
     assert "state-variable filter" in res.solver.derivative_filter
-    assert np.all(errors["svf"] <= 0.6 * errors["sg"]), errors
+    # since Savitzky-Golay's regressors are averaged with the derivative's own kernel (#8) the two
+    # are alike here (measured over 3 seeds, c and k: SG 0.41 %, 0.21 %; SVF 0.30 %, 0.27 %; SG was
+    # 0.68 %, 0.56 % with the raw regressors): the SVF stays within 1 % and near SG
+    assert np.all(errors["svf"] < 0.01) and np.all(errors["svf"] <= 1.5 * errors["sg"]), errors

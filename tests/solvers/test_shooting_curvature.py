@@ -19,7 +19,7 @@ def _problem(body):
     cm = compile_model(req.model)
     data = prepare_experiments(req.experiments, cm)
     layout = build_layout(req.model, [d.name for d in data])
-    return build_multiple_shooting(OutputErrorModel(cm, data, layout, req.options))
+    return build_multiple_shooting(OutputErrorModel(cm, data, layout, req.options)).graph()
 
 
 @pytest.mark.parametrize("interval", [1, 7])
@@ -92,7 +92,7 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     assert isinstance(solver, HybridShootingSolver)
     w0 = problem.initial_guess(layout.initial)
     both = solver.solve(w0)
-    plain = LeastSquaresSolver(problem, req.options, curvature=False).solve(w0)
+    plain = LeastSquaresSolver(problem.graph(), req.options, curvature=False).solve(w0)
     assert solver.plain is not None                       # the curvature run failed, GN ran
     assert both.status != "Maximum_CpuTime_Exceeded"
     assert both.cost <= plain.cost * (1 + 1e-9)

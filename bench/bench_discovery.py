@@ -7,7 +7,10 @@ a second record for validation, multiple shooting. Prints per record the wall ti
 peer the fit of the true model from the same declared start (what a user who already knew the
 effect pays): `x oracle` is discovery's total over that fit.
 
-    OPENBLAS_NUM_THREADS=1 python bench/bench_discovery.py [--samples 2000,4000]
+    OPENBLAS_NUM_THREADS=1 python bench/bench_discovery.py [--samples 2000,4000] [--baseline ../main]
+
+`--baseline CHECKOUT` also runs each request through another checkout's `discover` (e.g. the main
+branch, before this loop's warm starts and width refinement), in a subprocess, on the same data.
 
 Small matrices: a second BLAS thread only contends with the solver on a loaded 2-core machine
 (measured: a 4000×200 projection 12 ms single-threaded, 270 ms with 2 threads under load).
@@ -15,6 +18,9 @@ Small matrices: a second BLAS thread only contends with the solver on a loaded 2
 from __future__ import annotations
 
 import argparse
+import json
+import os
+import subprocess
 import sys
 import time
 from pathlib import Path
@@ -57,10 +63,35 @@ def case(name: str, n: int) -> tuple[dict, dict]:
     return {**body, "method": "multiple_shooting"}, true
 
 
+BASELINE = """
+import json, sys, time
+sys.path.insert(0, sys.argv[1])
+from schemas.discovery import DiscoverRequest
+from solvers.discovery import discover
+body = json.load(sys.stdin)
+t0 = time.perf_counter()
+res = discover(DiscoverRequest.model_validate(body))
+print(json.dumps({"total": time.perf_counter() - t0, "effects": [s.effect for s in res.steps],
+                  "params": {k: v.value for k, v in res.fit.parameters.items() if not v.fixed}}))
+"""
+
+
+def run_baseline(checkout: str, body: dict) -> str:
+    out = subprocess.run([sys.executable, "-c", BASELINE, checkout],
+                         input=json.dumps(body), capture_output=True, text=True, env=dict(os.environ))
+    try:
+        res = json.loads(out.stdout.strip().splitlines()[-1])
+    except (IndexError, json.JSONDecodeError):
+        return "baseline failed: " + out.stderr.strip().splitlines()[-1][:100] if out.stderr.strip() else "?"
+    params = ", ".join(f"{k}={v:.4g}" for k, v in res["params"].items())
+    return f"baseline {res['total']:.1f} s: {'+'.join(res['effects']) or 'nothing'}; {params}"
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--samples", default="2000,4000")
     ap.add_argument("--records", default="duffing,coulomb_msd")
+    ap.add_argument("--baseline", default=None, help="another checkout to run the same requests through")
     args = ap.parse_args()
     print(f"{'record':12} {'samples':>7} {'base':>6} {'screen':>6} {'refits':>6} {'valid':>6} {'other':>6} "
           f"{'total':>6} {'oracle':>6} {'x oracle':>8}  effect found; parameters (truth)")
@@ -84,6 +115,8 @@ def main() -> None:
             print(f"{name:12} {n:7d} {tm['base_fit']:6.2f} {tm['screening']:6.2f} {tm['refits']:6.2f} "
                   f"{tm['validation']:6.2f} {tm['other']:6.2f} {total:6.2f} {oracle:6.2f} {total / oracle:8.1f}  "
                   f"{found}; {params} ({truth}){' [budget]' if res.budget_exhausted else ''}", flush=True)
+            if args.baseline:
+                print(f"{'':12} {'':7} {run_baseline(args.baseline, body)}", flush=True)
 
 
 if __name__ == "__main__":

@@ -123,8 +123,6 @@ def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca
 @dataclass
 class _Nlp:
     solver: ca.Function
-    residual: ca.Function     # (w, p) -> data residual rows
-    n_g: int
 
 
 def _data_blocks(oem) -> tuple[ca.MX, dict[str, ca.MX]]:
@@ -253,7 +251,7 @@ def _build_nlp(oem, terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time
         "ipopt.mumps_pivot_order": 6,
         "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
         "calc_lam_p": False, "calc_multipliers": False})
-    return _Nlp(solver, ca.Function("residual", [w, pvec], [r_all]), g.numel())
+    return _Nlp(solver)
 
 
 def _data_vector(oem) -> np.ndarray:

@@ -17,6 +17,7 @@ the next fit of that model finds it; `always` compiles whenever it can; `never` 
 """
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
 import shutil
@@ -28,11 +29,41 @@ from pathlib import Path
 
 import casadi as ca
 
-CFLAGS = ["-O1", "-fPIC", "-shared"]
+# -Bsymbolic: the columns driver must call this library's own function, not a namesake loaded
+# before it (glibc exports a legacy `step`)
+CFLAGS = ["-O1", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
 # interpreted SX costs ~10 ns per instruction here; gcc ~1 s for a few thousand: compile in the
 # foreground when a fit would spend more than about a second interpreting
 FOREGROUND_WORK = 1e8          # instructions × expected evaluations
 COMPILE_TIMEOUT_S = 120
+
+# Appended to every library: evaluates the function at n samples, input i of sample k at
+# arg[i] + k * astride[i] (stride 0: the same for every sample), output j at res[j] + k * rstride[j];
+# `accumulate` feeds output 0 of sample k-1 to input 0 of sample k (mapaccum). Called through
+# ctypes on numpy buffers (solvers/columns.py): no CasADi matrices, no copies.
+COLUMNS_DRIVER = r"""
+#include <stdlib.h>
+int greyfit_columns_FN(long long n, const double** arg, const long long* astride, double** res,
+                       const long long* rstride, int accumulate) {
+  casadi_int sz_arg, sz_res, sz_iw, sz_w, i, k;
+  casadi_int n_in = FN_n_in(), n_out = FN_n_out();
+  int flag = 0;
+  FN_work(&sz_arg, &sz_res, &sz_iw, &sz_w);
+  const double** a = (const double**) calloc(sz_arg + 1, sizeof(double*));
+  double** r = (double**) calloc(sz_res + 1, sizeof(double*));
+  casadi_int* iw = (casadi_int*) malloc((sz_iw + 1) * sizeof(casadi_int));
+  double* w = (double*) malloc((sz_w + 1) * sizeof(double));
+  if (!a || !r || !iw || !w) flag = 1;
+  for (k = 0; k < n && !flag; ++k) {
+    for (i = 0; i < n_in; ++i) a[i] = arg[i] ? arg[i] + k * astride[i] : 0;
+    if (accumulate && k > 0) a[0] = res[0] + (k - 1) * rstride[0];
+    for (i = 0; i < n_out; ++i) r[i] = res[i] ? res[i] + k * rstride[i] : 0;
+    flag = FN(a, r, iw, w, 0);
+  }
+  free(a); free(r); free(iw); free(w);
+  return flag;
+}
+"""
 
 _memory: dict[str, ca.Function] = {}
 _pending: set[str] = set()
@@ -49,7 +80,12 @@ def cache_dir() -> Path:
 
 
 def compiler() -> str | None:
-    return shutil.which(os.environ.get("CC", "gcc"))
+    return _which(os.environ.get("CC", "gcc"))
+
+
+@functools.lru_cache(maxsize=8)
+def _which(name: str) -> str | None:   # a PATH search costs ~0.2 ms, asked on every Function
+    return shutil.which(name)
 
 
 _keys: "OrderedDict[int, tuple[ca.Function, str]]" = OrderedDict()
@@ -60,7 +96,7 @@ def function_key(fn: ca.Function) -> str:
     known = _keys.get(id(fn))
     if known is not None and known[0] is fn:
         return known[1]
-    text = fn.serialize() + ca.__version__ + " ".join(CFLAGS)
+    text = fn.serialize() + ca.__version__ + " ".join(CFLAGS) + COLUMNS_DRIVER
     key = hashlib.sha256(text.encode()).hexdigest()[:24]
     _keys[id(fn)] = (fn, key)   # holding fn keeps its id from being reused
     while len(_keys) > 256:
@@ -73,26 +109,35 @@ def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bo
 
     Never raises for a missing compiler or a failed compile: the interpreted `fn` is returned.
     """
+    key = function_key(fn) if mode() != "never" and compiler() is not None else None
+    if key is not None:
+        with _lock:
+            if key in _memory:
+                return _memory[key], True
+    path = library(fn, evaluations)
+    if path is None:
+        return fn, False
+    return _load(fn, function_key(fn), path), True
+
+
+def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
+    """The compiled library of `fn` (built now, found on disk, or None while it is built in the
+    background / where nothing can be compiled), under the policy of `GREYFIT_COMPILE`."""
     how = mode()
     if how == "never" or compiler() is None:
-        return fn, False
+        return None
     key = function_key(fn)
-    with _lock:
-        if key in _memory:
-            return _memory[key], True
-    library = cache_dir() / f"{fn.name()}_{key}.so"
-    if library.exists():
-        return _load(fn, key, library), True
+    path = cache_dir() / f"{fn.name()}_{key}.so"
+    if path.exists():
+        return path
     if how == "always" or fn.n_instructions() * evaluations >= FOREGROUND_WORK:
-        if _build(fn, library):
-            return _load(fn, key, library), True
-        return fn, False
+        return path if _build(fn, path) else None
     with _lock:
         start = key not in _pending
         _pending.add(key)
     if start:   # the next fit of this model structure will find it
-        threading.Thread(target=_build, args=(fn, library), daemon=True).start()
-    return fn, False
+        threading.Thread(target=_build, args=(fn, path), daemon=True).start()
+    return None
 
 
 def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:
@@ -112,6 +157,8 @@ def _build(fn: ca.Function, library: Path) -> bool:
             gen = ca.CodeGenerator(source, {"with_header": False})
             gen.add(fn)
             gen.generate(tmp + os.sep)
+            with open(Path(tmp) / source, "a") as c_file:   # columns.py's loop over samples
+                c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
             target = Path(tmp) / "lib.so"
             subprocess.run([compiler(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
                            check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)

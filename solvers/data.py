@@ -40,15 +40,16 @@ def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
     if len(values) != n:
         raise DataError(f"{len(values)} values, time has {n}; give one value per time sample", where)
     arr = np.array(values, dtype=float)   # None becomes NaN
-    bad = [int(i) for i in np.flatnonzero(~np.isfinite(arr)) if values[i] is not None]
+    finite = np.isfinite(arr)
+    bad = [] if finite.all() else [int(i) for i in np.flatnonzero(~finite) if values[i] is not None]
     if bad:
         raise DataError(f"value at index {bad[0]} is {values[bad[0]]}; only finite numbers "
                         "(or null for a missing sample) are allowed", where)
-    huge = np.flatnonzero(np.abs(np.nan_to_num(arr)) > MAX_ABS_VALUE)
+    huge = np.flatnonzero(np.abs(arr) > MAX_ABS_VALUE)   # NaN compares False
     if huge.size:
         raise DataError(f"value at index {int(huge[0])} is {values[int(huge[0])]:g}; magnitudes above "
                         f"{MAX_ABS_VALUE:g} overflow when squared: change the units", where)
-    if not allow_missing and np.isnan(arr).any():
+    if not allow_missing and not finite.all():
         i = int(np.flatnonzero(np.isnan(arr))[0])
         raise DataError(f"missing value (null) at index {i}; inputs must be complete: "
                         "interpolate or trim the experiment", where)

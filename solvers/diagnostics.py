@@ -32,24 +32,30 @@ def rmse_and_fit(measured: np.ndarray, residual: np.ndarray) -> tuple[float, flo
 
 
 def _xcorr(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
-    """Normalised cross-correlation r_ab(k) = Σ a(t) b(t-k) / (N σa σb), k = -lags..lags.
+    """Normalised cross-correlation r_ab(k) = Σ a(t) b(t-k) / (N σa σb), k = -lags..lags."""
+    return _correlations(np.vstack([a, b]), [(0, 1)], lags)[0]
+
+
+def _correlations(series: np.ndarray, pairs: list[tuple[int, int]], lags: int) -> np.ndarray:
+    """`_xcorr` of each (i, j) pair of rows of `series`, from one batched FFT (one row per pair).
 
     Each series is first divided by its largest magnitude (the result does not change): a residual
     of a diverged fit (1e200) would otherwise overflow into NaN correlations.
     """
-    a = a / max(float(np.max(np.abs(a), initial=0.0)), 1e-300)
-    b = b / max(float(np.max(np.abs(b), initial=0.0)), 1e-300)
-    a = a - a.mean()
-    b = b - b.mean()
-    denom = np.sqrt(np.sum(a * a) * np.sum(b * b))
-    if denom == 0:
-        return np.zeros(2 * lags + 1)
-    n = a.size
-    size = 1 << int(np.ceil(np.log2(2 * n)))
-    cross = np.fft.irfft(np.fft.rfft(a, size) * np.conj(np.fft.rfft(b, size)), size)  # [k] = Σ a(t+k) b(t)
+    peak = np.max(np.abs(series), axis=1, initial=0.0)
+    z = series / np.maximum(peak, 1e-300)[:, None]
+    z = z - z.mean(axis=1, keepdims=True)
+    energy = np.sum(z * z, axis=1)
+    n = z.shape[1]
+    size = 1 << int(np.ceil(np.log2(max(2 * n, 1))))
+    spectra = np.fft.rfft(z, size, axis=1)
+    i, j = np.array(pairs, dtype=int).T
+    cross = np.fft.irfft(spectra[i] * np.conj(spectra[j]), size, axis=1)   # [k] = Σ a(t+k) b(t)
     ks = np.arange(-lags, lags + 1)
-    out = np.where(np.abs(ks) < n, cross[ks % size], 0.0)
-    return out / denom
+    out = np.where(np.abs(ks) < n, cross[:, ks % size], 0.0)
+    denom = np.sqrt(energy[i] * energy[j])
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(denom[:, None] > 0, out / np.where(denom > 0, denom, 1.0)[:, None], 0.0)
 
 
 def sidak_z(level: float, tested: int) -> float:
@@ -111,18 +117,21 @@ def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, 
     acf_u: dict[str, np.ndarray] = {}
     for _, r, u in usable:
         ok = np.isfinite(r)
-        rr = r[ok]
-        weight = rr.size / n_total
-        acf += weight * _xcorr(rr, rr, lags)[lags:]
-        for name, series in u.items():
-            xc[name] = xc.get(name, 0) + weight * _xcorr(rr, series[ok], lags)
-            acf_u[name] = acf_u.get(name, 0) + weight * _xcorr(series[ok], series[ok], lags)[lags:]
+        names = list(u)
+        rows = np.vstack([r[ok], *[u[name][ok] for name in names]])
+        pairs = [(0, 0)] + [(0, k + 1) for k in range(len(names))] + [(k + 1, k + 1) for k in range(len(names))]
+        corr = _correlations(rows, pairs, lags)
+        weight = rows.shape[1] / n_total
+        acf += weight * corr[0, lags:]
+        for k, name in enumerate(names):
+            xc[name] = xc.get(name, 0) + weight * corr[1 + k]
+            acf_u[name] = acf_u.get(name, 0) + weight * corr[1 + len(names) + k, lags:]
     independence = {
         name: max_correlation_test(v, n_total, lags, _bartlett_factor(acf, acf_u[name]))
         for name, v in xc.items()}
     return ResidualAnalysis(
         output=output, rmse=rmse, fit_percent=fit,
-        autocorrelation=[float(v) for v in acf],
+        autocorrelation=acf.tolist(),
         whiteness=max_correlation_test(acf[1:], n_total, lags),
-        cross_correlation={k: [float(x) for x in v] for k, v in xc.items()},
+        cross_correlation={k: np.asarray(v, dtype=float).tolist() for k, v in xc.items()},
         independence=independence)

@@ -12,6 +12,7 @@ from solvers.derivatives import kernel_averages, smooth_and_differentiate, trape
 from solvers.errors import DataError
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
+from solvers.columns import Columns
 from solvers.problem import LeastSquaresProblem, parameter_constraints, theta_bounds
 
 
@@ -88,28 +89,39 @@ def consistent(cm: CompiledModel, d: ExperimentData, x: np.ndarray, options: Fit
     return xs, u, f"{note}; states and inputs ({how}) averaged with the derivative's own kernel"
 
 
-def _sample_jacobian(cm: CompiledModel, layout: ParameterLayout, equations: list[int],
-                     weights: np.ndarray) -> list[ca.Function]:
-    """Per experiment: (x, u, t, dx_measured, θ) -> (weighted residual, its Jacobian in θ)."""
-    x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
-    dx = ca.SX.sym("dx", len(equations))
-    theta = ca.SX.sym("theta", layout.size)
-    out = []
-    for e in range(len(layout.matrix)):
-        p = ca.DM(layout.offset) + ca.DM(layout.matrix[e]) @ theta
-        r = (dx - cm.rhs(x, u, p, t)[equations]) * ca.DM(weights[equations])
-        out.append(ca.Function("sample_residual", [x, u, t, dx, theta], [r, ca.jacobian(r, theta)]))
-    return out
+def _sample_functions(cm: CompiledModel, equations: list[int]) -> ca.Function:
+    """(x, u, t, dx_measured, p, weights) -> (weighted residual, its Jacobian in p), per sample.
+
+    Built once per model and set of equations (not per request): θ enters through p = offset + M θ,
+    so ∂r/∂θ = ∂r/∂p · M is formed in numpy.
+    """
+    def build() -> ca.Function:
+        x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
+        dx, wts = ca.SX.sym("dx", len(equations)), ca.SX.sym("w", len(equations))
+        p = ca.SX.sym("p", cm.np)
+        r = (dx - cm.rhs(x, u, p, t)[equations]) * wts
+        return ca.Function("ee_residual", [x, u, t, dx, p, wts], [r, ca.jacobian(r, p)])
+    return cm.derive(("equation_error_residual", tuple(equations)), build)
+
+
+def _nonlinear_pairs(cm: CompiledModel, equations: list[int]) -> set[tuple[int, int]]:
+    """Parameter pairs (i, j) with ∂²f/∂p_i∂p_j structurally non-zero in the used equations."""
+    def build() -> set[tuple[int, int]]:
+        x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
+        p = ca.SX.sym("p", cm.np)
+        jac = ca.jacobian(cm.rhs(x, u, p, t)[equations], p)
+        rows, cols = ca.jacobian(ca.vec(jac), p).sparsity().get_triplet()
+        return {(r // len(equations), c) for r, c in zip(rows, cols)}
+    return cm.derive(("equation_error_nonlinear_pairs", tuple(equations)), build)
 
 
 def _affine_in_theta(cm: CompiledModel, layout: ParameterLayout, equations: list[int]) -> bool:
-    """Symbolic check (SX) that the used equations are affine in the free parameters."""
-    x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
-    theta = ca.SX.sym("theta", layout.size)
-    for e in range(len(layout.matrix)):
-        p = ca.DM(layout.offset) + ca.DM(layout.matrix[e]) @ theta
-        f = cm.rhs(x, u, p, t)[equations]
-        if ca.depends_on(ca.jacobian(f, theta), theta):
+    """The used equations are affine in the free parameters: no pair of parameters that both move
+    with θ (in any experiment) has a structurally non-zero second derivative."""
+    pairs = _nonlinear_pairs(cm, equations)
+    for m in layout.matrix:
+        moves = np.any(np.asarray(m) != 0, axis=1)
+        if any(moves[i] and moves[j] for i, j in pairs):
             return False
     return True
 
@@ -122,6 +134,7 @@ class EquationErrorProblem:
     derivative_filter: str | None
     linear: bool
     per_experiment: list[EquationData]
+    sample: Columns | None = None   # the residual and its Jacobian per sample (compiled C or not)
 
 
 def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
@@ -157,7 +170,9 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
             res.append(ca.vec(r))
         return ca.vertcat(*res)
 
-    sample_jacobian = _sample_jacobian(cm, layout, equations, weights)
+    samples = sum(ed.rows.size for ed in eqd)
+    sample = cm.derive(("equation_error_columns", tuple(equations)),
+                       lambda: Columns(_sample_functions(cm, equations), 3 * samples))
     linear = _affine_in_theta(cm, layout, equations)
     affine: list[tuple[np.ndarray, np.ndarray]] = []
 
@@ -169,15 +184,15 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
         if linear:
             w = np.zeros_like(w)
         blocks, resids = [], []
+        neq = len(equations)
         for e, (d, ed) in enumerate(zip(data, eqd)):
             n = ed.rows.size
-            fe = sample_jacobian[e].map(n)
-            rr, jj = fe(ed.x[:, ed.rows], ed.u[:, ed.rows], d.t[ed.rows][None, :],
-                        ed.dx[equations][:, ed.rows], w)
-            neq = len(equations)
-            resids.append(np.array(rr).ravel(order="F"))
-            blocks.append(np.array(jj).reshape(neq, n, w.size).transpose(1, 0, 2)
-                          .reshape(n * neq, w.size))
+            p = np.asarray(layout.full(e, w), dtype=float)
+            rr, jj = sample(ed.x[:, ed.rows], ed.u[:, ed.rows], d.t[ed.rows][None, :],
+                            ed.dx[equations][:, ed.rows], p, weights[equations], n=n)
+            resids.append(rr.ravel(order="F"))
+            jp = jj.reshape(neq, n, cm.np).transpose(1, 0, 2)
+            blocks.append((jp @ layout.matrix[e]).reshape(n * neq, w.size))
         out = np.vstack(blocks), np.concatenate(resids)
         if linear:
             affine.append(out)
@@ -191,4 +206,4 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
         initial_guess=lambda th: th / layout.scale, x0_of=lambda w: [{} for _ in data],
         jacobian=jacobian)
     return EquationErrorProblem(problem, equations, weights, "; ".join(sorted(notes)) or None,
-                                linear, eqd)
+                                linear, eqd, sample)

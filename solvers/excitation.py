@@ -69,10 +69,10 @@ def persistent_excitation_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) ->
     spacing = max(1, n // (4 * max_order))
     rows = n - (max_order - 1) * spacing
     lagged = np.column_stack([u[(max_order - 1 - k) * spacing:][:rows] for k in range(max_order)])
+    full = lagged.T @ lagged / rows   # positive semidefinite by construction, as its leading blocks
     order = 0
     for m in range(1, max_order + 1):
-        gram = lagged[:, :m].T @ lagged[:, :m] / rows   # positive semidefinite by construction
-        eig = np.linalg.eigvalsh(gram)
+        eig = np.linalg.eigvalsh(full[:m, :m])
         if eig[0] <= PE_RATIO * eig[-1]:
             break
         order = m

@@ -146,6 +146,8 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         affine = ext.solve_affine(problem, layout, eep.linear)
         outcome, n_starts, is_c = ((*affine, None) if affine
                                    else _solve(problem, opts, starts, eep.linear and problem.penalty is None))
+        if outcome.status == "Linear_Least_Squares":   # the per-sample Jacobian was all that ran
+            is_c = eep.sample.compiled
     else:
         outcome, n_starts, is_c = _solve(problem, opts, starts, False)
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates

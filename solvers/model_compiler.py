@@ -56,6 +56,10 @@ class CompiledModel:
 
     def equation_parameters(self) -> dict[str, set[str]]:
         """Which parameters each state equation depends on, definitions expanded."""
+        deps = self.derive(("equation_parameters",), self._equation_parameters)
+        return {s: set(v) for s, v in deps.items()}   # a copy: callers may change theirs
+
+    def _equation_parameters(self) -> dict[str, set[str]]:
         x, u, p, t = _symbols(self)
         rows, cols = ca.jacobian(self.rhs(x, u, p, t), p).sparsity().get_triplet()
         deps: dict[str, set[str]] = {s: set() for s in self.states}

@@ -117,9 +117,10 @@ def looks_piecewise_constant(u: np.ndarray) -> bool:
     span = float(np.ptp(u)) if u.size else 0.0
     if u.size < 10 or span == 0:
         return False
-    flat = np.abs(np.diff(u)) <= 1e-9 * span
-    levels = np.unique(np.round(u / (1e-6 * span))).size
-    return bool(flat.mean() >= 0.8 or (levels <= 10 and flat.mean() >= 0.3))
+    flat = float(np.mean(np.abs(np.diff(u)) <= 1e-9 * span))
+    if flat >= 0.8 or flat < 0.3:
+        return flat >= 0.8
+    return bool(np.unique(np.round(u / (1e-6 * span))).size <= 10)
 
 
 def input_hints(experiments: list[Experiment], options: FitOptions) -> list[Hint]:

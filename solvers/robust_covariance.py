@@ -20,35 +20,30 @@ MAX_RHO = 0.97   # an AR(1) coefficient near 1 makes the plug-in bandwidth explo
 
 def scores_by_sample(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray):
     """Score s_t = J_tᵀ r_t summed over the rows that share a sample; keys sorted ascending."""
+    products = jac * residual[:, None]
+    if sample_keys.size and np.all(sample_keys[1:] >= sample_keys[:-1]):   # rows already in time order
+        starts = np.flatnonzero(np.r_[True, sample_keys[1:] != sample_keys[:-1]])
+        return sample_keys[starts], np.add.reduceat(products, starts, axis=0)
     keys, inverse = np.unique(sample_keys, return_inverse=True)
     scores = np.zeros((keys.size, jac.shape[1]))
-    np.add.at(scores, inverse, jac * residual[:, None])
+    np.add.at(scores, inverse, products)
     return keys, scores
 
 
 def andrews_bandwidth(blocks: list[np.ndarray]) -> float:
     """Andrews' AR(1) plug-in bandwidth for the Bartlett kernel, pooled over the score components."""
-    num = den = 0.0
     total = sum(b.shape[0] for b in blocks)
-    for a in range(blocks[0].shape[1]):
-        xy = xx = 0.0
-        resid_var = []
-        for b in blocks:
-            s = b[:, a]
-            if s.size < 3:
-                continue
-            xy += float(s[1:] @ s[:-1])
-            xx += float(s[:-1] @ s[:-1])
-        if xx <= 0:
-            continue
-        rho = float(np.clip(xy / xx, -MAX_RHO, MAX_RHO))
-        for b in blocks:
-            s = b[:, a]
-            if s.size >= 3:
-                resid_var.append(s[1:] - rho * s[:-1])
-        sigma2 = float(np.mean(np.concatenate(resid_var) ** 2)) if resid_var else 0.0
-        num += 4 * rho ** 2 * sigma2 ** 2 / ((1 - rho) ** 6 * (1 + rho) ** 2)
-        den += sigma2 ** 2 / (1 - rho) ** 4
+    used = [b for b in blocks if b.shape[0] >= 3]
+    if not used:
+        return 0.0
+    xy = sum(np.einsum("ij,ij->j", b[1:], b[:-1]) for b in used)
+    xx = sum(np.einsum("ij,ij->j", b[:-1], b[:-1]) for b in used)
+    ok = xx > 0
+    rho = np.clip(np.divide(xy, xx, out=np.zeros_like(xx), where=ok), -MAX_RHO, MAX_RHO)
+    sq = sum(np.sum((b[1:] - rho * b[:-1]) ** 2, axis=0) for b in used)
+    sigma2 = sq / sum(b.shape[0] - 1 for b in used)
+    num = float(np.sum((4 * rho ** 2 * sigma2 ** 2 / ((1 - rho) ** 6 * (1 + rho) ** 2))[ok]))
+    den = float(np.sum((sigma2 ** 2 / (1 - rho) ** 4)[ok]))
     if den <= 0:
         return 0.0
     alpha = num / den
@@ -72,11 +67,23 @@ def hac_meat(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray,
     blocks = [scores[exp_of_key == e] for e in np.unique(exp_of_key)]
     bandwidth = andrews_bandwidth(blocks)
     lags = int(np.floor(bandwidth))
-    meat = sum(b.T @ b for b in blocks)
-    for lag in range(1, lags + 1):
-        weight = 1.0 - lag / (lags + 1.0)
-        for b in blocks:
-            if b.shape[0] > lag:
-                gamma = b[lag:].T @ b[:-lag]
-                meat = meat + weight * (gamma + gamma.T)
-    return meat, bandwidth
+    return sum(_bartlett_sum(b, lags) for b in blocks), bandwidth
+
+
+def _bartlett_sum(b: np.ndarray, lags: int) -> np.ndarray:
+    """Γ_0 + Σ_{l=1..L} w_l (Γ_l + Γ_lᵀ) = Σ_{t,τ} w(t − τ) s_t s_τᵀ = Bᵀ (w ∗ B).
+
+    Lag by lag costs L products of the whole score matrix (L reaches hundreds for a smooth
+    residual); the convolution of each score column with the Bartlett kernel is one FFT."""
+    lags = min(lags, b.shape[0] - 1)
+    if lags <= 16:
+        meat = b.T @ b
+        for lag in range(1, lags + 1):
+            gamma = b[lag:].T @ b[:-lag]
+            meat = meat + (1.0 - lag / (lags + 1.0)) * (gamma + gamma.T)
+        return meat
+    n = b.shape[0]
+    kernel = 1.0 - np.abs(np.arange(-lags, lags + 1)) / (lags + 1.0)
+    size = 1 << int(np.ceil(np.log2(n + 2 * lags)))
+    smoothed = np.fft.irfft(np.fft.rfft(b, size, axis=0) * np.fft.rfft(kernel, size)[:, None], size, axis=0)
+    return b.T @ smoothed[lags:lags + n]

@@ -1,6 +1,8 @@
 """Output-error problems: single shooting (mapaccum) and multiple shooting (map + gap constraints)."""
 from __future__ import annotations
 
+from collections import OrderedDict
+
 import casadi as ca
 import numpy as np
 
@@ -8,7 +10,9 @@ from schemas.fit import FitOptions
 from solvers.data import ExperimentData, fill_missing
 from solvers.integration import make_step
 from solvers import shooting_structured
+from solvers.columns import Columns
 from solvers.compiled import compiled
+from solvers.function_cache import FunctionCache
 from solvers.model_compiler import CompiledModel
 from solvers.parameters import ParameterLayout
 from solvers.node_initialisation import node_states
@@ -33,7 +37,8 @@ class OutputErrorModel:
         self.weights = output_weights(cm, data, options)
         self.xscale = state_scales(cm, data)
         self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
-        self._sims: dict[int, ca.Function] = {}
+        self._maps = cm.derive(("maps",), FunctionCache) if isinstance(cm, CompiledModel) else FunctionCache()
+        self._simulated: "OrderedDict[bytes, tuple]" = OrderedDict()
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
         self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
@@ -54,9 +59,19 @@ class OutputErrorModel:
         return self._sensitivities
 
     def simulator(self, n: int) -> ca.Function:
-        if n not in self._sims:
-            self._sims[n] = self.step.mapaccum("sim", n)
-        return self._sims[n]
+        o = self.options
+        return self._maps.get(("sim", o.integrator, o.substeps, o.input_interpolation, n),
+                              lambda: self.step.mapaccum("sim", n))
+
+    def output_map(self, n: int) -> ca.Function:
+        return self._maps.get(("out", n), lambda: self.cm.output.map(n))
+
+    def numeric_functions(self) -> tuple[Columns, Columns]:
+        """(step, output) evaluated on numpy columns: compiled C without copies where available."""
+        o = self.options
+        samples = sum(d.n for d in self.data)
+        return self._maps.get(("numeric", o.integrator, o.substeps, o.input_interpolation),
+                              lambda: (Columns(self.step, 4 * samples), Columns(self.cm.output, 4 * samples)))
 
     def step_inputs(self, d: ExperimentData, i0: int, i1: int):
         """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked)."""
@@ -75,8 +90,15 @@ class OutputErrorModel:
         CVODES raises when it cannot take a step (a stiff or diverging model); a fit that reaches
         such a point must end as a result that says so, not as an exception.
         """
+        d = self.data[e]
+        x0 = np.asarray(x0, dtype=float).reshape(-1, 1)
+        if d.n < 2:
+            return x0
+        u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
+        p = np.asarray(p, dtype=float).reshape(-1, 1)
         try:
-            return np.array(self.trajectory(e, x0, p))
+            xs, = self.numeric_functions()[0](x0, u0, u1, p, t0, dt, n=d.n - 1, accumulate=True)
+            return np.hstack([x0, xs])
         except RuntimeError as exc:
             self.simulation_failures.append(
                 f"the simulation of experiment '{self.data[e].name}' failed ({_first_line(exc)})")
@@ -84,7 +106,9 @@ class OutputErrorModel:
 
     def outputs_of(self, e: int, states, p):
         d = self.data[e]
-        return self.cm.output.map(d.n)(states, d.u, ca.repmat(p, 1, d.n), d.t[None, :])
+        reps = np.repeat(np.asarray(p, dtype=float).reshape(-1, 1), d.n, axis=1) if isinstance(
+            p, np.ndarray) else ca.repmat(p, 1, d.n)
+        return self.output_map(d.n)(states, d.u, reps, d.t[None, :])
 
     def residual_of(self, e: int, y_model):
         """Weighted residual at the measured (non-null) samples, column-major order."""
@@ -135,14 +159,30 @@ class OutputErrorModel:
         return theta, x0_free, ca.vertcat(*res)
 
     def simulate(self, theta_phys: np.ndarray, x0s: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
-        """Numeric (states, outputs) per experiment for physical θ and full initial states."""
+        """Numeric (states, outputs) per experiment for physical θ and full initial states.
+
+        The last few are remembered: a fit simulates the initial guess for its pre-fit check, its
+        nodes and its state-size check, and the solution for its residuals and diagnostics. A
+        remembered failure is reported again, as the simulation would.
+        """
+        theta_phys = np.asarray(theta_phys, dtype=float)
+        x0s = [np.asarray(x0, dtype=float) for x0 in x0s]
+        key = theta_phys.tobytes() + b"".join(x0.tobytes() for x0 in x0s)
+        if key in self._simulated:
+            out, failures = self._simulated[key]
+            self.simulation_failures.extend(failures)
+            return [(xs.copy(), ys.copy()) for xs, ys in out]
+        before = len(self.simulation_failures)
         out = []
         theta_s = theta_phys / self.layout.scale
         for e in range(len(self.data)):
-            p = self.layout.full(e, theta_s)
-            xs = self.numeric_trajectory(e, np.asarray(x0s[e], dtype=float), np.asarray(p, dtype=float))
-            ys = np.array(self.outputs_of(e, xs, p))
+            p = np.asarray(self.layout.full(e, theta_s), dtype=float)
+            xs = self.numeric_trajectory(e, x0s[e], p)
+            ys, = self.numeric_functions()[1](xs, self.data[e].u, p, self.data[e].t[None, :], n=self.data[e].n)
             out.append((xs, ys))
+        self._simulated[key] = ([(xs.copy(), ys.copy()) for xs, ys in out], self.simulation_failures[before:])
+        while len(self._simulated) > 4:
+            self._simulated.popitem(last=False)
         return out
 
 

@@ -114,3 +114,46 @@ def test_missing_samples_and_two_experiments_on_the_structured_path(method):
     assert result.initial_states["e1"]["v"] == 0.0
     assert result.initial_states["e0"]["x"] == pytest.approx(0.1, abs=0.01)
     assert result.metrics.ndata == sum(1 for e in exps for v in e["outputs"]["x"] if v is not None)
+
+
+@needs_cc
+def test_columns_in_c_equal_casadis_map_and_mapaccum(cache, monkeypatch):
+    """The compiled loop over samples (solvers/columns.py) gives CasADi's own map/mapaccum numbers:
+    per-sample and shared inputs, a sparse output, accumulation; the function is named `step`,
+    as glibc's legacy regexp function is, which the library must not call instead of its own."""
+    import casadi as ca
+    from solvers.columns import Columns
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    x, p, u = ca.SX.sym("x", 3), ca.SX.sym("p", 2), ca.SX.sym("u")
+    y = ca.vertcat(x[0] * p[0] + u, x[1] * x[2], ca.sin(p[1]))
+    fn = ca.Function("step", [x, p, u], [y, ca.jacobian(y, x), ca.jacobian(y, p)])
+    rng = np.random.default_rng(0)
+    n = 257
+    xs, us, pv = rng.standard_normal((3, n)), rng.standard_normal((1, n)), np.array([1.5, -0.3])
+    cols = Columns(fn)
+    assert cols.compiled
+    got = cols(xs, pv, us, n=n)
+    want = [o.full() for o in fn.map(n)(xs, pv[:, None], us)]
+    for g, w in zip(got, want):
+        assert g.shape == w.shape and np.array_equal(g, w)
+    acc = Columns(ca.Function("step", [x, p, u], [0.9 * x + p[0] * u]))
+    got = acc(np.array([1.0, 2.0, 3.0]), pv, us, n=n, accumulate=True)[0]
+    assert np.array_equal(got, acc.fn.mapaccum(n)(np.array([1.0, 2.0, 3.0]), pv[:, None], us).full())
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")   # the interpreted fallback: same layout
+    plain = Columns(fn)
+    assert not plain.compiled
+    assert all(np.array_equal(g, w) for g, w in zip(plain(xs, pv, us, n=n), want))
+
+
+@needs_cc
+def test_compiled_equation_error_agrees_with_the_interpreter(cache, monkeypatch):
+    req = _request(method="equation_error", outputs=("x", "v"))
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")
+    plain = fit_model(req)
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    fast = fit_model(req)
+    for name in ("c", "k"):
+        assert fast.parameters[name].value == pytest.approx(plain.parameters[name].value, rel=1e-10)
+        assert fast.parameters[name].stderr == pytest.approx(plain.parameters[name].stderr, rel=1e-8)
+        assert fast.parameters[name].value == pytest.approx(MSD_TRUTH[name], rel=0.05)
+    assert (plain.solver.compiled, fast.solver.compiled) == (False, True)

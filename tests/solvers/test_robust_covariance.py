@@ -50,3 +50,15 @@ def test_robust_stderr_matches_monte_carlo_spread_where_classical_does_not():
         classical = np.mean([r.parameters[name].stderr_classical for r in results])
         assert abs(robust / empirical - 1) < 0.30, (name, robust, empirical)
         assert empirical / classical > 2.0, (name, classical, empirical)
+
+
+@pytest.mark.parametrize("n,lags,cols", [(1000, 500, 8), (300, 40, 3), (50, 49, 2), (400, 12, 4)])
+def test_bartlett_sum_equals_the_lag_by_lag_definition(n, lags, cols):
+    """Γ0 + Σ w_l (Γ_l + Γ_lᵀ) by FFT convolution (long bandwidths) = the sum written out."""
+    from solvers.robust_covariance import _bartlett_sum
+    b = np.cumsum(np.random.default_rng(n).standard_normal((n, cols)), axis=0)   # smooth scores
+    expected = b.T @ b
+    for lag in range(1, lags + 1):
+        gamma = b[lag:].T @ b[:-lag]
+        expected = expected + (1 - lag / (lags + 1)) * (gamma + gamma.T)
+    assert np.abs(_bartlett_sum(b, lags) - expected).max() <= 1e-12 * np.abs(expected).max()

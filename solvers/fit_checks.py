@@ -6,6 +6,7 @@ import casadi as ca
 import numpy as np
 
 from schemas.fit import FitOptions, FitWarning
+from solvers.columns import Columns
 from solvers.data import ExperimentData
 from solvers.equation_error import EquationErrorProblem
 from solvers.excitation import information_warnings, input_warnings, step_size_warning
@@ -67,15 +68,14 @@ def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: 
     """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
     if options.integrator != "rk4" or cm.model.discrete is not None:   # no integration step to judge
         return []
-    jac_fn = cm.derive(("dfdx",), lambda: _state_jacobian(cm))
+    jac_fn = cm.derive(("dfdx_columns",), lambda: Columns(_state_jacobian(cm)))
     rate, dt = 0.0, np.inf
     for e, d in enumerate(data):
         pe = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
         ks = np.linspace(0, d.n - 1, min(d.n, 20)).astype(int)
         ks = ks[np.all(np.isfinite(states[e][:, ks]), axis=0)]
         if ks.size:
-            a = np.array(jac_fn.map(ks.size)(states[e][:, ks], d.u[:, ks], np.repeat(pe[:, None], ks.size, 1),
-                                             d.t[None, ks]))
+            a, = jac_fn(states[e][:, ks], d.u[:, ks], pe, d.t[None, ks], n=ks.size)
             blocks = a.reshape(cm.nx, ks.size, cm.nx).transpose(1, 0, 2)
             blocks = blocks[np.all(np.isfinite(blocks), axis=(1, 2))]
             if blocks.size:

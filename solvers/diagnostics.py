@@ -106,6 +106,18 @@ def _bartlett_factor(acf_residual: np.ndarray, acf_input: np.ndarray) -> float:
 def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]],
                       ) -> ResidualAnalysis:
     """Per output; `segments` holds (measured, residual, inputs) per experiment, gaps removed."""
+    return residual_analyses([output], [segments])[0]
+
+
+def residual_analyses(outputs: list[str], segments: list[list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]],
+                      ) -> list[ResidualAnalysis]:
+    """`residual_analysis` of several outputs; an input's autocorrelation is computed once for all
+    the outputs that see the same samples of it (every output of a record without gaps)."""
+    input_acf: dict[bytes, np.ndarray] = {}
+    return [_analysis(name, segs, input_acf) for name, segs in zip(outputs, segments)]
+
+
+def _analysis(output: str, segments, input_acf: dict[bytes, np.ndarray]) -> ResidualAnalysis:
     measured = np.concatenate([s[0] for s in segments])
     resid = np.concatenate([s[1] for s in segments])
     rmse, fit = rmse_and_fit(measured, resid)
@@ -118,14 +130,20 @@ def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, 
     for _, r, u in usable:
         ok = np.isfinite(r)
         names = list(u)
-        rows = np.vstack([r[ok], *[u[name][ok] for name in names]])
-        pairs = [(0, 0)] + [(0, k + 1) for k in range(len(names))] + [(k + 1, k + 1) for k in range(len(names))]
+        series = [u[name][ok] for name in names]
+        keys = [s.tobytes() for s in series]
+        missing = [k for k, key in enumerate(keys) if key not in input_acf]
+        rows = np.vstack([r[ok], *series])
+        pairs = ([(0, 0)] + [(0, k + 1) for k in range(len(names))]
+                 + [(k + 1, k + 1) for k in missing])
         corr = _correlations(rows, pairs, lags)
+        for j, k in enumerate(missing):
+            input_acf[keys[k]] = corr[1 + len(names) + j, lags:]
         weight = rows.shape[1] / n_total
         acf += weight * corr[0, lags:]
         for k, name in enumerate(names):
             xc[name] = xc.get(name, 0) + weight * corr[1 + k]
-            acf_u[name] = acf_u.get(name, 0) + weight * corr[1 + len(names) + k, lags:]
+            acf_u[name] = acf_u.get(name, 0) + weight * input_acf[keys[k]]
     independence = {
         name: max_correlation_test(v, n_total, lags, _bartlett_factor(acf, acf_u[name]))
         for name, v in xc.items()}

@@ -191,8 +191,8 @@ def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: 
             rr, jj = sample(ed.x[:, ed.rows], ed.u[:, ed.rows], d.t[ed.rows][None, :],
                             ed.dx[equations][:, ed.rows], p, weights[equations], n=n)
             resids.append(rr.ravel(order="F"))
-            jp = jj.reshape(neq, n, cm.np).transpose(1, 0, 2)
-            blocks.append((jp @ layout.matrix[e]).reshape(n * neq, w.size))
+            jp = jj.reshape(neq, n, cm.np).transpose(1, 0, 2).reshape(n * neq, cm.np)
+            blocks.append(jp @ layout.matrix[e])
         out = np.vstack(blocks), np.concatenate(resids)
         if linear:
             affine.append(out)

@@ -70,13 +70,16 @@ def persistent_excitation_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) ->
     rows = n - (max_order - 1) * spacing
     lagged = np.column_stack([u[(max_order - 1 - k) * spacing:][:rows] for k in range(max_order)])
     full = lagged.T @ lagged / rows   # positive semidefinite by construction, as its leading blocks
-    order = 0
+    # the leading m×m blocks in one batched call: each padded with its own mean eigenvalue
+    # (trace/m), which lies between its extremes and so changes neither
+    stack = np.zeros((max_order, max_order, max_order))
     for m in range(1, max_order + 1):
-        eig = np.linalg.eigvalsh(full[:m, :m])
-        if eig[0] <= PE_RATIO * eig[-1]:
-            break
-        order = m
-    return order
+        stack[m - 1, :m, :m] = full[:m, :m]
+        pad = np.arange(m, max_order)
+        stack[m - 1, pad, pad] = np.trace(full[:m, :m]) / m
+    eig = np.linalg.eigvalsh(stack)
+    conditioned = eig[:, 0] > PE_RATIO * eig[:, -1]
+    return int(max_order if conditioned.all() else np.argmin(conditioned))
 
 
 def input_warnings(inputs: dict[str, list[np.ndarray]], interpolation: str,

@@ -12,7 +12,7 @@ from schemas.fit import (
 )
 from solvers.covariance import correlation_from, estimate_covariance
 from solvers.data import ExperimentData, prepare_experiments
-from solvers.diagnostics import residual_analysis
+from solvers.diagnostics import residual_analyses
 from solvers.equation_error import EquationErrorProblem, build_equation_error
 from solvers.errors import DataError
 from solvers.fixed_fit import fixed_parameter_result
@@ -181,15 +181,15 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     cost = 0.5 * float(res @ res)
     aic, bic = information_criteria(2 * cost, ndata, nvarys)
     channels = _residuals(cm, data, eep, oem, theta, x0s, res)
-    rmse, fitp, analyses = {}, {}, []
+    segments = []
     for c, name in enumerate(channels.channels):
-        segments = []
+        segments.append([])
         for d, (meas, r) in zip(data, channels.per_experiment):
             ok = np.isfinite(meas[c]) & np.isfinite(r[c])
-            segments.append((meas[c][ok], r[c][ok], {u: d.u[k][ok] for k, u in enumerate(cm.inputs)}))
-        analysis = residual_analysis(name, segments)
-        analyses.append(analysis)
-        rmse[name], fitp[name] = analysis.rmse, analysis.fit_percent
+            segments[-1].append((meas[c][ok], r[c][ok], {u: d.u[k][ok] for k, u in enumerate(cm.inputs)}))
+    analyses = residual_analyses(channels.channels, segments)
+    rmse = {a.output: a.rmse for a in analyses}
+    fitp = {a.output: a.fit_percent for a in analyses}
     white = all(a.whiteness.passed or not a.whiteness.lags for a in analyses)
     robust = opts.robust_covariance == "always" or (opts.robust_covariance == "auto" and not white)
     sample_keys, experiment_keys = row_keys(data, eep, cm)

@@ -28,12 +28,14 @@ _lock = threading.Lock()
 class Columns:
     """`fn` (dense inputs, one sample each) evaluated at n samples at once."""
 
-    def __init__(self, fn: ca.Function, evaluations: float = 0.0):
+    def __init__(self, fn: ca.Function, evaluations: float = 0.0, compile: bool = True):
+        """`compile=False` for a Function used by one request only (discovery's candidate models):
+        a compiler run would cost more than it saves."""
         self.fn = fn
         self._maps = FunctionCache(8)
         self._driver = None
         # only SX graphs are generated as C here (an integrator such as CVODES is not)
-        self._dense_inputs = fn.is_a("SXFunction") and all(
+        self._dense_inputs = compile and fn.is_a("SXFunction") and all(
             fn.sparsity_in(i).is_dense() for i in range(fn.n_in()))
         self._out_sparsity = [fn.sparsity_out(j) for j in range(fn.n_out())]
         self._find_library(evaluations)

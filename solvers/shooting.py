@@ -37,7 +37,8 @@ class OutputErrorModel:
         self.weights = output_weights(cm, data, options)
         self.xscale = state_scales(cm, data)
         self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
-        self._maps = cm.derive(("maps",), FunctionCache) if isinstance(cm, CompiledModel) else FunctionCache()
+        self._reused = isinstance(cm, CompiledModel)   # kept across requests (not a stand-in)
+        self._maps = cm.derive(("maps",), FunctionCache) if self._reused else FunctionCache()
         self._simulated: "OrderedDict[bytes, tuple]" = OrderedDict()
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
@@ -71,7 +72,8 @@ class OutputErrorModel:
         o = self.options
         samples = sum(d.n for d in self.data)
         return self._maps.get(("numeric", o.integrator, o.substeps, o.input_interpolation),
-                              lambda: (Columns(self.step, 4 * samples), Columns(self.cm.output, 4 * samples)))
+                              lambda: (Columns(self.step, 4 * samples, self._reused),
+                                       Columns(self.cm.output, 4 * samples, self._reused)))
 
     def step_inputs(self, d: ExperimentData, i0: int, i1: int):
         """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked)."""

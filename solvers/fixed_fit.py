@@ -33,8 +33,8 @@ def fixed_parameter_result(request: FitRequest, cm: CompiledModel, data: list[Ex
         if note:
             notes.append(f"{d.name}: {note}")
     n_x0 = sum(len(f) for f in oem.free_x0)
-    sims = [(np.array(oem.trajectory(e, x0s[e], p)), None) for e in range(len(data))]
-    outputs = [np.array(oem.outputs_of(e, xs, p)) for e, (xs, _) in enumerate(sims)]
+    sims = [(oem.numeric_states(e, x0s[e], p), None) for e in range(len(data))]
+    outputs = [oem.numeric_outputs(e, xs, p) for e, (xs, _) in enumerate(sims)]
     resid = [y - d.y for d, y in zip(data, outputs)]
     weighted = np.concatenate([(oem.weights[:, None] * r)[d.mask] for d, r in zip(data, resid)])
     ndata = weighted.size

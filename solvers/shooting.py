@@ -86,31 +86,39 @@ class OutputErrorModel:
         xs = self.simulator(d.n - 1)(x0, u0, u1, ca.repmat(p, 1, d.n - 1), t0, dt)
         return ca.horzcat(x0, xs)
 
+    def numeric_states(self, e: int, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """`trajectory` for numbers (nx × N); raises RuntimeError where the integrator fails."""
+        d = self.data[e]
+        x0 = np.asarray(x0, dtype=float).reshape(-1, 1)
+        if d.n < 2:
+            return x0
+        u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
+        xs, = self.numeric_functions()[0](x0, u0, u1, np.asarray(p, dtype=float), t0, dt, n=d.n - 1,
+                                          accumulate=True)
+        return np.hstack([x0, xs])
+
+    def numeric_outputs(self, e: int, states: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """`outputs_of` for numbers (ny × N)."""
+        d = self.data[e]
+        return self.numeric_functions()[1](states, d.u, np.asarray(p, dtype=float), d.t[None, :], n=d.n)[0]
+
     def numeric_trajectory(self, e: int, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
         """`trajectory` for numbers; NaN (and the reason kept) when the integrator fails.
 
         CVODES raises when it cannot take a step (a stiff or diverging model); a fit that reaches
         such a point must end as a result that says so, not as an exception.
         """
-        d = self.data[e]
-        x0 = np.asarray(x0, dtype=float).reshape(-1, 1)
-        if d.n < 2:
-            return x0
-        u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
-        p = np.asarray(p, dtype=float).reshape(-1, 1)
         try:
-            xs, = self.numeric_functions()[0](x0, u0, u1, p, t0, dt, n=d.n - 1, accumulate=True)
-            return np.hstack([x0, xs])
+            return self.numeric_states(e, x0, p)
         except RuntimeError as exc:
             self.simulation_failures.append(
                 f"the simulation of experiment '{self.data[e].name}' failed ({_first_line(exc)})")
             return np.full((self.cm.nx, self.data[e].n), np.nan)
 
     def outputs_of(self, e: int, states, p):
+        """Outputs of experiment e as a graph (symbolic states or θ); `numeric_outputs` for numbers."""
         d = self.data[e]
-        reps = np.repeat(np.asarray(p, dtype=float).reshape(-1, 1), d.n, axis=1) if isinstance(
-            p, np.ndarray) else ca.repmat(p, 1, d.n)
-        return self.output_map(d.n)(states, d.u, reps, d.t[None, :])
+        return self.output_map(d.n)(states, d.u, ca.repmat(p, 1, d.n), d.t[None, :])
 
     def residual_of(self, e: int, y_model):
         """Weighted residual at the measured (non-null) samples, column-major order."""
@@ -180,7 +188,7 @@ class OutputErrorModel:
         for e in range(len(self.data)):
             p = np.asarray(self.layout.full(e, theta_s), dtype=float)
             xs = self.numeric_trajectory(e, x0s[e], p)
-            ys, = self.numeric_functions()[1](xs, self.data[e].u, p, self.data[e].t[None, :], n=self.data[e].n)
+            ys = self.numeric_outputs(e, xs, p)
             out.append((xs, ys))
         self._simulated[key] = ([(xs.copy(), ys.copy()) for xs, ys in out], self.simulation_failures[before:])
         while len(self._simulated) > 4:

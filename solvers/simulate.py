@@ -183,7 +183,7 @@ def k_step_ahead(oem: OutputErrorModel, e: int, p: np.ndarray, states: np.ndarra
         out = np.array(sim(starts, d.u[:, cols], d.u[:, cols + 1], np.repeat(p[:, None], cols.size, 1),
                            d.t[cols][None, :], (d.t[cols + 1] - d.t[cols])[None, :]))
         pred_states[:, k:] = out[:, k - 1::k]
-    return np.array(oem.outputs_of(e, pred_states, p))
+    return oem.numeric_outputs(e, pred_states, p)
 
 
 def simulate_arrays(model: Model, parameters: dict[str, float], experiments: list[Experiment],
@@ -209,8 +209,8 @@ def simulate_arrays(model: Model, parameters: dict[str, float], experiments: lis
         x0, source, estimated, used_window, note = _resolve_initial_state(
             cm, d, pvecs[e], initial_states.get(d.name), provided_source.get(d.name, "provided"), options,
             window, f"experiments[{e}].initial_state")
-        states = np.array(oem.trajectory(e, x0, pvecs[e]))
-        outputs = np.array(oem.outputs_of(e, states, pvecs[e]))
+        states = oem.numeric_states(e, x0, pvecs[e])
+        outputs = oem.numeric_outputs(e, states, pvecs[e])
         if not np.all(np.isfinite(states)):
             bad = int(np.flatnonzero(~np.all(np.isfinite(states), axis=0))[0])
             note = (note + "; " if note else "") + (

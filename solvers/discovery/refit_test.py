@@ -34,7 +34,7 @@ def residual_series(req: FitRequest, fit: FitResult) -> list[np.ndarray]:
     for e, d in enumerate(data):
         p = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
         x = oem.numeric_trajectory(e, np.array([x0s[e][s] for s in cm.states]), p)
-        y = np.array(oem.outputs_of(e, x, p))
+        y = oem.numeric_outputs(e, x, p)
         r = oem.weights[:, None] * (d.y - y)
         out += [np.where(d.mask[j], r[j], np.nan) for j in range(cm.ny)]
     return out

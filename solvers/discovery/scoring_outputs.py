@@ -55,7 +55,7 @@ class OutputScorer(RegressionScorer):
         for e, d in enumerate(oem.data):
             p = np.asarray(oem.layout.full(e, theta_s), dtype=float).ravel()
             x0 = np.array([x0s[e][s] for s in cm.states])
-            states = np.array(oem.trajectory(e, x0, p))
+            states = oem.numeric_states(e, x0, p)
             n = d.n
             u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
             zero = np.zeros((cm.nx, n - 1))

@@ -65,7 +65,7 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
     oem = OutputErrorModel(cm, data, layout, request.options)
     params = [np.asarray(layout.full(e, theta_s), dtype=float).ravel() for e in range(len(data))]
     try:
-        simulated = [np.array(oem.trajectory(e, np.array([x0s[e][s] for s in cm.states]), params[e]))
+        simulated = [oem.numeric_states(e, np.array([x0s[e][s] for s in cm.states]), params[e])
                      for e in range(len(data))]
     except RuntimeError:
         simulated = [np.zeros((cm.nx, d.n)) for d in data]

@@ -74,8 +74,11 @@ def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int, boo
     best, used = None, 0
     cpu0 = time.process_time()
     for theta0 in starts:
-        if best is not None and time.process_time() - cpu0 > options.max_cpu_time:
-            break   # max_cpu_time bounds the whole multistart, not each start
+        spent = time.process_time() - cpu0
+        # max_cpu_time bounds the whole multistart, not each start: another start is begun only
+        # if one more, at the cost of those so far, still ends inside it
+        if best is not None and spent + spent / used > options.max_cpu_time:
+            break
         out = solver.solve(problem.initial_guess(theta0))
         used += 1
         if best is None or (out.success, -out.cost) > (best.success, -best.cost):

@@ -64,20 +64,22 @@ def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
     return starts
 
 
-def _solve(problem, options, starts, linear: bool) -> tuple[NlpOutcome, int, bool | None]:
-    """(best outcome, starts used, whether compiled C evaluated the model)."""
+def _solve(problem, options, starts, linear: bool, cpu0: float | None = None) -> tuple[NlpOutcome, int, bool | None]:
+    """(best outcome, starts used, whether compiled C evaluated the model); `cpu0`: the process
+    time the fit began at (its preparation counts against max_cpu_time too)."""
     if linear:
         outcome = solve_linear_least_squares(problem, options)
         if outcome is not None:
             return outcome, 1, None
     solver = make_solver(problem, options)   # multiple shooting: with its gaps' curvature
     best, used = None, 0
-    cpu0 = time.process_time()
+    cpu0 = time.process_time() if cpu0 is None else cpu0
+    solving = time.process_time()
     for theta0 in starts:
-        spent = time.process_time() - cpu0
-        # max_cpu_time bounds the whole multistart, not each start: another start is begun only
-        # if one more, at the cost of those so far, still ends inside it
-        if best is not None and spent + spent / used > options.max_cpu_time:
+        now = time.process_time()
+        # max_cpu_time bounds the whole fit, not each start: another start is begun only if one
+        # more, at the cost of those so far, still ends inside it
+        if best is not None and now - cpu0 + (now - solving) / used > options.max_cpu_time:
             break
         out = solver.solve(problem.initial_guess(theta0))
         used += 1
@@ -117,7 +119,7 @@ def fit_model(request: FitRequest) -> FitResult:
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:
-    started = time.perf_counter()
+    started, cpu0 = time.perf_counter(), time.process_time()
     opts = request.options
     cm = compile_model(request.model)
     data = prepare_experiments(request.experiments, cm)
@@ -148,11 +150,11 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     if eep is not None:
         affine = ext.solve_affine(problem, layout, eep.linear)
         outcome, n_starts, is_c = ((*affine, None) if affine
-                                   else _solve(problem, opts, starts, eep.linear and problem.penalty is None))
+                                   else _solve(problem, opts, starts, eep.linear and problem.penalty is None, cpu0))
         if outcome.status == "Linear_Least_Squares":   # the per-sample Jacobian was all that ran
             is_c = eep.sample.compiled
     else:
-        outcome, n_starts, is_c = _solve(problem, opts, starts, False)
+        outcome, n_starts, is_c = _solve(problem, opts, starts, False, cpu0)
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
         outcome.w, outcome.success = problem.initial_guess(layout.initial), False
 

@@ -22,6 +22,10 @@ from service.tasks import run_task
 
 Outcome = dict[str, Any]
 
+# one worker process per core does the parallel work: BLAS threads of their own would only fight
+# over the same cores (an operator's own setting wins)
+SINGLE_THREADED = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
 
 def _worker_main(conn, cpu_seconds: float) -> None:
     """Loop of one local worker process: receive a task, run it under a CPU-time limit, reply."""
@@ -72,6 +76,8 @@ class LocalWorkerPool:
 
     def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
         self.ctx = mp.get_context("spawn")
+        for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
+            os.environ.setdefault(name, value)
         self.cpu_seconds = cpu_seconds
         self.wall_seconds = wall_seconds
         self._wake_r, self._wake_w = os.pipe()

@@ -13,8 +13,8 @@ Three rules keep work honest:
 When fits take milliseconds, the job store's writes are what a batch waits for, so a free worker
 gets its next task before anything is written: while tasks are short, about AHEAD_SECONDS of work
 per worker is claimed ahead into `ready`, several tasks a transaction (long tasks stay in the store,
-where any replica's free worker can take them), and outcomes are written together, at most
-FLUSH_SECONDS after they arrived.
+where any replica's free worker can take them), one is queued behind the task each local worker
+runs, and outcomes are written together, at most FLUSH_SECONDS after they arrived.
 """
 from __future__ import annotations
 
@@ -44,7 +44,8 @@ class Dispatcher:
         self.store, self.executor, self.settings, self.metrics = store, executor, settings, metrics
         self.owner = str(uuid.uuid4())
         self.sync: "queue.Queue[tuple[str, str, dict, cf.Future]]" = queue.Queue()
-        self.running: dict[str, tuple] = {}   # key -> ("job", job_id, idx, kind, t0) | ("sync", future, kind, t0)
+        # key -> ("job", job_id, idx, task, kind, t0) | ("sync", future, kind, t0); t0: when submitted
+        self.running: dict[str, tuple] = {}
         self.pending: list[tuple[str, int, dict]] = []   # job outcomes not yet written to the store
         self._pending_since = 0.0
         self._flush_now = False
@@ -162,7 +163,14 @@ class Dispatcher:
             order = (self._start_job_task, self._start_sync) if self._jobs_first() else \
                 (self._start_sync, self._start_job_task)
             if not (order[0]() or order[1]()):
-                return
+                break
+        # job tasks shorter than AHEAD_SECONDS also queue behind running ones (the hand-over is then
+        # no longer a few per cent of a task), unless synchronous fits wait for a worker
+        if self._ahead_per_worker() >= 1 and self.sync.empty() and self.executor.queue_room() > 0:
+            if not self.ready:
+                self._claim(self.executor.queue_room())
+            while self.ready and self.executor.queue_room() > 0:
+                self._start_job_task()
 
     def _start_sync(self) -> bool:
         while True:
@@ -186,14 +194,20 @@ class Dispatcher:
             self._no_jobs_until = time.monotonic() + self.settings.poll_seconds
         self.ready.extend(claimed)
 
+    def _ahead_per_worker(self) -> int:
+        """Job tasks per worker worth claiming ahead: 0 for long tasks (or not known yet); 1, just
+        the one queued behind a worker's task; 2 or more, also some in `ready`. A claim per task
+        costs little beside long tasks, and claiming ahead holds tasks other replicas could run."""
+        if self._task_seconds is None:
+            return 0
+        return min(MAX_AHEAD, int(AHEAD_SECONDS / max(self._task_seconds, 1e-6)))
+
     def _claim_ahead(self) -> None:
         """While tasks are short, keep about AHEAD_SECONDS of work per worker claimed, so that a
         worker that finishes starts its next task without waiting for the store; refilled when half
         of it is gone, so each claim takes several tasks."""
-        if self._task_seconds is None:
-            return
-        per_worker = min(MAX_AHEAD, int(AHEAD_SECONDS / max(self._task_seconds, 1e-6)))
-        if per_worker < 2:           # long tasks: a claim per task costs little beside them
+        per_worker = self._ahead_per_worker()
+        if per_worker < 2:
             return
         target = per_worker * self.executor.capacity()
         if len(self.ready) <= target // 2:
@@ -207,7 +221,7 @@ class Dispatcher:
                 return False
         task = self.ready.popleft()
         key = f"{task.job_id}:{task.idx}"
-        self.running[key] = ("job", task.job_id, task.idx, task.kind, time.monotonic())
+        self.running[key] = ("job", task.job_id, task.idx, task, task.kind, time.monotonic())
         self.executor.submit(key, task.kind, task.request)
         self._last_pick = "job"
         return True
@@ -218,7 +232,15 @@ class Dispatcher:
             if item is None:
                 continue
             kind, t0 = item[-2], item[-1]
-            self.metrics.count_fit(kind, outcome["status"], time.monotonic() - t0)
+            if outcome["status"] == "not_started":   # its worker was replaced before it began
+                if item[0] == "job":
+                    self.ready.appendleft(item[3])
+                    continue
+                # (synchronous fits only go to a free worker, so never queue behind another)
+                outcome = {"status": "failed", "error": {"type": "WorkerLost", "field": None, "retry": True,
+                                                         "detail": "the worker process was replaced; retry"}}
+            seconds = outcome.get("seconds", time.monotonic() - t0)   # the worker's count: not queued time
+            self.metrics.count_fit(kind, outcome["status"], seconds)
             error = outcome.get("error") or {}
             if error.get("type") == "InternalError":
                 log.error("task %s (%s) failed with an internal error: %s\n%s", key, kind,
@@ -227,7 +249,6 @@ class Dispatcher:
                 if not item[1].done():
                     item[1].set_result(outcome)
             else:
-                seconds = time.monotonic() - t0
                 self._task_seconds = seconds if self._task_seconds is None else \
                     0.8 * self._task_seconds + 0.2 * seconds
                 self._add_pending(item[1], item[2], outcome)

@@ -84,6 +84,12 @@ _START = (update(tasks)
                  tasks.c.status == "queued")
           .values(status="running", owner=bindparam("b_owner"), lease_until=bindparam("b_lease"),
                   started_at=bindparam("b_at"), attempts=tasks.c.attempts + 1))
+_JOB = select(jobs).where(jobs.c.id == bindparam("b_id"))
+_JOB_TASKS = (select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at, tasks.c.finished_at,
+                     tasks.c.error)
+              .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
+_RESULTS = (select(tasks.c.idx, tasks.c.status, tasks.c.result, tasks.c.error)
+            .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
 _FINISH = (update(tasks)
            .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx == bindparam("b_idx"),
                   tasks.c.status == "running", tasks.c.owner == bindparam("b_owner"))
@@ -198,14 +204,11 @@ class JobStore:
 
     def get_job(self, job_id: str) -> Optional[dict[str, Any]]:
         with self.engine.connect() as conn:
-            job = conn.execute(select(jobs).where(jobs.c.id == job_id)).mappings().first()
+            job = conn.execute(_JOB, {"b_id": job_id}).mappings().first()
             if job is None:
                 return None
-            rows = conn.execute(
-                select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at,
-                       tasks.c.finished_at, tasks.c.error)
-                .where(tasks.c.job_id == job_id).order_by(tasks.c.idx)).mappings().all()
-        return {"job": dict(job), "tasks": [dict(r) for r in rows]}
+            rows = conn.execute(_JOB_TASKS, {"b_id": job_id}).all()
+        return {"job": dict(job), "tasks": [r._asdict() for r in rows]}
 
     def list_jobs(self, offset: int, limit: int) -> tuple[list[dict], int]:
         with self.engine.connect() as conn:
@@ -213,6 +216,11 @@ class JobStore:
             ids = conn.execute(select(jobs.c.id).order_by(jobs.c.created_at.desc())
                                .offset(offset).limit(limit)).scalars().all()
         return [self.get_job(i) for i in ids], count
+
+    def result_texts(self, job_id: str) -> list[tuple[int, str, Optional[str], Optional[str]]]:
+        """(idx, status, result JSON, error JSON) of each task, in order, as stored."""
+        with self.engine.connect() as conn:
+            return [tuple(r) for r in conn.execute(_RESULTS, {"b_id": job_id}).all()]
 
     def results(self, job_id: str) -> list[dict]:
         with self.engine.connect() as conn:

@@ -133,7 +133,7 @@ class Dispatcher:
                     self._stop_cancelled()
                     last_cancel_check = now
                 self._write_pending(flush=False)
-                self._claim_ahead()
+                self._claim_more()
             except Exception:  # the loop must survive a database hiccup
                 log.exception("dispatcher iteration failed")
                 self._stop.wait(min(1.0, self.settings.poll_seconds * 10))
@@ -202,12 +202,15 @@ class Dispatcher:
             return 0
         return min(MAX_AHEAD, int(AHEAD_SECONDS / max(self._task_seconds, 1e-6)))
 
-    def _claim_ahead(self) -> None:
-        """While tasks are short, keep about AHEAD_SECONDS of work per worker claimed, so that a
-        worker that finishes starts its next task without waiting for the store; refilled when half
-        of it is gone, so each claim takes several tasks."""
+    def _claim_more(self) -> None:
+        """After the free workers got their tasks: look in the store for job tasks if synchronous
+        fits wait (they did not wait for that), and while tasks are short keep about AHEAD_SECONDS
+        of work per worker claimed, so that a worker that finishes starts its next task without
+        waiting for the store; refilled when half of it is gone, so each claim takes several tasks."""
         per_worker = self._ahead_per_worker()
         if per_worker < 2:
+            if not self.ready and not self.sync.empty():
+                self._claim(1)   # a job task found gets the next free worker (job_reserved_workers)
             return
         target = per_worker * self.executor.capacity()
         if len(self.ready) <= target // 2:
@@ -216,6 +219,8 @@ class Dispatcher:
 
     def _start_job_task(self) -> bool:
         if not self.ready:
+            if not self.sync.empty():   # no store read before a waiting synchronous fit: _claim_more
+                return False
             self._claim(self.executor.free())
             if not self.ready:
                 return False

@@ -86,8 +86,10 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
                simulate_routes.router, report_routes.router, frequency.router)
     for router in routers:
         app.include_router(router)
-    # what the parser processes import when they start
-    body_modules = sorted({m.__module__ for r in routers for m in map(body_model, r.routes) if m is not None})
+    # what the parser processes import when they start: the schemas (a model defined in a route's
+    # module would bring the whole web stack into them)
+    body_modules = sorted({m.__module__ for r in routers for m in map(body_model, r.routes)
+                           if m is not None and m.__module__.startswith("schemas.")})
 
     install_openapi(app, settings)
 

@@ -67,7 +67,10 @@ class Dispatcher:
         return fut
 
     def sync_waiting(self) -> int:
-        return self.sync.qsize()
+        """Synchronous fits waiting for a worker; one its caller gave up on no longer counts (the
+        dispatcher drops it when it gets to it)."""
+        with self.sync.mutex:
+            return sum(1 for item in self.sync.queue if not item[3].cancelled())
 
     def cancel_sync(self, fut: cf.Future, kind: str = "fit") -> None:
         """The caller gave up (timeout, disconnect): free the worker instead of finishing the fit."""

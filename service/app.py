@@ -15,7 +15,7 @@ from service.admission import BodyBudget
 from service.auth import ApiKeyGate
 from service.dispatcher import Dispatcher
 from service.executors import make_executor
-from service.json_body import BodyParser
+from service.json_body import BodyParser, body_model
 from service.metrics import Metrics
 from service.openapi import install_openapi
 from service.problems import install_handlers
@@ -67,6 +67,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
         dispatcher = Dispatcher(store, executor, settings, app.state.metrics)
         app.state.store, app.state.dispatcher = store, dispatcher
         dispatcher.start()
+        app.state.body_parser.start(body_modules)
         log.info("greyfit ready: %s executor, store %s", settings.executor, store.engine.url)
         try:
             yield
@@ -81,9 +82,14 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     app.state.metrics = Metrics()
     app.state.body_parser = BodyParser(settings.body_parser_processes, settings.retry_after_seconds)
     install_handlers(app)
-    for router in (health.router, fits.router, discover.router, jobs.router, ops.router,
-                   simulate_routes.router, report_routes.router, frequency.router):
+    routers = (health.router, fits.router, discover.router, jobs.router, ops.router,
+               simulate_routes.router, report_routes.router, frequency.router)
+    for router in routers:
         app.include_router(router)
+    # what the parser processes import when they start: the schemas (a model defined in a route's
+    # module would bring the whole web stack into them)
+    body_modules = sorted({m.__module__ for r in routers for m in map(body_model, r.routes)
+                           if m is not None and m.__module__.startswith("schemas.")})
 
     install_openapi(app, settings)
 

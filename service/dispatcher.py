@@ -9,6 +9,12 @@ Three rules keep work honest:
   `task_max_attempts` times; one that hit its CPU or wall-time limit fails at once (it would again);
 - job tasks keep `job_reserved_workers` workers while synchronous fits wait, so a burst of
   synchronous traffic cannot starve the jobs (with one worker the two alternate).
+
+When fits take milliseconds, the job store's writes are what a batch waits for, so a free worker
+gets its next task before anything is written: while tasks are short, about AHEAD_SECONDS of work
+per worker is claimed ahead into `ready`, several tasks a transaction (long tasks stay in the store,
+where any replica's free worker can take them), one is queued behind the task each local worker
+runs, and outcomes are written together, at most FLUSH_SECONDS after they arrived.
 """
 from __future__ import annotations
 
@@ -18,13 +24,19 @@ import queue
 import threading
 import time
 import uuid
+from collections import deque
 from typing import Optional
 
 from service.metrics import Metrics
 from service.settings import Settings
-from service.store import JobStore
+from service.store import JobStore, TaskRow
 
 log = logging.getLogger("greyfit.dispatcher")
+
+FLUSH_SECONDS = 0.05      # longest an outcome waits to be written with others
+FLUSH_COUNT = 32          # ... or until this many wait
+AHEAD_SECONDS = 0.25      # work per worker claimed ahead while tasks are short (two or more fit in it)
+MAX_AHEAD = 16            # tasks per worker claimed ahead at most
 
 
 class Dispatcher:
@@ -32,8 +44,13 @@ class Dispatcher:
         self.store, self.executor, self.settings, self.metrics = store, executor, settings, metrics
         self.owner = str(uuid.uuid4())
         self.sync: "queue.Queue[tuple[str, str, dict, cf.Future]]" = queue.Queue()
-        self.running: dict[str, tuple] = {}   # key -> ("job", job_id, idx, kind, t0) | ("sync", future, kind, t0)
+        # key -> ("job", job_id, idx, task, kind, t0) | ("sync", future, kind, t0); t0: when submitted
+        self.running: dict[str, tuple] = {}
         self.pending: list[tuple[str, int, dict]] = []   # job outcomes not yet written to the store
+        self._pending_since = 0.0
+        self._flush_now = False
+        self.ready: deque[TaskRow] = deque()   # job tasks claimed (leased to us) but not on a worker yet
+        self._task_seconds: Optional[float] = None   # moving average of job tasks' wall time
         self._cancels: "queue.Queue[cf.Future]" = queue.Queue()
         self._stop = threading.Event()
         self._wake = threading.Event()
@@ -45,11 +62,15 @@ class Dispatcher:
     def submit_sync(self, kind: str, request: dict) -> cf.Future:
         fut: cf.Future = cf.Future()
         self.sync.put((f"sync-{uuid.uuid4()}", kind, request, fut))
-        self.wake()
+        self._wake.set()              # not wake(): no new job, so no need to look in the store
+        self.executor.wake()
         return fut
 
     def sync_waiting(self) -> int:
-        return self.sync.qsize()
+        """Synchronous fits waiting for a worker; one its caller gave up on no longer counts (the
+        dispatcher drops it when it gets to it)."""
+        with self.sync.mutex:
+            return sum(1 for item in self.sync.queue if not item[3].cancelled())
 
     def cancel_sync(self, fut: cf.Future, kind: str = "fit") -> None:
         """The caller gave up (timeout, disconnect): free the worker instead of finishing the fit."""
@@ -60,6 +81,7 @@ class Dispatcher:
             self.wake()
 
     def wake(self) -> None:
+        """A job was created or cancelled here: look at the store now."""
         self._no_jobs_until = 0.0     # a new job may be waiting
         self._wake.set()
         self.executor.wake()
@@ -85,11 +107,13 @@ class Dispatcher:
             self._thread.join(timeout=10)
         try:
             self._collect()           # outcomes that arrived meanwhile are kept, not re-run
+            self._write_pending()
         except Exception:
             log.exception("could not record the last outcomes at shutdown")
         self.executor.shutdown()
-        # tasks we were running go back to the queue at once, without counting an attempt;
-        # another server (or our restart) runs them
+        # tasks we were running (or had claimed for the next free worker) go back to the queue at
+        # once, without counting an attempt; another server (or our restart) runs them
+        self.ready.clear()
         self.store.requeue_owned(self.owner)
         for item in list(self.running.values()):
             if item[0] == "sync" and not item[1].done():
@@ -103,6 +127,7 @@ class Dispatcher:
                 now = time.monotonic()
                 self._collect()
                 self._cancel_abandoned()
+                self._fill()          # free workers first: what follows writes to the store
                 if now - last_lease > self.settings.lease_seconds / 3:
                     self.store.renew(self.owner, self.settings.lease_seconds)
                     self.store.requeue_expired()
@@ -110,13 +135,17 @@ class Dispatcher:
                 if now - last_cancel_check > 0.25:
                     self._stop_cancelled()
                     last_cancel_check = now
-                self._fill()
+                self._write_pending(flush=False)
+                self._claim_more()
             except Exception:  # the loop must survive a database hiccup
                 log.exception("dispatcher iteration failed")
                 self._stop.wait(min(1.0, self.settings.poll_seconds * 10))
             if not self._wake.is_set():
+                timeout = self.settings.poll_seconds
+                if self.pending:      # wake up in time to write them (a failed write: after the pause)
+                    timeout = max(0.0, min(timeout, self._pending_since + FLUSH_SECONDS - time.monotonic()))
                 try:
-                    self.executor.wait(self.settings.poll_seconds)
+                    self.executor.wait(timeout)
                 except Exception:  # e.g. a Dask timeout: just loop again
                     pass
             self._wake.clear()
@@ -137,7 +166,14 @@ class Dispatcher:
             order = (self._start_job_task, self._start_sync) if self._jobs_first() else \
                 (self._start_sync, self._start_job_task)
             if not (order[0]() or order[1]()):
-                return
+                break
+        # job tasks shorter than AHEAD_SECONDS also queue behind running ones (the hand-over is then
+        # no longer a few per cent of a task), unless synchronous fits wait for a worker
+        if self._ahead_per_worker() >= 1 and self.sync.empty() and self.executor.queue_room() > 0:
+            if not self.ready:
+                self._claim(self.executor.queue_room())
+            while self.ready and self.executor.queue_room() > 0:
+                self._start_job_task()
 
     def _start_sync(self) -> bool:
         while True:
@@ -151,16 +187,49 @@ class Dispatcher:
                 self._last_pick = "sync"
                 return True
 
-    def _start_job_task(self) -> bool:
-        if time.monotonic() < self._no_jobs_until:
-            return False
-        task = self.store.claim(self.owner, self.settings.lease_seconds, self.settings.task_max_attempts)
-        if task is None:
+    def _claim(self, limit: int) -> None:
+        if limit <= 0 or time.monotonic() < self._no_jobs_until:
+            return
+        claimed = self.store.claim_many(self.owner, self.settings.lease_seconds, self.settings.task_max_attempts,
+                                        limit)
+        if not claimed:
             # look again at the next wake-up (a job created here) or poll (one created by a replica)
             self._no_jobs_until = time.monotonic() + self.settings.poll_seconds
-            return False
+        self.ready.extend(claimed)
+
+    def _ahead_per_worker(self) -> int:
+        """Job tasks per worker worth claiming ahead: 0 for long tasks (or not known yet); 1, just
+        the one queued behind a worker's task; 2 or more, also some in `ready`. A claim per task
+        costs little beside long tasks, and claiming ahead holds tasks other replicas could run."""
+        if self._task_seconds is None:
+            return 0
+        return min(MAX_AHEAD, int(AHEAD_SECONDS / max(self._task_seconds, 1e-6)))
+
+    def _claim_more(self) -> None:
+        """After the free workers got their tasks: look in the store for job tasks if synchronous
+        fits wait (they did not wait for that), and while tasks are short keep about AHEAD_SECONDS
+        of work per worker claimed, so that a worker that finishes starts its next task without
+        waiting for the store; refilled when half of it is gone, so each claim takes several tasks."""
+        per_worker = self._ahead_per_worker()
+        if per_worker < 2:
+            if not self.ready and not self.sync.empty():
+                self._claim(1)   # a job task found gets the next free worker (job_reserved_workers)
+            return
+        target = per_worker * self.executor.capacity()
+        if len(self.ready) <= target // 2:
+            self._claim(target - len(self.ready))
+            self._fill()
+
+    def _start_job_task(self) -> bool:
+        if not self.ready:
+            if not self.sync.empty():   # no store read before a waiting synchronous fit: _claim_more
+                return False
+            self._claim(self.executor.free())
+            if not self.ready:
+                return False
+        task = self.ready.popleft()
         key = f"{task.job_id}:{task.idx}"
-        self.running[key] = ("job", task.job_id, task.idx, task.kind, time.monotonic())
+        self.running[key] = ("job", task.job_id, task.idx, task, task.kind, time.monotonic())
         self.executor.submit(key, task.kind, task.request)
         self._last_pick = "job"
         return True
@@ -171,7 +240,15 @@ class Dispatcher:
             if item is None:
                 continue
             kind, t0 = item[-2], item[-1]
-            self.metrics.count_fit(kind, outcome["status"], time.monotonic() - t0)
+            if outcome["status"] == "not_started":   # its worker was replaced before it began
+                if item[0] == "job":
+                    self.ready.appendleft(item[3])
+                    continue
+                # (synchronous fits only go to a free worker, so never queue behind another)
+                outcome = {"status": "failed", "error": {"type": "WorkerLost", "field": None, "retry": True,
+                                                         "detail": "the worker process was replaced; retry"}}
+            seconds = outcome.get("seconds", time.monotonic() - t0)   # the worker's count: not queued time
+            self.metrics.count_fit(kind, outcome["status"], seconds)
             error = outcome.get("error") or {}
             if error.get("type") == "InternalError":
                 log.error("task %s (%s) failed with an internal error: %s\n%s", key, kind,
@@ -180,21 +257,45 @@ class Dispatcher:
                 if not item[1].done():
                     item[1].set_result(outcome)
             else:
-                self.pending.append((item[1], item[2], outcome))
-        self._write_pending()
+                self._task_seconds = seconds if self._task_seconds is None else \
+                    0.8 * self._task_seconds + 0.2 * seconds
+                self._add_pending(item[1], item[2], outcome)
+                if not self._has_tasks(item[1]):   # perhaps the job's last: its caller waits for it
+                    self._flush_now = True
 
-    def _write_pending(self) -> None:
-        """Write job outcomes in order; what cannot be written now is kept for the next round."""
-        while self.pending:
-            job_id, idx, outcome = self.pending[0]
+    def _has_tasks(self, job_id: str) -> bool:
+        return any(item[0] == "job" and item[1] == job_id for item in self.running.values()) or \
+            any(t.job_id == job_id for t in self.ready)
+
+    def _add_pending(self, job_id: str, idx: int, outcome: dict) -> None:
+        if not self.pending:
+            self._pending_since = time.monotonic()
+        self.pending.append((job_id, idx, outcome))
+
+    def _write_pending(self, flush: bool = True) -> None:
+        """Write job outcomes; what cannot be written now is kept for the next round.
+
+        Unless `flush`, they wait until FLUSH_COUNT of them wait, the oldest is FLUSH_SECONDS old,
+        or one may be its job's last: one transaction for several outcomes."""
+        if not self.pending or (not flush and not self._flush_now and len(self.pending) < FLUSH_COUNT
+                                and time.monotonic() - self._pending_since < FLUSH_SECONDS):
+            return
+        self._flush_now = False
+        finished = []
+        for job_id, idx, outcome in list(self.pending):
             error = outcome.get("error")
             if outcome["status"] == "failed" and error and error.get("retry"):
                 status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, error)
                 if status == "queued":
                     log.warning("task %s:%s re-queued: %s", job_id, idx, error.get("detail"))
+                self.pending.remove((job_id, idx, outcome))
             else:
-                self.store.finish(job_id, idx, self.owner, outcome["status"], outcome.get("result_json"), error)
-            self.pending.pop(0)
+                finished.append((job_id, idx, outcome))
+        if finished:
+            self.store.finish_many(self.owner, [(job_id, idx, o["status"], o.get("result_json"), o.get("error"))
+                                                for job_id, idx, o in finished])
+            self.pending = [p for p in self.pending if p not in finished]
+        self._pending_since = time.monotonic()
 
     def _cancel_abandoned(self) -> None:
         while True:
@@ -209,13 +310,17 @@ class Dispatcher:
                     self.metrics.count_fit(item[2], "abandoned", None)
 
     def _stop_cancelled(self) -> None:
-        jobs = {item[1] for item in self.running.values() if item[0] == "job"}
+        jobs = {item[1] for item in self.running.values() if item[0] == "job"} | {t.job_id for t in self.ready}
         for job_id in jobs:
             if self.store.is_cancelled(job_id):
+                cancelled = {"status": "cancelled", "error": {
+                    "type": "Cancelled", "field": None, "detail": "the job was cancelled"}}
                 for key, item in list(self.running.items()):
                     if item[0] == "job" and item[1] == job_id:
                         self.executor.cancel(key)
                         self.running.pop(key)
-                        self.pending.append((job_id, item[2], {"status": "cancelled", "error": {
-                            "type": "Cancelled", "field": None, "detail": "the job was cancelled"}}))
+                        self._add_pending(job_id, item[2], cancelled)
+                for task in [t for t in self.ready if t.job_id == job_id]:
+                    self.ready.remove(task)
+                    self._add_pending(job_id, task.idx, cancelled)
                 self._write_pending()

@@ -1,11 +1,17 @@
 """Where fits run: persistent local worker processes (default) or a Dask cluster (scale-out).
 
-Both expose the same small interface to the dispatcher: `capacity()`, `free()`,
+Both expose the same small interface to the dispatcher: `capacity()`, `free()`, `queue_room()`,
 `submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `cancel(key)`, `shutdown()`.
 
 A failed outcome whose error carries `retry: True` lost its worker to something outside the task
 (a crash, a kill, a lost Dask worker): the dispatcher runs the task again. A task that hit its CPU
 or wall-time limit is not retried: it would hit it again.
+
+A local worker can hold one task queued behind the one it runs (`queue_room()` counts the workers
+that can), so that it starts the next the moment it finishes, not after the dispatcher has read its
+answer: with fits of milliseconds that hand-over is a good part of the time. A queued task can be
+withdrawn; one its worker never started (the worker died or was stopped) comes back as
+{"status": "not_started"}, for the dispatcher to hand out again.
 """
 from __future__ import annotations
 
@@ -15,6 +21,7 @@ import os
 import resource
 import signal
 import time
+from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
@@ -22,19 +29,44 @@ from service.tasks import run_task
 
 Outcome = dict[str, Any]
 
+# one worker process per core does the parallel work: BLAS threads of their own would only fight
+# over the same cores (an operator's own setting wins)
+SINGLE_THREADED = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
+
+
+def _take(msg, todo: deque, conn) -> bool:
+    """A message to a worker: a task (key, kind, request), (key,) to withdraw a task not started
+    yet, or None to stop (returns False)."""
+    if msg is None:
+        return False
+    if len(msg) == 1:
+        for task in todo:
+            if task[0] == msg[0]:
+                todo.remove(task)
+                conn.send((msg[0], {"status": "withdrawn"}))
+                break
+    else:
+        todo.append(msg)
+    return True
+
 
 def _worker_main(conn, cpu_seconds: float) -> None:
-    """Loop of one local worker process: receive a task, run it under a CPU-time limit, reply."""
+    """Loop of one local worker process: receive tasks, run each under a CPU-time limit, reply."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the server, which stops us
     import solvers.fit  # noqa: F401  (import CasADi once, not per task)
+    todo: deque = deque()
     while True:
         try:
-            msg = conn.recv()
+            if not todo and not _take(conn.recv(), todo, conn):
+                return
+            while conn.poll():        # read everything sent meanwhile: a withdrawal comes after its task
+                if not _take(conn.recv(), todo, conn):
+                    return
         except EOFError:
             return
-        if msg is None:
-            return
-        key, kind, request = msg
+        if not todo:
+            continue
+        key, kind, request = todo.popleft()
         used = resource.getrusage(resource.RUSAGE_SELF)
         spent = used.ru_utime + used.ru_stime
         soft = int(spent + cpu_seconds) + 1
@@ -43,7 +75,9 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         if hard != resource.RLIM_INFINITY:
             soft = min(soft, hard)
         resource.setrlimit(resource.RLIMIT_CPU, (soft, hard))
+        started = time.monotonic()
         outcome = run_task(kind, request, cpu_seconds)
+        outcome["seconds"] = time.monotonic() - started
         conn.send((key, outcome))
 
 
@@ -62,9 +96,8 @@ def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
 class _Slot:
     process: Any
     conn: Any
-    key: Optional[str] = None
-    started: float = 0.0
-    extra: dict = field(default_factory=dict)
+    keys: list = field(default_factory=list)   # the task it runs, then at most one queued behind
+    started: float = 0.0                        # when the task it runs started (about)
 
 
 class LocalWorkerPool:
@@ -72,17 +105,20 @@ class LocalWorkerPool:
 
     def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
         self.ctx = mp.get_context("spawn")
+        for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
+            os.environ.setdefault(name, value)
         self.cpu_seconds = cpu_seconds
         self.wall_seconds = wall_seconds
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
+        self._returned: list[tuple[str, Outcome]] = []   # tasks given back by a replaced worker
         self.slots = [self._spawn() for _ in range(workers)]
 
     def wait(self, timeout: float) -> None:
         """Block until a worker replies or dies, `wake()` is called, or the timeout passes."""
-        busy = [s for s in self.slots if s.key is not None]
+        busy = [s for s in self.slots if s.keys]
         handles = [s.conn for s in busy] + [s.process.sentinel for s in busy] + [self._wake_r]
-        ready = mp_connection.wait(handles, timeout=timeout)
+        ready = mp_connection.wait(handles, timeout=0 if self._returned else timeout)
         if self._wake_r in ready:
             os.read(self._wake_r, 4096)
 
@@ -103,62 +139,82 @@ class LocalWorkerPool:
         return len(self.slots)
 
     def free(self) -> int:
-        return sum(1 for s in self.slots if s.key is None)
+        return sum(1 for s in self.slots if not s.keys)
 
-    def submit(self, key: str, kind: str, request: dict) -> None:
-        slot = next(s for s in self.slots if s.key is None)
-        slot.key, slot.started = key, time.monotonic()
+    def queue_room(self) -> int:
+        """Workers busy with one task and none queued behind it."""
+        return sum(1 for s in self.slots if len(s.keys) == 1)
+
+    def submit(self, key: str, kind: str, request: Any) -> None:
+        """To a free worker, else behind the task of a worker that has none queued."""
+        slot = next((s for s in self.slots if not s.keys), None) or next(s for s in self.slots if len(s.keys) == 1)
+        if not slot.keys:
+            slot.started = time.monotonic()
+        slot.keys.append(key)
         slot.conn.send((key, kind, request))
 
     def _replace(self, i: int) -> None:
+        """End worker i (if alive) and start another; the tasks queued behind its own were never
+        started: they come back from the next poll()."""
         slot = self.slots[i]
         if slot.process.is_alive():
             slot.process.kill()
         slot.process.join(timeout=5)
         slot.conn.close()
+        self._returned += [(key, {"status": "not_started"}) for key in slot.keys[1:]]
         self.slots[i] = self._spawn()
 
     def poll(self) -> list[tuple[str, Outcome]]:
-        done = []
+        done, self._returned = self._returned, []
         for i, slot in enumerate(self.slots):
-            if slot.key is None:
+            if not slot.keys:
                 if not slot.process.is_alive():
                     self._replace(i)
                 continue
             try:
-                ready = slot.conn.poll()
-            except (OSError, EOFError):
-                ready = False
-            if ready:
-                try:
+                while slot.keys and slot.conn.poll():
                     key, outcome = slot.conn.recv()
-                    slot.key = None
+                    if key == slot.keys[0]:
+                        slot.started = time.monotonic()   # the next one starts now
+                    if key in slot.keys:
+                        slot.keys.remove(key)
                     done.append((key, outcome))
-                    continue
-                except (EOFError, OSError):
-                    pass
+            except (OSError, EOFError):
+                pass
+            if not slot.keys:
+                continue
             if not slot.process.is_alive():
-                done.append((slot.key, {"status": "failed", "error": _death_reason(slot.process.exitcode,
-                                                                                   self.cpu_seconds)}))
+                done.append((slot.keys[0], {"status": "failed", "error": _death_reason(slot.process.exitcode,
+                                                                                      self.cpu_seconds)}))
                 self._replace(i)
             elif time.monotonic() - slot.started > self.wall_seconds:
-                done.append((slot.key, {"status": "failed", "error": {
+                done.append((slot.keys[0], {"status": "failed", "error": {
                     "type": "Timeout", "field": None,
                     "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
                 self._replace(i)
+        done += self._returned
+        self._returned = []
         return done
 
     def cancel(self, key: str) -> bool:
+        """Stop a task: a running one ends its worker (another takes its place), a queued one is
+        withdrawn (its answer, if it had started after all, is its outcome)."""
         for i, slot in enumerate(self.slots):
-            if slot.key == key:
+            if slot.keys and slot.keys[0] == key:
                 self._replace(i)
+                return True
+            if key in slot.keys:
+                try:
+                    slot.conn.send((key,))
+                except OSError:
+                    pass      # the worker is gone: the next poll() says so
                 return True
         return False
 
     def shutdown(self) -> None:
         for slot in self.slots:
             try:
-                if slot.key is None:
+                if not slot.keys:
                     slot.conn.send(None)
             except (OSError, BrokenPipeError):
                 pass
@@ -191,6 +247,9 @@ class DaskExecutor:
 
     def free(self) -> int:
         return self.capacity() - len(self.futures)
+
+    def queue_room(self) -> int:
+        return 0   # the scheduler queues; a task is submitted when a thread is free
 
     def submit(self, key: str, kind: str, request: dict) -> None:
         fut = self.client.submit(run_task, kind, request, self.cpu_seconds, pure=False,

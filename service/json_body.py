@@ -1,6 +1,8 @@
 """JSON bodies parsed strictly, and large ones parsed and validated outside the web process.
 
 - A key twice in one object is an error (service.json_parsing.loads_strict).
+- A valid body is validated straight from its JSON text (service.json_parsing.validate_fast) and
+  the route receives the model; any other body is parsed and validated as before, with its errors.
 - A body above LARGE_BODY_BYTES is parsed and validated as the route's body model in a parser
   process. Parsing holds the interpreter lock (about a second for 30 MB): in a thread of the web
   process it stalls the event loop all the same, and /healthz with it. The route receives the
@@ -8,6 +10,8 @@
   `GREYFIT_BODY_PARSER_PROCESSES=0` parses them in a thread instead (small deployments, benchmarks).
 - How many bodies are parsed at once is bounded by the parser processes; how many wait for them,
   by the in-flight body budget (service.admission), which counts a body until its answer is sent.
+- The parser processes start with the server, with the body models imported: the first large
+  body would otherwise wait half a second for them.
 """
 from __future__ import annotations
 
@@ -23,7 +27,7 @@ from fastapi import HTTPException, Request, Response
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
 
-from service.json_parsing import exit_with_parent, loads_strict, parse_and_validate
+from service.json_parsing import exit_with_parent, loads_strict, parse_and_validate, validate_fast, warm_up
 
 LARGE_BODY_BYTES = 1 << 20
 
@@ -40,7 +44,8 @@ class InvalidBody(HTTPException):
 
 
 class BodyParser:
-    """Parser processes (started on the first large body); 0 processes parses in a thread."""
+    """Parser processes (started by `start()`, else on the first large body); 0 processes parses in a
+    thread."""
 
     def __init__(self, processes: int, retry_after: int):
         self.processes, self.retry_after = processes, retry_after
@@ -53,6 +58,14 @@ class BodyParser:
                 self._pool = cf.ProcessPoolExecutor(self.processes, mp_context=mp.get_context("spawn"),
                                                     initializer=exit_with_parent, initargs=(os.getpid(),))
             return self._pool
+
+    def start(self, modules: list[str]) -> None:
+        """Start the parser processes now and import `modules` in them (without waiting)."""
+        if self.processes == 0:
+            return
+        pool = self._executor()
+        for _ in range(self.processes):   # each submit with no idle process starts one
+            pool.submit(warm_up, modules)
 
     async def parse(self, model: Optional[type[BaseModel]], body: bytes) -> tuple[Any, Optional[list[str]]]:
         """The validated model (or, without one, the parsed JSON) and, for a job body, the JSON text
@@ -100,7 +113,8 @@ class StrictJSONRequest(Request):
                 if texts is not None:
                     self.state.request_texts = texts   # see request_texts()
             else:
-                self._json = loads_strict(body)
+                fast = validate_fast(self.body_model, body) if self.body_model is not None else None
+                self._json = fast if fast is not None else loads_strict(body)
         return self._json
 
 
@@ -111,6 +125,13 @@ def request_texts(request: Request, requests: list[BaseModel]) -> list[str]:
     if texts is not None and len(texts) == len(requests):
         return texts
     return [r.model_dump_json() for r in requests]
+
+
+def body_model(route) -> Optional[type[BaseModel]]:
+    """The model of the route's single JSON body parameter, if it is a StrictJSONRoute with exactly one."""
+    if not isinstance(route, StrictJSONRoute):
+        return None
+    return _body_model(route)
 
 
 def _body_model(route: APIRoute) -> Optional[type[BaseModel]]:

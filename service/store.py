@@ -4,8 +4,12 @@ A task is claimed by a conditional UPDATE (status = 'queued'; on PostgreSQL the 
 selected `FOR UPDATE SKIP LOCKED`, so concurrent replicas pass each other instead of colliding),
 so two dispatchers never run the same task; a running task holds a lease that its dispatcher
 renews, and tasks whose lease has expired (their server died) are re-queued — a job accepted is
-never lost. `attempts` counts the starts that ended in a lost worker or server; a graceful
+never lost. `attempts` counts the claims that ended in a lost worker or server; a graceful
 shutdown hands its tasks back without counting one.
+
+Request texts live in their own table: a task row is written on every claim, lease renewal and
+outcome, and a database rewrites the whole row (SQLite does, PostgreSQL copies it), request
+included — megabytes for a large request. Stores made before that are migrated when opened.
 """
 from __future__ import annotations
 
@@ -17,7 +21,8 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 from sqlalchemy import (
-    Column, Float, Integer, MetaData, String, Table, Text, create_engine, event, func, select, update,
+    Column, Float, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect, select,
+    text, update,
 )
 from sqlalchemy.engine import Engine, make_url
 
@@ -38,7 +43,6 @@ tasks = Table(
     Column("job_id", String(36), primary_key=True),
     Column("idx", Integer, primary_key=True),
     Column("status", String(12), nullable=False, index=True),
-    Column("request", Text, nullable=False),
     Column("result", Text),
     Column("error", Text),
     Column("attempts", Integer, nullable=False, default=0),
@@ -46,6 +50,14 @@ tasks = Table(
     Column("owner", String(36)),
     Column("started_at", Float),
     Column("finished_at", Float),
+)
+
+# written once when the job is created, read when the task is claimed (and by a job's report page)
+task_requests = Table(
+    "task_requests", metadata,
+    Column("job_id", String(36), primary_key=True),
+    Column("idx", Integer, primary_key=True),
+    Column("request", Text, nullable=False),
 )
 
 # one row per server: readiness writes it to prove that the store accepts writes
@@ -56,6 +68,37 @@ store_probes = Table(
 )
 
 TERMINAL = ("succeeded", "failed", "cancelled")
+
+
+# the statements of every claim and outcome, built once (building them costs more than running them)
+_CLAIM_CANDIDATES = (select(tasks.c.job_id, tasks.c.idx, tasks.c.attempts, jobs.c.kind)
+                     .join(jobs, jobs.c.id == tasks.c.job_id)
+                     .where(tasks.c.status == "queued")
+                     .order_by(jobs.c.created_at, tasks.c.idx).limit(bindparam("b_limit")))
+# PostgreSQL: a row another replica is claiming is passed over, not waited for
+_CLAIM_CANDIDATES_SKIP_LOCKED = _CLAIM_CANDIDATES.with_for_update(skip_locked=True, of=tasks)
+_REQUEST_TEXTS = select(task_requests.c.idx, task_requests.c.request).where(
+    task_requests.c.job_id == bindparam("b_job"), task_requests.c.idx.in_(bindparam("b_idxs", expanding=True)))
+_START = (update(tasks)
+          .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx.in_(bindparam("b_idxs", expanding=True)),
+                 tasks.c.status == "queued")
+          .values(status="running", owner=bindparam("b_owner"), lease_until=bindparam("b_lease"),
+                  started_at=bindparam("b_at"), attempts=tasks.c.attempts + 1))
+_JOB = select(jobs).where(jobs.c.id == bindparam("b_id"))
+_JOB_TASKS = (select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at, tasks.c.finished_at,
+                     tasks.c.error)
+              .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
+_RESULTS = (select(tasks.c.idx, tasks.c.status, tasks.c.result, tasks.c.error)
+            .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
+_FINISH = (update(tasks)
+           .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx == bindparam("b_idx"),
+                  tasks.c.status == "running", tasks.c.owner == bindparam("b_owner"))
+           .values(status=bindparam("b_status"), finished_at=bindparam("b_at"), result=bindparam("b_result"),
+                   error=bindparam("b_error"), lease_until=None))
+
+
+class _Raced(Exception):
+    """A claim found a task taken by another server between its select and its update."""
 
 
 class StoreUnavailable(Exception):
@@ -83,7 +126,24 @@ def make_engine(url: str) -> Engine:
     else:
         engine = create_engine(url, pool_pre_ping=True)
     metadata.create_all(engine)
+    _move_requests_out_of_tasks(engine)
     return engine
+
+
+def _move_requests_out_of_tasks(engine: Engine) -> None:
+    """A store made when `tasks` held the request texts: move them to `task_requests`, once.
+
+    One transaction: a server stopped half-way leaves the store as it was. On PostgreSQL the table
+    is locked first, so replicas starting together migrate it once (the others find it done)."""
+    if "request" not in {c["name"] for c in inspect(engine).get_columns("tasks")}:
+        return
+    with engine.begin() as conn:
+        if engine.dialect.name == "postgresql":
+            conn.execute(text("LOCK TABLE tasks IN ACCESS EXCLUSIVE MODE"))
+            if "request" not in {c["name"] for c in inspect(conn).get_columns("tasks")}:
+                return
+        conn.execute(text("INSERT INTO task_requests (job_id, idx, request) SELECT job_id, idx, request FROM tasks"))
+        conn.execute(text("ALTER TABLE tasks DROP COLUMN request"))
 
 
 def _sqlite_file(engine: Engine) -> Optional[str]:
@@ -136,21 +196,19 @@ class JobStore:
             conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
                                               created_at=now, total=len(requests)))
             conn.execute(tasks.insert(), [
-                {"job_id": job_id, "idx": i, "status": "queued", "attempts": 0,
-                 "request": r if isinstance(r, str) else json.dumps(r)}
+                {"job_id": job_id, "idx": i, "status": "queued", "attempts": 0} for i in range(len(requests))])
+            conn.execute(task_requests.insert(), [
+                {"job_id": job_id, "idx": i, "request": r if isinstance(r, str) else json.dumps(r)}
                 for i, r in enumerate(requests)])
         return job_id
 
     def get_job(self, job_id: str) -> Optional[dict[str, Any]]:
         with self.engine.connect() as conn:
-            job = conn.execute(select(jobs).where(jobs.c.id == job_id)).mappings().first()
+            job = conn.execute(_JOB, {"b_id": job_id}).mappings().first()
             if job is None:
                 return None
-            rows = conn.execute(
-                select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at,
-                       tasks.c.finished_at, tasks.c.error)
-                .where(tasks.c.job_id == job_id).order_by(tasks.c.idx)).mappings().all()
-        return {"job": dict(job), "tasks": [dict(r) for r in rows]}
+            rows = conn.execute(_JOB_TASKS, {"b_id": job_id}).all()
+        return {"job": dict(job), "tasks": [r._asdict() for r in rows]}
 
     def list_jobs(self, offset: int, limit: int) -> tuple[list[dict], int]:
         with self.engine.connect() as conn:
@@ -158,6 +216,11 @@ class JobStore:
             ids = conn.execute(select(jobs.c.id).order_by(jobs.c.created_at.desc())
                                .offset(offset).limit(limit)).scalars().all()
         return [self.get_job(i) for i in ids], count
+
+    def result_texts(self, job_id: str) -> list[tuple[int, str, Optional[str], Optional[str]]]:
+        """(idx, status, result JSON, error JSON) of each task, in order, as stored."""
+        with self.engine.connect() as conn:
+            return [tuple(r) for r in conn.execute(_RESULTS, {"b_id": job_id}).all()]
 
     def results(self, job_id: str) -> list[dict]:
         with self.engine.connect() as conn:
@@ -180,35 +243,59 @@ class JobStore:
 
     def claim(self, owner: str, lease_seconds: float, max_attempts: int) -> Optional[TaskRow]:
         """Take the oldest queued task, or None; safe against concurrent dispatchers."""
+        claimed = self.claim_many(owner, lease_seconds, max_attempts, 1)
+        return claimed[0] if claimed else None
+
+    def claim_many(self, owner: str, lease_seconds: float, max_attempts: int, limit: int) -> list[TaskRow]:
+        """Take up to `limit` of the oldest queued tasks in one transaction (a claim counts as a start)."""
         for _ in range(5):
-            with self.engine.begin() as conn:
-                query = (select(tasks.c.job_id, tasks.c.idx, tasks.c.request, tasks.c.attempts, jobs.c.kind)
-                         .join(jobs, jobs.c.id == tasks.c.job_id)
-                         .where(tasks.c.status == "queued")
-                         .order_by(jobs.c.created_at, tasks.c.idx).limit(1))
-                if self._skip_locked:   # a row another replica is claiming is passed over, not waited for
-                    query = query.with_for_update(skip_locked=True, of=tasks)
-                row = conn.execute(query).mappings().first()
-                if row is None:
-                    return None
-                now = time.time()
-                if row["attempts"] >= max_attempts:
-                    conn.execute(update(tasks).where(tasks.c.job_id == row["job_id"], tasks.c.idx == row["idx"],
-                                                     tasks.c.status == "queued")
-                                 .values(status="failed", finished_at=now, error=json.dumps({
-                                     "type": "WorkerLost",
-                                     "detail": f"the task was started {row['attempts']} times and each time "
-                                               "its worker or server was lost (crash or kill); not retried "
-                                               "again"})))
-                    continue
-                res = conn.execute(
-                    update(tasks).where(tasks.c.job_id == row["job_id"], tasks.c.idx == row["idx"],
-                                        tasks.c.status == "queued")
-                    .values(status="running", owner=owner, lease_until=now + lease_seconds,
-                            started_at=now, attempts=row["attempts"] + 1))
-                if res.rowcount == 1:
-                    return TaskRow(row["job_id"], row["idx"], row["kind"], row["request"])
-        return None
+            try:
+                with self.engine.begin() as conn:
+                    claimed = self._claim_in(conn, owner, lease_seconds, max_attempts, limit)
+            except _Raced:
+                continue
+            if claimed is not None:
+                return claimed
+            # every candidate had used its attempts: look again
+        return []
+
+    def _claim_in(self, conn, owner: str, lease_seconds: float, max_attempts: int,
+                  limit: int) -> Optional[list[TaskRow]]:
+        # the texts are read for the claimed tasks only: sorting the candidates with them would read
+        # every queued request
+        query = _CLAIM_CANDIDATES_SKIP_LOCKED if self._skip_locked else _CLAIM_CANDIDATES
+        rows = conn.execute(query, {"b_limit": limit}).all()
+        if not rows:
+            return []
+        now = time.time()
+        by_job: dict[str, list] = {}
+        for row in rows:
+            if row.attempts >= max_attempts:
+                self._fail_queued(conn, row.job_id, row.idx, now, (
+                    f"the task was started {row.attempts} times and each time its worker or server was lost "
+                    "(crash or kill); not retried again"))
+            else:
+                by_job.setdefault(row.job_id, []).append(row)
+        claimed = []
+        for job_id, group in by_job.items():   # one statement per job, not per task
+            texts = dict(conn.execute(_REQUEST_TEXTS, {"b_job": job_id, "b_idxs": [r.idx for r in group]}).all())
+            for row in [r for r in group if r.idx not in texts]:
+                self._fail_queued(conn, job_id, row.idx, now, "the task's request is missing from the job store")
+            group = [r for r in group if r.idx in texts]
+            if not group:
+                continue
+            res = conn.execute(_START, {"b_job": job_id, "b_idxs": [r.idx for r in group], "b_owner": owner,
+                                        "b_lease": now + lease_seconds, "b_at": now})
+            if res.rowcount != len(group):   # another server took one meanwhile: roll back, look again
+                raise _Raced()
+            claimed += [TaskRow(job_id, r.idx, r.kind, texts[r.idx]) for r in group]
+        return claimed or None
+
+    @staticmethod
+    def _fail_queued(conn, job_id: str, idx: int, now: float, detail: str) -> None:
+        conn.execute(update(tasks).where(tasks.c.job_id == job_id, tasks.c.idx == idx, tasks.c.status == "queued")
+                     .values(status="failed", finished_at=now, error=json.dumps({"type": "WorkerLost",
+                                                                                 "detail": detail})))
 
     def renew(self, owner: str, lease_seconds: float) -> None:
         with self.engine.begin() as conn:
@@ -256,14 +343,18 @@ class JobStore:
     def finish(self, job_id: str, idx: int, owner: str, status: str, result_json: Optional[str],
                error: Optional[dict]) -> bool:
         """Record a task's outcome once; False if the task is no longer ours (e.g. re-queued)."""
+        return self.finish_many(owner, [(job_id, idx, status, result_json, error)]) == 1
+
+    def finish_many(self, owner: str, outcomes: list[tuple[str, int, str, Optional[str], Optional[dict]]]) -> int:
+        """`finish` for several (job_id, idx, status, result_json, error) in one statement; how many
+        were still ours."""
+        now = time.time()
         with self.engine.begin() as conn:
-            res = conn.execute(
-                update(tasks).where(tasks.c.job_id == job_id, tasks.c.idx == idx,
-                                    tasks.c.status == "running", tasks.c.owner == owner)
-                .values(status=status, finished_at=time.time(),
-                        result=result_json,
-                        error=json.dumps(error) if error is not None else None, lease_until=None))
-        return res.rowcount == 1
+            res = conn.execute(_FINISH, [
+                {"b_job": job_id, "b_idx": idx, "b_owner": owner, "b_status": status, "b_at": now,
+                 "b_result": result_json, "b_error": json.dumps(error) if error is not None else None}
+                for job_id, idx, status, result_json, error in outcomes])
+        return res.rowcount
 
     def queue_depth(self) -> int:
         with self.engine.connect() as conn:

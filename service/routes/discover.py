@@ -27,6 +27,6 @@ async def create_discovery(body: DiscoverRequest, request: Request):
 
 
 @router.post("/discover/jobs", response_model=JobPublic, status_code=202)
-def create_discovery_job(body: DiscoverJobCreate, request: Request, response: Response) -> JobPublic:
+def create_discovery_job(body: DiscoverJobCreate, request: Request) -> Response:
     """Discovery requests as a batch job; results at /v1/jobs/{id}/results."""
-    return submit_job(request, response, "discover", body.requests, body.label)
+    return submit_job(request, "discover", body.requests, body.label)

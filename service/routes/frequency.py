@@ -20,6 +20,6 @@ async def create_frequency_fit(body: FrequencyFitRequest, request: Request) -> F
 
 
 @router.post("/frequency-fits/jobs", response_model=JobPublic, status_code=202)
-def create_frequency_job(body: FrequencyJobCreate, request: Request, response: Response) -> JobPublic:
+def create_frequency_job(body: FrequencyJobCreate, request: Request) -> Response:
     """Frequency-response fits as a batch job; results at /v1/jobs/{id}/results."""
-    return submit_job(request, response, "frequency_fit", body.requests, body.label, check=check_frequency_limits)
+    return submit_job(request, "frequency_fit", body.requests, body.label, check=check_frequency_limits)

@@ -1,8 +1,13 @@
+"""Batch jobs. A job's status is what clients poll, so its answers are made without FastAPI's
+second pass over the returned model (dump, validate, dump again), and results go out as the
+workers wrote them."""
 import json
 from typing import Any, Callable, Optional
 
 from fastapi import APIRouter, HTTPException, Query, Request, Response
-from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskPublic, TaskResult
+from pydantic import BaseModel
+
+from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
 from service.json_body import StrictJSONRoute, request_texts
 from service.limits import check_limits
 from service.problems import LimitExceeded
@@ -30,8 +35,13 @@ def job_public(record: dict[str, Any]) -> JobPublic:
                           error=json.loads(r["error"]) if r["error"] else None) for r in rows])
 
 
-def submit_job(request: Request, response: Response, kind: str, requests: list, label: Optional[str],
-               check: Callable = check_limits) -> JobPublic:
+def as_json(model: BaseModel, status_code: int = 200, headers: Optional[dict] = None) -> Response:
+    """The answer of a route whose `response_model` is the model's own class."""
+    return Response(model.model_dump_json(), status_code=status_code, headers=headers, media_type="application/json")
+
+
+def submit_job(request: Request, kind: str, requests: list, label: Optional[str],
+               check: Callable = check_limits) -> Response:
     """Store a job of one task per request (each checked against this server's limits by `check`)."""
     state = request.app.state
     settings = state.settings
@@ -42,15 +52,13 @@ def submit_job(request: Request, response: Response, kind: str, requests: list, 
         check(req, settings, prefix=f"requests[{i}].")
     job_id = state.store.create_job(kind, request_texts(request, requests), label)
     state.dispatcher.wake()
-    response.status_code = 202
-    response.headers["Location"] = f"/v1/jobs/{job_id}"
-    return job_public(state.store.get_job(job_id))
+    return as_json(job_public(state.store.get_job(job_id)), 202, {"Location": f"/v1/jobs/{job_id}"})
 
 
 @router.post("", response_model=JobPublic, status_code=202)
-def create_job(body: JobCreate, request: Request, response: Response) -> JobPublic:
+def create_job(body: JobCreate, request: Request) -> Response:
     """Accept a batch of fits; each request becomes a task. Poll the Location header."""
-    return submit_job(request, response, "fit", body.requests, body.label)
+    return submit_job(request, "fit", body.requests, body.label)
 
 
 @router.get("", response_model=JobsPublic)
@@ -68,24 +76,31 @@ def _record(request: Request, job_id: str) -> dict:
 
 
 @router.get("/{job_id}", response_model=JobPublic)
-def get_job(job_id: str, request: Request) -> JobPublic:
+def get_job(job_id: str, request: Request) -> Response:
     """Status, progress and per-task status of a job."""
-    return job_public(_record(request, job_id))
+    return as_json(job_public(_record(request, job_id)))
 
 
 @router.get("/{job_id}/results", response_model=JobResults)
-def get_results(job_id: str, request: Request) -> JobResults:
+def get_results(job_id: str, request: Request) -> Response:
     """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet."""
     record = _record(request, job_id)
-    rows = request.app.state.store.results(job_id)
-    return JobResults(id=job_id, status=job_status(record["job"], record["tasks"]),
-                      results=[TaskResult(**r) for r in rows])
+    entries = []
+    for idx, status, result, error in request.app.state.store.result_texts(job_id):
+        # the result as its worker wrote it; an error through TaskError, which leaves out what is
+        # not for the caller (the traceback of an internal error)
+        error_json = TaskError.model_validate_json(error).model_dump_json() if error else "null"
+        entries.append(f'{{"index":{idx},"status":{json.dumps(status)},"result":{result or "null"},'
+                       f'"error":{error_json}}}')
+    status = job_status(record["job"], record["tasks"])
+    return Response(f'{{"id":{json.dumps(job_id)},"status":"{status}","results":[{",".join(entries)}]}}',
+                    media_type="application/json")
 
 
 @router.delete("/{job_id}", response_model=JobPublic)
-def cancel_job(job_id: str, request: Request) -> JobPublic:
+def cancel_job(job_id: str, request: Request) -> Response:
     """Cancel: queued tasks are dropped, running ones stopped; finished results are kept."""
     _record(request, job_id)
     request.app.state.store.cancel(job_id)
     request.app.state.dispatcher.wake()
-    return job_public(_record(request, job_id))
+    return as_json(job_public(_record(request, job_id)))

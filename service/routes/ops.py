@@ -8,5 +8,7 @@ router = APIRouter(tags=["operations"])
 def metrics(request: Request) -> PlainTextResponse:
     """Prometheus metrics: requests, fits by status, fit durations, queue depth."""
     state = request.app.state
-    text = state.metrics.render(state.store.queue_depth(), state.dispatcher.running_count())
+    # tasks this server has claimed for its next free workers are waiting too
+    waiting = state.store.queue_depth() + len(state.dispatcher.ready)
+    text = state.metrics.render(waiting, state.dispatcher.running_count())
     return PlainTextResponse(text, media_type="text/plain; version=0.0.4")

@@ -2,13 +2,13 @@ import json
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
-from sqlalchemy import select
+from sqlalchemy import and_, select
 
 from schemas.report import ReportRequest
 from service.deps import require_api_key
 from service.json_body import StrictJSONRoute
 from service.routes.sync import run_sync
-from service.store import tasks
+from service.store import task_requests, tasks
 
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
                    route_class=StrictJSONRoute)
@@ -34,7 +34,9 @@ async def job_report(job_id: str, request: Request, index: int = Query(0, ge=0))
     if store.get_job(job_id) is None:
         raise HTTPException(404, f"no job with id '{job_id}'")
     with store.engine.connect() as conn:
-        row = conn.execute(select(tasks.c.status, tasks.c.request, tasks.c.result)
+        row = conn.execute(select(tasks.c.status, task_requests.c.request, tasks.c.result)
+                           .join(task_requests, and_(task_requests.c.job_id == tasks.c.job_id,
+                                                     task_requests.c.idx == tasks.c.idx))
                            .where(tasks.c.job_id == job_id, tasks.c.idx == index)).mappings().first()
     if row is None:
         raise HTTPException(404, f"job '{job_id}' has no task {index}")

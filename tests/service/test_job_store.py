@@ -4,10 +4,10 @@ import time
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import select, text
+from sqlalchemy import Column, Float, Integer, MetaData, String, Table, Text, create_engine, inspect, select, text
 
 from service.app import create_app
-from service.store import JobStore, make_engine, tasks
+from service.store import JobStore, make_engine, task_requests, tasks
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 
@@ -32,6 +32,63 @@ def test_claim_finish_once_in_order(store):
     assert not store.finish(a, 0, "o1", "failed", None, {"type": "X"})       # once only
     assert not store.finish(a, 1, "someone-else", "succeeded", "{}", None)   # not theirs
     assert store.results(a)[0] == {"index": 0, "status": "succeeded", "result": {"x": 1}, "error": None}
+
+
+def test_claim_many_takes_the_oldest_tasks_in_one_go_and_finish_many_writes_only_its_own(store):
+    a = store.create_job("fit", requests(3), "a")
+    b = store.create_job("fit", [{"b": 0}, '{"b": 1}'], "b")     # a dict or its JSON text
+    first = store.claim_many("o1", 30, 3, 4)
+    assert [(t.job_id, t.idx) for t in first] == [(a, 0), (a, 1), (a, 2), (b, 0)]
+    assert [t.request for t in first] == ['{"i": 0}', '{"i": 1}', '{"i": 2}', '{"b": 0}']
+    rest = store.claim_many("o2", 30, 3, 4)
+    assert [(t.job_id, t.idx, t.request) for t in rest] == [(b, 1, '{"b": 1}')]
+    assert store.claim_many("o1", 30, 3, 4) == []
+    done = [(a, 0, "succeeded", '{"x": 0}', None), (a, 1, "failed", None, {"type": "DataError"}),
+            (b, 1, "succeeded", "{}", None)]                  # the last one is o2's
+    assert store.finish_many("o1", done) == 2
+    assert [r["status"] for r in store.results(a)] == ["succeeded", "failed", "running"]
+    assert store.results(a)[1]["error"] == {"type": "DataError"}
+    assert store.get_job(b)["tasks"][1]["status"] == "running"
+
+
+def test_a_store_made_with_requests_in_the_task_rows_is_migrated(store_url):
+    """Before request texts had their own table, `tasks` held them: opening such a store moves them
+    out once, and its queued, running and finished tasks carry on."""
+    old = MetaData()
+    Table("jobs", old, Column("id", String(36), primary_key=True), Column("label", String(200)),
+          Column("kind", String(20), nullable=False), Column("cancelled", Integer, nullable=False),
+          Column("created_at", Float, nullable=False), Column("total", Integer, nullable=False))
+    old_tasks = Table("tasks", old, Column("job_id", String(36), primary_key=True),
+                      Column("idx", Integer, primary_key=True), Column("status", String(12), nullable=False),
+                      Column("request", Text, nullable=False), Column("result", Text), Column("error", Text),
+                      Column("attempts", Integer, nullable=False), Column("lease_until", Float),
+                      Column("owner", String(36)), Column("started_at", Float), Column("finished_at", Float))
+    engine = create_engine(store_url)
+    old.create_all(engine)
+    with engine.begin() as conn:
+        conn.execute(old.tables["jobs"].insert().values(id="j", label=None, kind="fit", cancelled=0,
+                                                        created_at=1.0, total=3))
+        for row in ({"idx": 0, "status": "succeeded", "result": '{"r": 0}', "attempts": 1},
+                    {"idx": 1, "status": "running", "attempts": 1, "owner": "dead-server", "lease_until": 0.0},
+                    {"idx": 2, "status": "queued", "attempts": 0}):
+            conn.execute(old_tasks.insert().values(job_id="j", request=f'{{"i": {row["idx"]}}}', **row))
+    engine.dispose()
+    for _ in range(2):                                        # the second opening finds it done
+        store = JobStore(make_engine(store_url))
+        assert "request" not in {c["name"] for c in inspect(store.engine).get_columns("tasks")}
+        with store.engine.connect() as conn:
+            moved = conn.execute(select(task_requests.c.idx, task_requests.c.request)
+                                 .order_by(task_requests.c.idx)).all()
+        assert [tuple(r) for r in moved] == [(0, '{"i": 0}'), (1, '{"i": 1}'), (2, '{"i": 2}')]
+        store.engine.dispose()
+    store = JobStore(make_engine(store_url))
+    try:
+        assert store.requeue_expired() == 1                   # the dead server's task comes back
+        claimed = store.claim_many("o", 30, 3, 5)
+        assert [(t.idx, t.request) for t in claimed] == [(1, '{"i": 1}'), (2, '{"i": 2}')]
+        assert store.results("j")[0]["result"] == {"r": 0}
+    finally:
+        store.engine.dispose()
 
 
 def test_concurrent_claims_take_every_task_exactly_once(store):

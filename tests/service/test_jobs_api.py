@@ -184,6 +184,53 @@ def test_a_crashed_worker_fails_only_its_task():
         pool.shutdown()
 
 
+def _poll_until(pool, keys, seconds=60):
+    done = {}
+    deadline = time.monotonic() + seconds
+    while not keys <= done.keys() and time.monotonic() < deadline:
+        done.update(pool.poll())
+        time.sleep(0.02)
+    return done
+
+
+def test_a_task_queued_behind_another_runs_next_or_can_be_withdrawn():
+    """A worker holds one task behind the one it runs: it runs it next, unless it is withdrawn."""
+    pool = LocalWorkerPool(workers=1, cpu_seconds=60, wall_seconds=60)
+    try:
+        assert (pool.free(), pool.queue_room()) == (1, 0)
+        pool.submit("a", "fit", msd_request(0))
+        assert (pool.free(), pool.queue_room()) == (0, 1)
+        pool.submit("b", "fit", msd_request(1))               # queued behind a
+        assert (pool.free(), pool.queue_room()) == (0, 0)
+        done = _poll_until(pool, {"a", "b"})
+        assert done["a"]["status"] == done["b"]["status"] == "succeeded"
+        assert done["a"]["seconds"] > 0 and pool.free() == 1
+        pool.submit("slow", "fit", slow_request())
+        pool.submit("c", "fit", msd_request(2))
+        assert pool.cancel("c")                               # withdrawn before it started
+        done = _poll_until(pool, {"slow", "c"})
+        assert done["c"] == {"status": "withdrawn"} and done["slow"]["status"] == "succeeded"
+    finally:
+        pool.shutdown()
+
+
+def test_a_task_queued_behind_a_killed_one_comes_back_not_started():
+    pool = LocalWorkerPool(workers=1, cpu_seconds=60, wall_seconds=60)
+    try:
+        slow = slow_request()
+        slow["options"]["multistart"] = 30
+        pool.submit("slow", "fit", slow)
+        pool.submit("next", "fit", msd_request(0))
+        time.sleep(0.3)
+        assert pool.cancel("slow")                            # ends the worker
+        assert _poll_until(pool, {"next"}) == {"next": {"status": "not_started"}}
+        assert pool.free() == 1
+        pool.submit("next", "fit", msd_request(0))            # handed out again, it runs
+        assert _poll_until(pool, {"next"})["next"]["status"] == "succeeded"
+    finally:
+        pool.shutdown()
+
+
 def test_an_abandoned_sync_fit_frees_its_worker(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
         dispatcher = c.app.state.dispatcher

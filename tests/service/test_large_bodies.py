@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 
 from service.app import create_app
 from service.json_body import LARGE_BODY_BYTES
+from service.json_parsing import parse_and_validate
 from tests.service.conftest import assert_problem, make_settings, msd_request, wait_for_job
 from tests.service.test_real_server_bodies import large_fit_request
 
@@ -64,6 +65,22 @@ def test_a_large_body_with_a_duplicate_key_is_refused(large):
     doubled = text.replace('"method": "multiple_shooting"', '"method": "multiple_shooting", "method": "equation_error"')
     problem = assert_problem(large.post("/v1/fits", content=doubled, headers=JSON), 422, "duplicate key 'method'")
     assert problem["errors"][0]["loc"] == "body"
+
+
+def test_a_duplicate_key_deep_in_a_job_body_is_found_where_the_numbers_are():
+    """Valid bodies take pydantic's JSON parser, which keeps the last of two equal keys: the
+    duplicate check must still see a key twice beside arrays of numbers and inside any request."""
+    from schemas.fit import FitRequest
+    from schemas.jobs import JobCreate
+    fit = json.dumps(msd_request(0, n=41))
+    x = fit.index('"x": [', fit.index('"outputs"'))
+    doubled = fit[:x] + '"x": [1.0, 2e-3, -3.5], ' + fit[x:]             # outputs.x twice
+    body = '{"label": "[1, 2] \\"[3]\\"", "requests": [' + ", ".join([fit] * 3 + [doubled]) + "]}"
+    status, (message, _) = parse_and_validate(JobCreate, body.encode())
+    assert status == "json_invalid" and "duplicate key 'x'" in message
+    status, (job, texts) = parse_and_validate(JobCreate, body.replace(doubled, fit).encode())
+    assert status == "ok" and job.label == '[1, 2] "[3]"' and len(texts) == 4
+    assert texts[0] == FitRequest.model_validate(msd_request(0, n=41)).model_dump_json()
 
 
 def test_large_malformed_json_says_line_and_column(large):

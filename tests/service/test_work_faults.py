@@ -10,6 +10,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 
 from service.app import create_app
+from service.store import JobStore, make_engine
 from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
 
 
@@ -121,6 +122,53 @@ def test_three_graceful_restarts_during_one_task_do_not_fail_it(tmp_path):
         job = wait_for_job(c, job_id)
         assert job["status"] == "succeeded", job
         assert job["tasks"][0]["attempts"] == 1
+
+
+def short_job(n: int) -> dict:
+    """Tasks of milliseconds: the dispatcher claims them ahead and queues one behind each worker's."""
+    fit = msd_request(0, n=41)
+    fit["method"] = "equation_error"
+    return {"requests": [fit] * n}
+
+
+def wait_for_claims_ahead(c, job_id: str, done: int = 20) -> None:
+    dispatcher, deadline = c.app.state.dispatcher, time.monotonic() + 120
+    while time.monotonic() < deadline:
+        if len(dispatcher.ready) > 0 and c.get(f"/v1/jobs/{job_id}").json()["progress"]["done"] >= done:
+            return
+        time.sleep(0.005)
+    raise AssertionError("no tasks were claimed ahead")
+
+
+def test_cancelling_a_job_of_short_tasks_drops_the_tasks_claimed_ahead(client):
+    job_id = client.post("/v1/jobs", json=short_job(600)).json()["id"]
+    wait_for_claims_ahead(client, job_id)
+    client.delete(f"/v1/jobs/{job_id}")
+    job = wait_for_job(client, job_id)
+    statuses = [t["status"] for t in job["tasks"]]
+    assert job["status"] == "cancelled" and set(statuses) <= {"succeeded", "cancelled"}
+    assert statuses.count("succeeded") >= 20 and statuses.count("cancelled") >= 100
+    dispatcher = client.app.state.dispatcher
+    assert not any(t.job_id == job_id for t in dispatcher.ready)
+    assert not any(item[1] == job_id for item in dispatcher.running.values())
+
+
+def test_a_graceful_stop_hands_back_the_tasks_claimed_ahead_without_counting_a_start(tmp_path):
+    settings = make_settings(tmp_path, workers=2)
+    with TestClient(create_app(settings)) as c:
+        job_id = c.post("/v1/jobs", json=short_job(600)).json()["id"]
+        wait_for_claims_ahead(c, job_id)
+    store = JobStore(make_engine(settings.resolved_database_url()))
+    try:
+        tasks = store.get_job(job_id)["tasks"]
+    finally:
+        store.engine.dispose()
+    assert {t["status"] for t in tasks} <= {"succeeded", "queued"}
+    assert all(t["attempts"] == (t["status"] == "succeeded") for t in tasks)
+    with TestClient(create_app(settings)) as c:             # the next server runs the rest, once each
+        job = wait_for_job(c, job_id, timeout=180)
+    assert job["progress"] == {"done": 600, "total": 600, "succeeded": 600, "failed": 0}
+    assert all(t["attempts"] == 1 for t in job["tasks"])
 
 
 def test_a_worker_traceback_is_logged_with_the_task(client, caplog):

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from solvers.columns import evaluate
 from solvers.compiled import compiled
 from solvers.problem import LeastSquaresProblem
 
@@ -541,25 +542,7 @@ def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
             _JACOBIANS.popitem(last=False)
     free = [np.array([x0s[e][cm.states[i]] / oem.xscale[i] for i in f]) for e, f in enumerate(oem.free_x0)]
     w0 = np.concatenate([np.asarray(theta_s, dtype=float).ravel(), *free])
-    r, jac = _evaluate(entry[1], [w0, _data_vector(oem)])
+    r, jac = evaluate(entry[1], [w0, _data_vector(oem)])
     keep = np.concatenate([d.mask.T.ravel() for d in oem.data])     # sample-major, like r
     groups = np.concatenate([np.broadcast_to(np.arange(cm.ny), (d.n, cm.ny)).ravel() for d in oem.data])
     return jac[keep], r.ravel()[keep], groups[keep]
-
-
-def _evaluate(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
-    """Dense outputs of `fn` written straight into numpy arrays: converting a DM result to numpy
-    took as long as evaluating it (9 ms for the 8000 × 16 Jacobian of seed 000's seat record)."""
-    buf, run = fn.buffer()   # per call: a Function's buffer is not to be shared between threads
-    args = [np.ascontiguousarray(a, dtype=float).ravel() for a in args]
-    for i, a in enumerate(args):
-        buf.set_arg(i, memoryview(a))
-    outs = []
-    for i in range(fn.n_out()):
-        flat = np.empty(fn.nnz_out(i))
-        buf.set_res(i, memoryview(flat))
-        outs.append(flat.reshape(fn.size_out(i), order="F"))
-    run()
-    if buf.ret() != 0:
-        raise RuntimeError(f"evaluation of {fn.name()} failed")
-    return outs

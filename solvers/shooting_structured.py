@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import casadi as ca
@@ -90,7 +91,8 @@ def _blocks(fns: dict[str, ca.Function]) -> dict[str, ca.Function]:
     for name, fn in fns.items():
         ins = [ca.MX.sym(fn.name_in(i), fn.size1_in(i), BLOCK * fn.size2_in(i)) for i in range(fn.n_in())]
         res = fn.map(BLOCK, "serial")(*ins)
-        out[name] = ca.Function(f"{fn.name()}_map{BLOCK}", ins, list(res) if isinstance(res, (list, tuple)) else [res])
+        res = list(res) if isinstance(res, (list, tuple)) else [res]
+        out[name] = ca.Function(f"{fn.name()}_map{BLOCK}", ins, res)
         if name in ("step", "sens"):
             ins[0] = ca.MX.sym(fn.name_in(0), fn.sparsity_in(0))
             states = fn.mapaccum("sim", BLOCK)(*ins)
@@ -98,20 +100,36 @@ def _blocks(fns: dict[str, ca.Function]) -> dict[str, ca.Function]:
     return out
 
 
+# block Functions whose compilation this process has started (held, so their ids stay theirs)
+_TRIED: dict[int, ca.Function] = {}
+
+
 def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[str, _Stage], bool]:
-    """The named stages (`_build_stages`), their blocks compiled C where it pays (`solvers.compiled`)."""
+    """The named stages (`_build_stages`), their blocks compiled C where it pays (`solvers.compiled`).
+
+    Libraries a structure still needs are first compiled side by side (gcc runs outside the GIL):
+    a first fit of seed 000's seat model waits for the largest, not for the sum.
+    """
     o = oem.options
     fns, blocks = oem.cm.derive(("stages", o.integrator, o.substeps, o.input_interpolation, oem.layout.size),
                                 lambda: (lambda f: (f, _blocks(f)))(_build_stages(oem)))
-    stages, all_c = {}, True
-    for name in names:
+
+    def build(name: str) -> tuple[ca.Function, bool]:
         single, block = fns[name.removesuffix("_acc")], blocks[name]
         # `compiled` weighs instructions × evaluations: a block's wrapper counts a handful of calls
         work = samples * EXPECTED_ITERATIONS * single.n_instructions() / max(block.n_instructions(), 1)
-        fn, is_c = compiled(block, work)
-        stages[name] = _Stage(single, fn)
-        all_c = all_c and is_c
-    return stages, all_c
+        return compiled(block, work)
+
+    new = [n for n in names if _TRIED.get(id(blocks[n])) is not blocks[n]]
+    if len(new) > 1:
+        with ThreadPoolExecutor(max_workers=len(new)) as pool:
+            list(pool.map(build, new))
+    if len(_TRIED) > 256:
+        _TRIED.clear()
+    _TRIED.update((id(blocks[n]), blocks[n]) for n in new)
+    built = {name: build(name) for name in names}   # loaded by now: memory lookups
+    stages = {name: _Stage(fns[name.removesuffix("_acc")], fn) for name, (fn, _) in built.items()}
+    return stages, all(is_c for _, is_c in built.values())
 
 
 def _triu_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -149,7 +167,7 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     rx, rt = ca.jacobian(r, xk), ca.jacobian(r, theta)
     out_in = [xk, u0, t0, theta, mat, off, xs, y, wt]
     fns["out"] = ca.Function("greyfit_out", out_in, [r, rx, rt])
-    # the symbolic sparsity of these blocks (e.g. no θ in an output) carries into the NLP's
+    # the symbolic sparsity of these blocks (e.g. no θ in an output) is the NLP's Hessian pattern
     fns["gn"] = ca.Function("greyfit_gn", out_in, [
         r, ca.mtimes(rx.T, r), ca.mtimes(rt.T, r), ca.triu(ca.mtimes(rx.T, rx)),
         ca.mtimes(rt.T, rx), ca.mtimes(rt.T, rt)])
@@ -159,8 +177,7 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     fns["sens"] = ca.Function("greyfit_sens", [z, u0, u1, t0, dt, theta, mat, off, xs],
                               [ca.vertcat(xn, ca.vec(s_next))])
     jrow = ca.mtimes(rx, sens) + ca.horzcat(rt, ca.SX(cm.ny, nx))
-    zin = ca.vertcat(xk, ca.vec(sens))   # the state and sensitivities that `sens` carries
-    fns["sgn"] = ca.Function("greyfit_sgn", [zin, u0, t0, theta, mat, off, xs, y, wt],
+    fns["sgn"] = ca.Function("greyfit_sgn", [z, u0, t0, theta, mat, off, xs, y, wt],
                              [r, ca.mtimes(jrow.T, r), ca.vec(ca.mtimes(jrow.T, jrow))])
     rx_in, rt_in, s_in = sx("rx", cm.ny, nx), sx("rt", cm.ny, nth), sx("s", nx * nv)
     jrow_in = ca.mtimes(rx_in, ca.reshape(s_in, nx, nv)) + ca.horzcat(rt_in, ca.SX(cm.ny, nx))

@@ -29,7 +29,7 @@ class Columns:
     """`fn` (dense inputs, one sample each) evaluated at n samples at once."""
 
     def __init__(self, fn: ca.Function, evaluations: float = 0.0, compile: bool = True):
-        """`compile=False` for a Function used by one request only (discovery's candidate models):
+        """`compile=False` for a Function used by one request only (a stand-in model, not a compiled one):
         a compiler run would cost more than it saves."""
         self.fn = fn
         self._maps = FunctionCache(8)

@@ -38,6 +38,9 @@ class Columns:
         self._dense_inputs = compile and fn.is_a("SXFunction") and all(
             fn.sparsity_in(i).is_dense() for i in range(fn.n_in()))
         self._out_sparsity = [fn.sparsity_out(j) for j in range(fn.n_out())]
+        self._nnz_in = [fn.nnz_in(i) for i in range(fn.n_in())]
+        self._nnz_out = [sp.nnz() for sp in self._out_sparsity]
+        self._scatters: dict[tuple[int, int], np.ndarray] = {}
         self._find_library(evaluations)
 
     def _find_library(self, evaluations: float = 0.0) -> None:
@@ -60,32 +63,46 @@ class Columns:
         inputs, strides = [], []
         for i, a in enumerate(args):
             a = np.asarray(a, dtype=float)
-            rows = fn.nnz_in(i)
+            rows = self._nnz_in[i]
             per_sample = a.size == rows * n and n > 1 and not (accumulate and i == 0)
             if not per_sample and a.size != rows:
                 raise ValueError(f"input {i} of {fn.name()}: {a.shape} for {rows} rows and {n} samples")
             a = np.asfortranarray(a) if per_sample else np.ascontiguousarray(a.ravel(order="F"))
             inputs.append(a)
             strides.append(rows if per_sample else 0)
-        outputs = [np.empty(sp.nnz() * n) for sp in self._out_sparsity]
+        outputs = [np.empty(nnz * n) for nnz in self._nnz_out]
         arg = (ctypes.c_void_p * max(len(inputs), 1))(*[a.ctypes.data for a in inputs])
         res = (ctypes.c_void_p * max(len(outputs), 1))(*[o.ctypes.data for o in outputs])
         astride = (ctypes.c_longlong * max(len(strides), 1))(*strides)
-        rstride = (ctypes.c_longlong * max(len(outputs), 1))(*[sp.nnz() for sp in self._out_sparsity])
+        rstride = (ctypes.c_longlong * max(len(outputs), 1))(*self._nnz_out)
         if n and self._driver(n, arg, astride, res, rstride, int(accumulate)):
             raise RuntimeError(f"evaluation of {fn.name()} failed")
-        return [self._dense(o, sp, n) for o, sp in zip(outputs, self._out_sparsity)]
+        return [self._dense(o, j, n) for j, o in enumerate(outputs)]
 
-    @staticmethod
-    def _dense(values: np.ndarray, sp: ca.Sparsity, n: int) -> np.ndarray:
+    def _dense(self, values: np.ndarray, j: int, n: int) -> np.ndarray:
+        """Output j's nonzeros for n samples as the dense (size1, n · size2) array."""
+        sp = self._out_sparsity[j]
         r, c = sp.size1(), sp.size2()
         if sp.is_dense():
             return values.reshape((r, n * c), order="F")
-        rows, cols = sp.get_triplet()
-        out = np.zeros((r, n * c), order="F")
-        ks = np.repeat(np.arange(n), len(rows))
-        out[np.tile(rows, n), ks * c + np.tile(cols, n)] = values
-        return out
+        out = np.zeros(r * n * c)
+        out[self._scatter(j, n)] = values
+        return out.reshape((r, n * c), order="F")
+
+    def _scatter(self, j: int, n: int) -> np.ndarray:
+        """Where each nonzero of n samples goes in the dense column-major result; the same for
+        every call with n samples (a fit evaluates one record several times)."""
+        key = (j, n)
+        cached = self._scatters.get(key)
+        if cached is None:
+            sp = self._out_sparsity[j]
+            rows, cols = sp.get_triplet()
+            one = np.asarray(rows) + sp.size1() * np.asarray(cols)
+            cached = (one[None, :] + sp.numel() * np.arange(n)[:, None]).ravel()
+            if len(self._scatters) >= 4:
+                self._scatters.clear()
+            self._scatters[key] = cached
+        return cached
 
     def _casadi(self, args, n: int, accumulate: bool) -> list[np.ndarray]:
         fm = self._maps.get((n, accumulate), lambda: self.fn.mapaccum(n) if accumulate else self.fn.map(n))
@@ -97,7 +114,7 @@ class Columns:
             a = np.asarray(a, dtype=float)
             full.append(a.ravel(order="F") if a.size == fm.nnz_in(i)
                         else np.tile(a.ravel(order="F"), fm.nnz_in(i) // max(a.size, 1)))
-        return [self._dense(v, sp, n) for v, sp in zip(nonzeros(fm, full), self._out_sparsity)]
+        return [self._dense(v, j, n) for j, v in enumerate(nonzeros(fm, full))]
 
 
 def nonzeros(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:

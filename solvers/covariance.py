@@ -54,8 +54,8 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     residual : weighted residual at the solution.
     labels, values, scale : per column; values in physical units, physical = scale * scaled.
     keep : columns to include (parameters on an active bound are left out, reported as such).
-    groups : the output (or equation) of each residual row. Each group gets its own noise variance
-        s_g² = r_gᵀr_g / (n_g (1 - p/n)) and the covariance is the sandwich (JᵀJ)⁻¹ JᵀSJ (JᵀJ)⁻¹,
+    groups : the output (or equation) of each residual row, a non-negative integer. Each group gets
+        its own noise variance s_g² = r_gᵀr_g / (n_g (1 - p/n)) and the covariance is the sandwich (JᵀJ)⁻¹ JᵀSJ (JᵀJ)⁻¹,
         S = diag(s_g²): the fit's weights (1/std of each output by default) need not match the
         noise levels. With one group this is the usual σ²(JᵀJ)⁻¹.
     sample_keys, experiment_keys, robust : with `robust`, the reported matrix is the HAC
@@ -92,12 +92,10 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
             f"information matrix is {kind} (condition {condition:.1e}); "
             f"not identifiable from these data: {'; '.join(nulls)}", condition, nulls)
     inv = np.linalg.inv(normed) / np.outer(d, d)
-    if groups is not None and np.unique(groups).size > 1:
-        row_var = np.empty(ndata)
-        for g in np.unique(groups):
-            rows = groups == g
-            row_var[rows] = float(residual[rows] @ residual[rows]) / (rows.sum() * dof / ndata)
-        meat = j.T @ (j * row_var[:, None])
+    counts = None if groups is None else np.bincount(groups)
+    if counts is not None and np.count_nonzero(counts) > 1:
+        group_var = np.bincount(groups, weights=residual * residual) / np.maximum(counts * dof / ndata, 1e-300)
+        meat = j.T @ (j * group_var[groups][:, None])
         cov_scaled = inv @ meat @ inv
     else:
         cov_scaled = float(residual @ residual) / dof * inv

@@ -8,6 +8,7 @@ the lags are correlated, as the cross-correlations with a slowly varying input a
 """
 from __future__ import annotations
 
+import functools
 import math
 from statistics import NormalDist
 
@@ -22,13 +23,15 @@ LEVEL = 0.01   # family-wise false-alarm rate of each test on a white residual
 def rmse_and_fit(measured: np.ndarray, residual: np.ndarray) -> tuple[float, float]:
     """RMSE and MATLAB `compare` NRMSE fit % over the finite samples."""
     ok = np.isfinite(measured) & np.isfinite(residual)
-    if not ok.any():
-        return float("nan"), float("nan")
-    r, y = residual[ok], measured[ok]
-    rmse = float(np.sqrt(np.mean(r ** 2)))
-    spread = float(np.linalg.norm(y - y.mean()))
-    fit = 100.0 * (1.0 - float(np.linalg.norm(r)) / spread) if spread > 0 else float("nan")
-    return rmse, fit
+    if not ok.all():
+        if not ok.any():
+            return float("nan"), float("nan")
+        measured, residual = measured[ok], residual[ok]
+    sse = float(residual @ residual)
+    centred = measured - measured.mean()
+    spread = math.sqrt(float(centred @ centred))
+    fit = 100.0 * (1.0 - math.sqrt(sse) / spread) if spread > 0 else float("nan")
+    return math.sqrt(sse / residual.size), fit
 
 
 def _xcorr(a: np.ndarray, b: np.ndarray, lags: int) -> np.ndarray:
@@ -58,6 +61,7 @@ def _correlations(series: np.ndarray, pairs: list[tuple[int, int]], lags: int) -
         return np.where(denom[:, None] > 0, out / np.where(denom > 0, denom, 1.0)[:, None], 0.0)
 
 
+@functools.lru_cache(maxsize=256)
 def sidak_z(level: float, tested: int) -> float:
     """Per-lag two-sided normal quantile so that `tested` independent lags all pass with 1 - level.
 
@@ -82,16 +86,22 @@ def max_correlation_test(values: np.ndarray, n: int, lags: int, variance_factor:
     """
     tested = int(values.size)
     if not tested or n <= 0:
+        return _test(0.0, 1.0, n, 0, 0, level)
+    return _test(float(np.max(np.abs(values))), variance_factor, n, tested, lags, level)
+
+
+def _test(max_abs: float, variance_factor: float, n: int, tested: int, lags: int, level: float) -> ResidualTest:
+    if not tested or n <= 0:
         return ResidualTest(max_abs=0.0, bound=0.0, lags=0, passed=True, p_value=1.0, level=level)
     scale = math.sqrt(max(variance_factor, 1.0) / n)
-    max_abs = float(np.max(np.abs(values)))
     bound = sidak_z(level, tested) * scale
     return ResidualTest(max_abs=max_abs, bound=bound, lags=lags, passed=bool(max_abs <= bound),
                         p_value=max_abs_p_value(max_abs / scale, tested), level=level)
 
 
-def _bartlett_factor(acf_residual: np.ndarray, acf_input: np.ndarray) -> float:
-    """Var(√N r_eu(k)) = Σ_j ρ_e(j) ρ_u(j) for e independent of u; 1 when e is white.
+def _bartlett_factors(acf_residual: np.ndarray, acf_inputs: np.ndarray) -> np.ndarray:
+    """Var(√N r_eu(k)) = Σ_j ρ_e(j) ρ_u(j) for e independent of u, one per row of `acf_inputs`;
+    1 when e is white.
 
     A coloured residual and a slowly varying input share long correlations, so their sample
     cross-correlation wanders far more than 1/√N without any dependence (Ljung, System
@@ -100,7 +110,7 @@ def _bartlett_factor(acf_residual: np.ndarray, acf_input: np.ndarray) -> float:
     """
     m = acf_residual.size - 1
     weights = 1.0 - np.arange(1, m + 1) / (m + 1)
-    return max(1.0, 1.0 + 2.0 * float(np.sum(weights * acf_residual[1:] * acf_input[1:])))
+    return np.maximum(1.0, 1.0 + 2.0 * (acf_inputs[:, 1:] @ (weights * acf_residual[1:])))
 
 
 def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]],
@@ -111,45 +121,67 @@ def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, 
 
 def residual_analyses(outputs: list[str], segments: list[list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]]],
                       ) -> list[ResidualAnalysis]:
-    """`residual_analysis` of several outputs; an input's autocorrelation is computed once for all
-    the outputs that see the same samples of it (every output of a record without gaps)."""
+    """`residual_analysis` of several outputs, `segments[c]` those of output c.
+
+    The outputs of one experiment that see the same samples of the inputs (every output of a
+    record without gaps) are correlated in one batched FFT, and each input's autocorrelation is
+    computed once for all of them."""
+    lags_of = [MAX_LAGS if any(np.isfinite(r).sum() > 2 * MAX_LAGS for _, r, _ in segs) else 0
+               for segs in segments]
+    acf = [np.zeros(lags + 1) for lags in lags_of]
+    xc: list[dict[str, np.ndarray]] = [{} for _ in outputs]
+    acf_u: list[dict[str, np.ndarray]] = [{} for _ in outputs]
+    n_total = [sum(int(np.isfinite(r).sum()) for _, r, _ in segs if np.isfinite(r).sum() > 2 * MAX_LAGS)
+               for segs in segments]
     input_acf: dict[bytes, np.ndarray] = {}
-    return [_analysis(name, segs, input_acf) for name, segs in zip(outputs, segments)]
+    for s in range(max((len(segs) for segs in segments), default=0)):
+        batches: dict[tuple, list[tuple[int, np.ndarray, list[np.ndarray]]]] = {}
+        for c, segs in enumerate(segments):
+            if s >= len(segs):
+                continue
+            _, r, u = segs[s]
+            ok = np.isfinite(r)
+            if ok.sum() <= 2 * MAX_LAGS:
+                continue
+            series = [u[name][ok] for name in u]
+            key = (tuple(u), tuple(x.tobytes() for x in series))
+            batches.setdefault(key, []).append((c, r[ok], series))
+        for (names, keys), members in batches.items():
+            _correlate_batch(members, names, keys, input_acf, acf, xc, acf_u, n_total)
+    out = []
+    for c, (name, segs) in enumerate(zip(outputs, segments)):
+        rmse, fit = rmse_and_fit(np.concatenate([m for m, _, _ in segs]), np.concatenate([r for _, r, _ in segs]))
+        lags, n = lags_of[c], n_total[c]
+        names = list(xc[c])
+        independence = {}
+        if names:
+            cross = np.vstack([xc[c][u] for u in names])
+            factors = _bartlett_factors(acf[c], np.vstack([acf_u[c][u] for u in names]))
+            peaks = np.max(np.abs(cross), axis=1)
+            independence = {u: _test(float(peaks[k]), float(factors[k]), n, cross.shape[1], lags, LEVEL)
+                            for k, u in enumerate(names)}
+        out.append(ResidualAnalysis(
+            output=name, rmse=rmse, fit_percent=fit, autocorrelation=acf[c].tolist(),
+            whiteness=max_correlation_test(acf[c][1:], n, lags),
+            cross_correlation={u: xc[c][u].tolist() for u in names},
+            independence=independence))
+    return out
 
 
-def _analysis(output: str, segments, input_acf: dict[bytes, np.ndarray]) -> ResidualAnalysis:
-    measured = np.concatenate([s[0] for s in segments])
-    resid = np.concatenate([s[1] for s in segments])
-    rmse, fit = rmse_and_fit(measured, resid)
-    usable = [(m, r, u) for m, r, u in segments if np.isfinite(r).sum() > 2 * MAX_LAGS]
-    n_total = sum(int(np.isfinite(r).sum()) for _, r, _ in usable)
-    lags = MAX_LAGS if n_total else 0
-    acf = np.zeros(lags + 1)
-    xc: dict[str, np.ndarray] = {}
-    acf_u: dict[str, np.ndarray] = {}
-    for _, r, u in usable:
-        ok = np.isfinite(r)
-        names = list(u)
-        series = [u[name][ok] for name in names]
-        keys = [s.tobytes() for s in series]
-        missing = [k for k, key in enumerate(keys) if key not in input_acf]
-        rows = np.vstack([r[ok], *series])
-        pairs = ([(0, 0)] + [(0, k + 1) for k in range(len(names))]
-                 + [(k + 1, k + 1) for k in missing])
-        corr = _correlations(rows, pairs, lags)
-        for j, k in enumerate(missing):
-            input_acf[keys[k]] = corr[1 + len(names) + j, lags:]
-        weight = rows.shape[1] / n_total
-        acf += weight * corr[0, lags:]
+def _correlate_batch(members, names, keys, input_acf, acf, xc, acf_u, n_total) -> None:
+    """Add one experiment's correlations of the outputs in `members` (sharing the input samples
+    `keys`) to the running sums, each weighted by its share of the output's samples."""
+    n_ch, n_in = len(members), len(names)
+    rows = np.vstack([r for _, r, _ in members] + list(members[0][2]))
+    missing = [k for k, key in enumerate(keys) if key not in input_acf]
+    pairs = ([(i, i) for i in range(n_ch)] + [(i, n_ch + k) for i in range(n_ch) for k in range(n_in)]
+             + [(n_ch + k, n_ch + k) for k in missing])
+    corr = _correlations(rows, pairs, MAX_LAGS)
+    for j, k in enumerate(missing):
+        input_acf[keys[k]] = corr[n_ch * (1 + n_in) + j, MAX_LAGS:]
+    for i, (c, r, _) in enumerate(members):
+        weight = r.size / n_total[c]
+        acf[c] += weight * corr[i, MAX_LAGS:]
         for k, name in enumerate(names):
-            xc[name] = xc.get(name, 0) + weight * corr[1 + k]
-            acf_u[name] = acf_u.get(name, 0) + weight * input_acf[keys[k]]
-    independence = {
-        name: max_correlation_test(v, n_total, lags, _bartlett_factor(acf, acf_u[name]))
-        for name, v in xc.items()}
-    return ResidualAnalysis(
-        output=output, rmse=rmse, fit_percent=fit,
-        autocorrelation=acf.tolist(),
-        whiteness=max_correlation_test(acf[1:], n_total, lags),
-        cross_correlation={k: np.asarray(v, dtype=float).tolist() for k, v in xc.items()},
-        independence=independence)
+            xc[c][name] = xc[c].get(name, 0) + weight * corr[n_ch + i * n_in + k]
+            acf_u[c][name] = acf_u[c].get(name, 0) + weight * input_acf[keys[k]]

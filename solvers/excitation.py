@@ -1,6 +1,8 @@
 """Checks of the data before fitting: information at the start, input excitation, input roughness."""
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 
 from schemas.fit import FitWarning
@@ -72,14 +74,24 @@ def persistent_excitation_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) ->
     full = lagged.T @ lagged / rows   # positive semidefinite by construction, as its leading blocks
     # the leading m×m blocks in one batched call: each padded with its own mean eigenvalue
     # (trace/m), which lies between its extremes and so changes neither
-    stack = np.zeros((max_order, max_order, max_order))
-    for m in range(1, max_order + 1):
-        stack[m - 1, :m, :m] = full[:m, :m]
-        pad = np.arange(m, max_order)
-        stack[m - 1, pad, pad] = np.trace(full[:m, :m]) / m
+    inside, beyond = _leading_blocks(max_order)
+    stack = np.where(inside, full, 0.0)
+    diagonal = np.arange(max_order)
+    mean_eig = np.cumsum(np.diag(full)) / (diagonal + 1)
+    stack[:, diagonal, diagonal] += np.where(beyond, mean_eig[:, None], 0.0)
     eig = np.linalg.eigvalsh(stack)
     conditioned = eig[:, 0] > PE_RATIO * eig[:, -1]
     return int(max_order if conditioned.all() else np.argmin(conditioned))
+
+
+@functools.lru_cache(maxsize=8)
+def _leading_blocks(size: int) -> tuple[np.ndarray, np.ndarray]:
+    """(inside, beyond): inside[m-1] masks the leading m×m block of a size×size matrix, beyond[m-1]
+    the diagonal entries after it."""
+    k = np.arange(size)
+    order = k + 1
+    inside = (k[None, :, None] < order[:, None, None]) & (k[None, None, :] < order[:, None, None])
+    return inside, k[None, :] >= order[:, None]
 
 
 def input_warnings(inputs: dict[str, list[np.ndarray]], interpolation: str,

@@ -43,6 +43,7 @@ class OutputErrorModel:
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
         self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
+        self.structured_data: np.ndarray | None = None   # the structured NLP's data vector, built once
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
         """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once (compiled C

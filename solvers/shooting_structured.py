@@ -457,6 +457,14 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
 
 
 def _data_vector(oem) -> np.ndarray:
+    """The NLP's parameter vector: the record, weights, parameter map and scales (fixed for the
+    model of one fit, which asks for it for its solver and for each condensed Jacobian)."""
+    if oem.structured_data is None:
+        oem.structured_data = _assemble_data_vector(oem)
+    return oem.structured_data
+
+
+def _assemble_data_vector(oem) -> np.ndarray:
     parts = []
     for e, d in enumerate(oem.data):
         mask = d.mask

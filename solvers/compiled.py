@@ -13,7 +13,8 @@ half-written file.
 
 `GREYFIT_COMPILE`: `auto` (default) compiles when a C compiler is present and the expected
 interpreted work is large enough to repay the compile, and otherwise compiles in the background so
-the next fit of that model finds it; `always` compiles whenever it can; `never` keeps the interpreter.
+the next fit of that model finds it (a failed background compile is tried again after a back-off:
+1 min, doubling, at most hourly); `always` compiles whenever it can; `never` keeps the interpreter.
 """
 from __future__ import annotations
 
@@ -24,6 +25,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+import time
 from collections import OrderedDict
 from pathlib import Path
 
@@ -36,6 +38,10 @@ CFLAGS = ["-O1", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
 # foreground when a fit would spend more than about a second interpreting
 FOREGROUND_WORK = 1e8          # instructions × expected evaluations
 COMPILE_TIMEOUT_S = 120
+# a background compile that failed (disk full, killed, out of memory) is tried again after this,
+# doubled after each failure: a compiler that always fails costs one attempt per hour at most
+RETRY_AFTER_S = 60.0
+MAX_RETRY_S = 3600.0
 
 # Appended to every library: evaluates the function at n samples, input i of sample k at
 # arg[i] + k * astride[i] (stride 0: the same for every sample), output j at res[j] + k * rstride[j];
@@ -66,7 +72,8 @@ int greyfit_columns_FN(long long n, const double** arg, const long long* astride
 """
 
 _memory: dict[str, ca.Function] = {}
-_pending: set[str] = set()
+_pending: set[str] = set()                      # keys compiled in the background now
+_failed: dict[str, tuple[int, float]] = {}       # key -> (failures, monotonic time of the next try)
 _lock = threading.Lock()
 
 
@@ -133,11 +140,25 @@ def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
     if how == "always" or fn.n_instructions() * evaluations >= FOREGROUND_WORK:
         return path if _build(fn, path) else None
     with _lock:
-        start = key not in _pending
-        _pending.add(key)
+        failed = _failed.get(key)
+        start = key not in _pending and (failed is None or time.monotonic() >= failed[1])
+        if start:
+            _pending.add(key)
     if start:   # the next fit of this model structure will find it
-        threading.Thread(target=_build, args=(fn, path), daemon=True).start()
+        threading.Thread(target=_build_in_background, args=(fn, path, key), daemon=True).start()
     return None
+
+
+def _build_in_background(fn: ca.Function, path: Path, key: str) -> None:
+    ok = _build(fn, path)
+    with _lock:
+        _pending.discard(key)
+        if ok:
+            _failed.pop(key, None)
+        else:
+            failures = _failed.get(key, (0, 0.0))[0] + 1
+            wait = min(RETRY_AFTER_S * 2 ** (failures - 1), MAX_RETRY_S)
+            _failed[key] = (failures, time.monotonic() + wait)
 
 
 def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:

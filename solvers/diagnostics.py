@@ -24,9 +24,9 @@ def rmse_and_fit(measured: np.ndarray, residual: np.ndarray) -> tuple[float, flo
     """RMSE and MATLAB `compare` NRMSE fit % over the finite samples."""
     ok = np.isfinite(measured) & np.isfinite(residual)
     if not ok.all():
-        if not ok.any():
-            return float("nan"), float("nan")
         measured, residual = measured[ok], residual[ok]
+    if not residual.size:
+        return float("nan"), float("nan")
     sse = float(residual @ residual)
     centred = measured - measured.mean()
     spread = math.sqrt(float(centred @ centred))

@@ -157,3 +157,43 @@ def test_compiled_equation_error_agrees_with_the_interpreter(cache, monkeypatch)
         assert fast.parameters[name].stderr == pytest.approx(plain.parameters[name].stderr, rel=1e-8)
         assert fast.parameters[name].value == pytest.approx(MSD_TRUTH[name], rel=0.05)
     assert (plain.solver.compiled, fast.solver.compiled) == (False, True)
+
+
+def test_a_failed_background_compile_is_tried_again_later(cache, monkeypatch):
+    """auto mode compiles in the background; a failure falls back to the interpreter and is retried
+    once its back-off has passed, not on every fit."""
+    import casadi as ca
+    monkeypatch.setenv("GREYFIT_COMPILE", "auto")
+    monkeypatch.setattr(compiled_mod, "compiler", lambda: "/bin/false")
+    monkeypatch.setattr(compiled_mod, "_failed", {})
+    monkeypatch.setattr(compiled_mod, "_pending", set())
+    x = ca.SX.sym("x")
+    fn = ca.Function("retry_probe", [x], [ca.sin(x) * x])
+    calls = []
+    outcome = {"ok": False}
+
+    def build(f, path):
+        calls.append(path)
+        return outcome["ok"]
+    monkeypatch.setattr(compiled_mod, "_build", build)
+
+    def settled():
+        for _ in range(500):
+            if not compiled_mod._pending:
+                return
+            time.sleep(0.01)
+        raise AssertionError("background compile never finished")
+
+    assert compiled_mod.library(fn, 1.0) is None   # small work: background, interpreter meanwhile
+    settled()
+    assert compiled_mod.library(fn, 1.0) is None
+    settled()
+    assert len(calls) == 1                          # inside the back-off: not tried again
+    key = compiled_mod.function_key(fn)
+    failures, retry_at = compiled_mod._failed[key]
+    assert failures == 1 and retry_at > time.monotonic() + 0.5 * compiled_mod.RETRY_AFTER_S
+    compiled_mod._failed[key] = (failures, time.monotonic() - 1.0)   # the back-off has passed
+    outcome["ok"] = True
+    assert compiled_mod.library(fn, 1.0) is None
+    settled()
+    assert len(calls) == 2 and key not in compiled_mod._failed

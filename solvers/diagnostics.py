@@ -85,12 +85,11 @@ def max_correlation_test(values: np.ndarray, n: int, lags: int, variance_factor:
     so a bar that leaves it in a plot is what fails the test.
     """
     tested = int(values.size)
-    if not tested or n <= 0:
-        return _test(0.0, 1.0, n, 0, 0, level)
-    return _test(float(np.max(np.abs(values))), variance_factor, n, tested, lags, level)
+    return _test(float(np.max(np.abs(values))) if tested else 0.0, variance_factor, n, tested, lags, level)
 
 
 def _test(max_abs: float, variance_factor: float, n: int, tested: int, lags: int, level: float) -> ResidualTest:
+    """`max_correlation_test` of a known largest |correlation| over `tested` lags."""
     if not tested or n <= 0:
         return ResidualTest(max_abs=0.0, bound=0.0, lags=0, passed=True, p_value=1.0, level=level)
     scale = math.sqrt(max(variance_factor, 1.0) / n)

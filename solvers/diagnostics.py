@@ -50,7 +50,7 @@ def _correlations(series: np.ndarray, pairs: list[tuple[int, int]], lags: int) -
     z = z - z.mean(axis=1, keepdims=True)
     energy = np.sum(z * z, axis=1)
     n = z.shape[1]
-    size = 1 << int(np.ceil(np.log2(max(2 * n, 1))))
+    size = _fast_length(n + lags)   # no wrap-around within ±lags; a 5-smooth length is fast
     spectra = np.fft.rfft(z, size, axis=1)
     i, j = np.array(pairs, dtype=int).T
     cross = np.fft.irfft(spectra[i] * np.conj(spectra[j]), size, axis=1)   # [k] = Σ a(t+k) b(t)
@@ -59,6 +59,20 @@ def _correlations(series: np.ndarray, pairs: list[tuple[int, int]], lags: int) -
     denom = np.sqrt(energy[i] * energy[j])
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(denom[:, None] > 0, out / np.where(denom > 0, denom, 1.0)[:, None], 0.0)
+
+
+@functools.lru_cache(maxsize=64)
+def _fast_length(n: int) -> int:
+    """The smallest 2^a 3^b 5^c ≥ n."""
+    best, p5 = 1 << max(n - 1, 0).bit_length(), 1
+    while p5 < best:
+        p35 = p5
+        while p35 < best:
+            size = p35 << max(0, (n - 1) // p35).bit_length()   # times the least power of 2 that reaches n
+            best = min(best, size)
+            p35 *= 3
+        p5 *= 5
+    return best
 
 
 @functools.lru_cache(maxsize=256)

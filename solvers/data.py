@@ -40,6 +40,8 @@ def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
     if len(values) != n:
         raise DataError(f"{len(values)} values, time has {n}; give one value per time sample", where)
     arr = np.array(values, dtype=float)   # None becomes NaN
+    if arr.size and np.max(np.abs(arr)) <= MAX_ABS_VALUE:   # complete and in range: nothing to report
+        return arr
     finite = np.isfinite(arr)
     bad = [] if finite.all() else [int(i) for i in np.flatnonzero(~finite) if values[i] is not None]
     if bad:

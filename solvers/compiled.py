@@ -111,6 +111,15 @@ def function_key(fn: ca.Function) -> str:
     return key
 
 
+def loaded(fn: ca.Function) -> ca.Function | None:
+    """The compiled Function of `fn` if this process has loaded it already (no policy weighing)."""
+    if mode() == "never" or compiler() is None:
+        return None
+    key = function_key(fn)
+    with _lock:
+        return _memory.get(key)
+
+
 def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bool]:
     """(Function to use, whether it is compiled C) for `fn`, evaluated about `evaluations` times.
 

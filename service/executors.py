@@ -103,6 +103,8 @@ class _Slot:
 class LocalWorkerPool:
     """A fixed number of worker processes; a task that overruns or crashes costs only its worker."""
 
+    direct_submit = True   # free() and submit() are quick: a caller's thread may start a task (Dispatcher)
+
     def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
         self.ctx = mp.get_context("spawn")
         for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
@@ -115,9 +117,13 @@ class LocalWorkerPool:
         self.slots = [self._spawn() for _ in range(workers)]
 
     def wait(self, timeout: float) -> None:
-        """Block until a worker replies or dies, `wake()` is called, or the timeout passes."""
-        busy = [s for s in self.slots if s.keys]
-        handles = [s.conn for s in busy] + [s.process.sentinel for s in busy] + [self._wake_r]
+        """Block until a worker replies or dies, `wake()` is called, or the timeout passes.
+
+        Idle workers too: a task handed to one meanwhile (a synchronous fit started by the web
+        thread) is then heard from without a wake-up, which would cost the running fit CPU on a
+        busy machine; an idle worker that dies is replaced at once. (An idle worker sends nothing:
+        every reply answers a key of its slot.)"""
+        handles = [s.conn for s in self.slots] + [s.process.sentinel for s in self.slots] + [self._wake_r]
         ready = mp_connection.wait(handles, timeout=0 if self._returned else timeout)
         if self._wake_r in ready:
             os.read(self._wake_r, 4096)

@@ -80,11 +80,12 @@ class Dispatcher:
         """Start a synchronous fit on an idle worker now, where the dispatcher would: with a
         synchronous fit waiting it gives a free worker to a job task only if one is already claimed
         (`ready`), and to the first fit queued."""
-        if not getattr(self.executor, "direct_submit", False) or not self._lock.acquire(blocking=False):
+        can_start_now = getattr(self.executor, "can_start_now", None)   # local workers only
+        if can_start_now is None or not self._lock.acquire(blocking=False):
             return False
         try:
             if self._stop.is_set() or not self.is_alive() or self.ready or not self.sync.empty() \
-                    or self.executor.free() == 0:
+                    or not can_start_now():
                 return False
             fut.set_running_or_notify_cancel()
             self.running[key] = ("sync", fut, kind, time.monotonic())

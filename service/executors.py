@@ -103,8 +103,6 @@ class _Slot:
 class LocalWorkerPool:
     """A fixed number of worker processes; a task that overruns or crashes costs only its worker."""
 
-    direct_submit = True   # free() and submit() are quick: a caller's thread may start a task (Dispatcher)
-
     def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
         self.ctx = mp.get_context("spawn")
         for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
@@ -151,9 +149,18 @@ class LocalWorkerPool:
         """Workers busy with one task and none queued behind it."""
         return sum(1 for s in self.slots if len(s.keys) == 1)
 
+    def _idle(self) -> Optional[_Slot]:
+        """A free worker that is alive (one that died idle is replaced by the next poll())."""
+        return next((s for s in self.slots if not s.keys and s.process.is_alive()), None)
+
+    def can_start_now(self) -> bool:
+        """Whether submit() would start a task at once; quick, so a caller's thread may ask (Dispatcher)."""
+        return self._idle() is not None
+
     def submit(self, key: str, kind: str, request: Any) -> None:
-        """To a free worker, else behind the task of a worker that has none queued."""
-        slot = next((s for s in self.slots if not s.keys), None) or next(s for s in self.slots if len(s.keys) == 1)
+        """To a free worker (a live one first), else behind the task of a worker that has none queued."""
+        slot = self._idle() or next((s for s in self.slots if not s.keys), None) or \
+            next(s for s in self.slots if len(s.keys) == 1)
         if not slot.keys:
             slot.started = time.monotonic()
         slot.keys.append(key)

@@ -11,9 +11,14 @@ Measured on a warm server: every worker has run one fit of the same shape first 
 fit builds or loads its compiled functions, a second or more), the batch one as a job task. Request bodies are made and encoded
 before the clock starts: the client's own JSON encoding is not the server's time. Beside wall time,
 the CPU seconds of the server process and of its worker processes per fit (from /proc), which
-show whether a slow run was this server's work or a busy machine.
+show whether a slow run was this server's work or a busy machine, and the part of the mean latency
+spent outside the worker's task (parsing the request, fitting, the result's JSON; its own clock, from
+/metrics): HTTP, the server and the hand-over to the worker and back.
 
-    python bench/bench_service.py [--requests 200] [--batch 100] [--repeat 3]
+    python bench/bench_service.py [--requests 200] [--batch 100] [--repeat 3] [--latency-only]
+
+`--latency-only` measures the synchronous latency alone, `--repeat` times (a fresh server each),
+and prints the median of each row: the quick loop for work on the request path.
 """
 from __future__ import annotations
 
@@ -104,7 +109,15 @@ def warm(client: httpx.Client, body: bytes, workers: int) -> None:
         t.join()
 
 
-def latency(n: int) -> tuple[float, float, float, float, float]:
+def fit_seconds(client: httpx.Client) -> float:
+    """The workers' own wall time of all fits so far (parse, fit, result JSON), from /metrics."""
+    for line in client.get("/metrics").text.splitlines():
+        if line.startswith('greyfit_fit_duration_seconds_sum{kind="fit"}'):
+            return float(line.split()[-1])
+    return 0.0
+
+
+def latency(n: int) -> tuple[float, float, float, float, float, float]:
     port = free_port()
     bodies = [json.dumps(b).encode() for b in msd_bodies(n, 101)]
     with tempfile.TemporaryDirectory() as tmp:
@@ -113,6 +126,7 @@ def latency(n: int) -> tuple[float, float, float, float, float]:
             with httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=60) as client:
                 for _ in range(3):
                     warm(client, bodies[0], 2)
+                in_workers = fit_seconds(client)
                 meter = CpuMeter(proc.pid)
                 meter.start()
                 times = []
@@ -122,11 +136,12 @@ def latency(n: int) -> tuple[float, float, float, float, float]:
                     times.append(time.perf_counter() - t0)
                     assert resp.status_code == 200, resp.text
                 server_cpu, worker_cpu = meter.stop()
+                in_workers = fit_seconds(client) - in_workers
         finally:
             stop(proc)
     ms = np.array(times) * 1000
     return (float(np.percentile(ms, 50)), float(np.percentile(ms, 95)), float(ms.mean()),
-            1000 * server_cpu / n, 1000 * worker_cpu / n)
+            1000 * server_cpu / n, 1000 * worker_cpu / n, float(ms.mean()) - 1000 * in_workers / n)
 
 
 def throughput(workers: int, n: int, body: bytes) -> tuple[float, float, float]:
@@ -155,13 +170,35 @@ def throughput(workers: int, n: int, body: bytes) -> tuple[float, float, float]:
     return n / elapsed, 1000 * server_cpu / n, 1000 * worker_cpu / n
 
 
+def print_latency(p50: float, p95: float, mean: float, server_cpu: float, worker_cpu: float,
+                  outside: float) -> None:
+    print(f"{'sync fit latency p50 (msd, 101 samples)':48s} {p50:10.1f} ms")
+    print(f"{'sync fit latency p95':48s} {p95:10.1f} ms")
+    print(f"{'sync fit latency mean':48s} {mean:10.1f} ms")
+    print(f"{'  of which outside the fit task (mean)':48s} {outside:10.1f} ms")
+    print(f"{'  CPU per sync fit: server / workers':48s} {server_cpu:5.1f} / {worker_cpu:4.1f} ms")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--requests", type=int, default=200)
     parser.add_argument("--batch", type=int, default=100)
     parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--latency-only", action="store_true",
+                        help="only the synchronous latency, --repeat servers, medians")
     args = parser.parse_args()
-    p50, p95, mean, sync_server_cpu, sync_worker_cpu = latency(args.requests)
+    if args.latency_only:
+        rows = []
+        for _ in range(args.repeat):
+            rows.append(latency(args.requests))
+            p50, p95, mean, s_cpu, w_cpu, outside = rows[-1]
+            print(f"  p50 {p50:5.1f} ms, p95 {p95:5.1f} ms, mean {mean:5.1f} ms, outside the worker's task "
+                  f"{outside:4.1f} ms  (CPU per fit: server {s_cpu:4.1f} ms, workers {w_cpu:4.1f} ms)", flush=True)
+        print(f"greyfit service on loopback ({os.cpu_count()} cores), sync latency, median of {args.repeat}")
+        print(f"{'measure':48s} {'value':>12s}")
+        print_latency(*(float(v) for v in np.median(np.array(rows), axis=0)))
+        return
+    p50, p95, mean, sync_server_cpu, sync_worker_cpu, outside = latency(args.requests)
     body = json.dumps({"requests": msd_bodies(args.batch, 401)}).encode()
     # interleaved repetitions, medians: this VM's speed drifts by ±20 % over a minute
     runs: dict[int, list] = {1: [], 2: []}
@@ -175,10 +212,7 @@ def main() -> None:
     t1, t2 = float(med[1][0]), float(med[2][0])
     print(f"greyfit service on loopback ({os.cpu_count()} cores)")
     print(f"{'measure':48s} {'value':>12s}")
-    print(f"{'sync fit latency p50 (msd, 101 samples)':48s} {p50:10.1f} ms")
-    print(f"{'sync fit latency p95':48s} {p95:10.1f} ms")
-    print(f"{'sync fit latency mean':48s} {mean:10.1f} ms")
-    print(f"{'  CPU per sync fit: server / workers':48s} {sync_server_cpu:5.1f} / {sync_worker_cpu:4.1f} ms")
+    print_latency(p50, p95, mean, sync_server_cpu, sync_worker_cpu, outside)
     print(f"{f'batch of {args.batch} fits (401 samples), 1 worker':48s} {t1:8.2f} fits/s  (median of {args.repeat})")
     print(f"{f'batch of {args.batch} fits (401 samples), 2 workers':48s} {t2:8.2f} fits/s  (median of {args.repeat})")
     for w in (1, 2):

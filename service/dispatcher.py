@@ -15,6 +15,12 @@ gets its next task before anything is written: while tasks are short, about AHEA
 per worker is claimed ahead into `ready`, several tasks a transaction (long tasks stay in the store,
 where any replica's free worker can take them), one is queued behind the task each local worker
 runs, and outcomes are written together, at most FLUSH_SECONDS after they arrived.
+
+A synchronous fit that finds a local worker idle (and nothing the dispatcher would give it first)
+goes to it from the caller's thread: waking the dispatcher thread first, which then waits for the
+interpreter lock the event loop holds, costs a good part of a millisecond, often several. The
+dispatcher's rounds hold `_lock`; the caller only tries it and queues the fit as before if a round
+(perhaps writing to the store) is under way: the event loop never waits for the store.
 """
 from __future__ import annotations
 
@@ -54,17 +60,43 @@ class Dispatcher:
         self._cancels: "queue.Queue[cf.Future]" = queue.Queue()
         self._stop = threading.Event()
         self._wake = threading.Event()
+        self._lock = threading.Lock()   # the executor's workers and `running`: a round, or a direct start
         self._thread: Optional[threading.Thread] = None
         self._last_pick = "job"
         self._no_jobs_until = 0.0
 
     # --- called from the web layer -------------------------------------------------------------
-    def submit_sync(self, kind: str, request: dict) -> cf.Future:
+    def submit_sync(self, kind: str, request: dict | str) -> cf.Future:
         fut: cf.Future = cf.Future()
-        self.sync.put((f"sync-{uuid.uuid4()}", kind, request, fut))
+        key = f"sync-{uuid.uuid4()}"
+        if self._start_sync_now(key, kind, request, fut):
+            return fut
+        self.sync.put((key, kind, request, fut))
         self._wake.set()              # not wake(): no new job, so no need to look in the store
         self.executor.wake()
         return fut
+
+    def _start_sync_now(self, key: str, kind: str, request: dict | str, fut: cf.Future) -> bool:
+        """Start a synchronous fit on an idle worker now, where the dispatcher would: with a
+        synchronous fit waiting it gives a free worker to a job task only if one is already claimed
+        (`ready`), and to the first fit queued."""
+        can_start_now = getattr(self.executor, "can_start_now", None)   # local workers only
+        if can_start_now is None or not self._lock.acquire(blocking=False):
+            return False
+        try:
+            if self._stop.is_set() or not self.is_alive() or self.ready or not self.sync.empty() \
+                    or not can_start_now():
+                return False
+            fut.set_running_or_notify_cancel()
+            self.running[key] = ("sync", fut, kind, time.monotonic())
+            self._last_pick = "sync"
+            try:
+                self.executor.submit(key, kind, request)
+            except OSError:   # the worker has just died: the next poll fails the fit (WorkerLost, 503)
+                log.warning("synchronous fit %s: its worker was gone", key)
+        finally:
+            self._lock.release()
+        return True   # no wake-up: the dispatcher waits on idle workers too (LocalWorkerPool.wait)
 
     def sync_waiting(self) -> int:
         """Synchronous fits waiting for a worker; one its caller gave up on no longer counts (the
@@ -105,6 +137,16 @@ class Dispatcher:
         self.wake()
         if self._thread:
             self._thread.join(timeout=10)
+        # no synchronous fit starts directly from here on (_stop is set); a round that outlived the
+        # join (a store that hangs) does not hold the shutdown longer
+        locked = self._lock.acquire(timeout=10)
+        try:
+            self._stop_workers()
+        finally:
+            if locked:
+                self._lock.release()
+
+    def _stop_workers(self) -> None:
         try:
             self._collect()           # outcomes that arrived meanwhile are kept, not re-run
             self._write_pending()
@@ -124,19 +166,20 @@ class Dispatcher:
         last_lease = last_cancel_check = 0.0
         while not self._stop.is_set():
             try:
-                now = time.monotonic()
-                self._collect()
-                self._cancel_abandoned()
-                self._fill()          # free workers first: what follows writes to the store
-                if now - last_lease > self.settings.lease_seconds / 3:
-                    self.store.renew(self.owner, self.settings.lease_seconds)
-                    self.store.requeue_expired()
-                    last_lease = now
-                if now - last_cancel_check > 0.25:
-                    self._stop_cancelled()
-                    last_cancel_check = now
-                self._write_pending(flush=False)
-                self._claim_more()
+                with self._lock:
+                    now = time.monotonic()
+                    self._collect()
+                    self._cancel_abandoned()
+                    self._fill()          # free workers first: what follows writes to the store
+                    if now - last_lease > self.settings.lease_seconds / 3:
+                        self.store.renew(self.owner, self.settings.lease_seconds)
+                        self.store.requeue_expired()
+                        last_lease = now
+                    if now - last_cancel_check > 0.25:
+                        self._stop_cancelled()
+                        last_cancel_check = now
+                    self._write_pending(flush=False)
+                    self._claim_more()
             except Exception:  # the loop must survive a database hiccup
                 log.exception("dispatcher iteration failed")
                 self._stop.wait(min(1.0, self.settings.poll_seconds * 10))

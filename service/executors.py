@@ -115,9 +115,13 @@ class LocalWorkerPool:
         self.slots = [self._spawn() for _ in range(workers)]
 
     def wait(self, timeout: float) -> None:
-        """Block until a worker replies or dies, `wake()` is called, or the timeout passes."""
-        busy = [s for s in self.slots if s.keys]
-        handles = [s.conn for s in busy] + [s.process.sentinel for s in busy] + [self._wake_r]
+        """Block until a worker replies or dies, `wake()` is called, or the timeout passes.
+
+        Idle workers too: a task handed to one meanwhile (a synchronous fit started by the web
+        thread) is then heard from without a wake-up, which would cost the running fit CPU on a
+        busy machine; an idle worker that dies is replaced at once. (An idle worker sends nothing:
+        every reply answers a key of its slot.)"""
+        handles = [s.conn for s in self.slots] + [s.process.sentinel for s in self.slots] + [self._wake_r]
         ready = mp_connection.wait(handles, timeout=0 if self._returned else timeout)
         if self._wake_r in ready:
             os.read(self._wake_r, 4096)
@@ -145,9 +149,18 @@ class LocalWorkerPool:
         """Workers busy with one task and none queued behind it."""
         return sum(1 for s in self.slots if len(s.keys) == 1)
 
+    def _idle(self) -> Optional[_Slot]:
+        """A free worker that is alive (one that died idle is replaced by the next poll())."""
+        return next((s for s in self.slots if not s.keys and s.process.is_alive()), None)
+
+    def can_start_now(self) -> bool:
+        """Whether submit() would start a task at once; quick, so a caller's thread may ask (Dispatcher)."""
+        return self._idle() is not None
+
     def submit(self, key: str, kind: str, request: Any) -> None:
-        """To a free worker, else behind the task of a worker that has none queued."""
-        slot = next((s for s in self.slots if not s.keys), None) or next(s for s in self.slots if len(s.keys) == 1)
+        """To a free worker (a live one first), else behind the task of a worker that has none queued."""
+        slot = self._idle() or next((s for s in self.slots if not s.keys), None) or \
+            next(s for s in self.slots if len(s.keys) == 1)
         if not slot.keys:
             slot.started = time.monotonic()
         slot.keys.append(key)

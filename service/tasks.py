@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import traceback
+from functools import lru_cache
 from typing import Any, Callable
 
 from pydantic import ValidationError
@@ -9,6 +10,7 @@ from pydantic import ValidationError
 TASK_KINDS = ("fit", "discover", "simulate", "report", "frequency_fit")
 
 
+@lru_cache(maxsize=None)   # built once per worker process: a fit of milliseconds notices the imports
 def _runners() -> dict[str, Callable[[dict, float], Any]]:
     from schemas import FitRequest
     from solvers.fit import fit_model

@@ -6,7 +6,7 @@ from sqlalchemy import and_, select
 
 from schemas.report import ReportRequest
 from service.deps import require_api_key
-from service.json_body import StrictJSONRoute
+from service.json_body import StrictJSONRoute, validated_text
 from service.routes.sync import run_sync
 from service.store import task_requests, tasks
 
@@ -16,7 +16,7 @@ router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_
 HTML = {200: {"content": {"text/html": {}}, "description": "one self-contained HTML page"}}
 
 
-async def _page(request: Request, payload: dict) -> HTMLResponse:
+async def _page(request: Request, payload: dict | str) -> HTMLResponse:
     response = await run_sync(request, "report", payload)
     return HTMLResponse(json.loads(response.body)["html"])
 
@@ -24,7 +24,7 @@ async def _page(request: Request, payload: dict) -> HTMLResponse:
 @router.post("/report", response_class=HTMLResponse, responses=HTML)
 async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
     """The report page of a result (with its request for the measured-vs-simulated figures)."""
-    return await _page(request, body.model_dump(mode="json"))
+    return await _page(request, validated_text(request, body))
 
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=HTML)

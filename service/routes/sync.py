@@ -10,6 +10,7 @@ from typing import Callable
 from fastapi import HTTPException, Request, Response
 from pydantic import BaseModel
 
+from service.json_body import validated_text
 from service.problems import Overloaded, RequestTooLarge
 from service.runner import outcome_or_raise
 from service.settings import Settings
@@ -29,10 +30,11 @@ async def run_sync_request(request: Request, kind: str, body: BaseModel, *,
     if values > settings.sync_max_values:
         raise RequestTooLarge(f"the data carry {values} numbers; synchronous requests take at most "
                               f"{settings.sync_max_values}. {elsewhere}")
-    return await run_sync(request, kind, body.model_dump(mode="json"))
+    # the body's own JSON text: validated once here, and once in the worker (tasks._parse)
+    return await run_sync(request, kind, validated_text(request, body))
 
 
-async def run_sync(request: Request, kind: str, payload: dict):
+async def run_sync(request: Request, kind: str, payload: dict | str):
     """Hand the task to the dispatcher and wait; stop its worker if the client goes away.
 
     uvicorn does not cancel a handler whose client disconnected, so the wait polls for it.

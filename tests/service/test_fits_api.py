@@ -1,5 +1,6 @@
 """Synchronous fits and every problem+json error shape, through the real HTTP stack."""
 import json
+import threading
 
 import pytest
 
@@ -14,6 +15,28 @@ def test_sync_fit_returns_the_result(client, example):
     assert body["parameters"]["c"]["value"] == pytest.approx(0.8, rel=0.03)
     assert body["parameters"]["k"]["value"] == pytest.approx(5.0, rel=0.01)
     assert body["covariance"]["names"] == ["c", "k"]
+
+
+def test_a_sync_fit_goes_to_an_idle_worker_from_the_web_thread_as_its_json_text(client, example):
+    """The worker gets the body as sent (validated once more there, not dumped and re-validated), and
+    an idle worker gets it without the dispatcher thread (unless a dispatcher round held the lock)."""
+    executor = client.app.state.dispatcher.executor
+    seen, submit = [], executor.submit
+
+    def recording_submit(key, kind, request):
+        seen.append((threading.current_thread().name, kind, request))
+        submit(key, kind, request)
+
+    text = json.dumps(example, indent=1)   # not how the server would write it
+    executor.submit = recording_submit
+    try:
+        for _ in range(3):
+            resp = client.post("/v1/fits", content=text, headers={"content-type": "application/json"})
+            assert resp.status_code == 200, resp.text
+    finally:
+        del executor.submit
+    assert [(kind, request) for _, kind, request in seen] == [("fit", text)] * 3
+    assert any(name != "greyfit-dispatcher" for name, _, _ in seen), seen
 
 
 def test_openapi_and_docs_are_served(client):

@@ -125,11 +125,9 @@ def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bo
 
     Never raises for a missing compiler or a failed compile: the interpreted `fn` is returned.
     """
-    key = function_key(fn) if mode() != "never" and compiler() is not None else None
-    if key is not None:
-        with _lock:
-            if key in _memory:
-                return _memory[key], True
+    ready = loaded(fn)
+    if ready is not None:
+        return ready, True
     path = library(fn, evaluations)
     if path is None:
         return fn, False

@@ -9,7 +9,8 @@ version and the compiler flags: two requests with the same model structure share
 whatever their data or parameter values. The disk cache (`GREYFIT_CACHE_DIR`, default
 `~/.cache/greyfit`; the service sets it under its data directory) survives restarts and is shared by
 worker processes; libraries are written to a temporary name and renamed, so a reader never loads a
-half-written file.
+half-written file, and built under a lock file, so worker processes that meet a new model at the same
+moment (the first fits of a batch) run the compiler once: the others wait and load its library.
 
 `GREYFIT_COMPILE`: `auto` (default) compiles when a C compiler is present and the expected
 interpreted work is large enough to repay the compile, and otherwise compiles in the background so
@@ -18,6 +19,7 @@ the next fit of that model finds it (a failed background compile is tried again 
 """
 from __future__ import annotations
 
+import contextlib
 import functools
 import hashlib
 import os
@@ -30,6 +32,11 @@ from collections import OrderedDict
 from pathlib import Path
 
 import casadi as ca
+
+try:
+    import fcntl
+except ImportError:   # not POSIX: no cross-process lock, at worst a library is built twice
+    fcntl = None
 
 # -Bsymbolic: the columns driver must call this library's own function, not a namesake loaded
 # before it (glibc exports a legacy `step`)
@@ -180,17 +187,44 @@ def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:
 def _build(fn: ca.Function, library: Path) -> bool:
     try:
         library.parent.mkdir(parents=True, exist_ok=True)
-        with tempfile.TemporaryDirectory(dir=library.parent) as tmp:
-            source = f"{fn.name()}.c"
-            gen = ca.CodeGenerator(source, {"with_header": False})
-            gen.add(fn)
-            gen.generate(tmp + os.sep)
-            with open(Path(tmp) / source, "a") as c_file:   # columns.py's loop over samples
-                c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
-            target = Path(tmp) / "lib.so"
-            subprocess.run([compiler(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
-                           check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)
-            os.replace(target, library)   # atomic: other processes see all of it or nothing
+        with _build_lock(library):
+            if library.exists():   # another process built it while this one waited
+                return True
+            with tempfile.TemporaryDirectory(dir=library.parent) as tmp:
+                source = f"{fn.name()}.c"
+                gen = ca.CodeGenerator(source, {"with_header": False})
+                gen.add(fn)
+                gen.generate(tmp + os.sep)
+                with open(Path(tmp) / source, "a") as c_file:   # columns.py's loop over samples
+                    c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
+                target = Path(tmp) / "lib.so"
+                subprocess.run([compiler(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
+                               check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)
+                os.replace(target, library)   # atomic: other processes see all of it or nothing
         return True
     except (OSError, subprocess.SubprocessError, RuntimeError):
         return False
+
+
+@contextlib.contextmanager
+def _build_lock(library: Path):
+    """Exclusive across processes while `library` is built. The kernel drops a flock when its holder
+    dies, so a killed build never leaves the others waiting; a holder that outlives a compile's
+    timeout is not waited for any longer (the waiter then builds too, as without the lock)."""
+    if fcntl is None:
+        yield
+        return
+    with open(library.with_suffix(".lock"), "a") as handle:
+        deadline = time.monotonic() + COMPILE_TIMEOUT_S + 10
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(0.02)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

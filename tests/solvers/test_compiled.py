@@ -197,3 +197,37 @@ def test_a_failed_background_compile_is_tried_again_later(cache, monkeypatch):
     assert compiled_mod.library(fn, 1.0) is None
     settled()
     assert len(calls) == 2 and key not in compiled_mod._failed
+
+
+BUILD_ONE = """
+import casadi as ca, sys
+from solvers import compiled
+x = ca.SX.sym("x", 2)
+fn = ca.Function("race_probe", [x], [ca.vertcat(ca.sin(x[0]) * x[1], x[0] ** 3)])
+ext, is_c = compiled.compiled(fn, 1e9)
+print(is_c, float(ext([0.5, 2.0])[0]))
+"""
+
+
+@needs_cc
+def test_processes_meeting_a_new_model_at_once_compile_it_once(cache, tmp_path):
+    """Defect: every worker of a batch ran gcc for the same library at the same time (~1 s of CPU
+    each, on cores the fits needed)."""
+    import subprocess
+    import sys
+    calls = tmp_path / "cc_calls"
+    cc = tmp_path / "cc"   # the real compiler, slowed so that the four builds overlap
+    cc.write_text(f'#!/bin/sh\necho "$$" >> {calls}\nsleep 1\nexec {compiled_mod.compiler()} "$@"\n')
+    cc.chmod(0o755)
+    env = dict(os.environ, GREYFIT_CACHE_DIR=str(tmp_path), GREYFIT_COMPILE="always", CC=str(cc))
+    root = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+    procs = [subprocess.Popen([sys.executable, "-c", BUILD_ONE], env=env, cwd=root, text=True,
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE) for _ in range(4)]
+    outs = [p.communicate(timeout=120) for p in procs]
+    assert all(p.returncode == 0 for p in procs), [err for _, err in outs]
+    expected = np.sin(0.5) * 2.0
+    for out, _ in outs:
+        is_c, value = out.split()
+        assert is_c == "True" and float(value) == pytest.approx(expected, rel=1e-12)
+    assert len(calls.read_text().split()) == 1
+    assert len(list(cache.glob("race_probe_*.so"))) == 1

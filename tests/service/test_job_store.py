@@ -1,4 +1,5 @@
 """The job store on SQLite and PostgreSQL: claims once, leases, retries, graceful hand-back."""
+import json
 import threading
 import time
 
@@ -172,5 +173,28 @@ def test_postgres_claims_skip_a_row_another_replica_has_locked(postgres_url):
         claimer.join(timeout=10)
         assert not blocked, "the claim waited for another transaction's row lock"
         assert got[0].idx == 1
+    finally:
+        store.engine.dispose()
+
+
+def test_postgres_stores_request_and_result_texts_with_lz4(postgres_url):
+    store = JobStore(make_engine(postgres_url))
+    try:
+        with store.engine.connect() as conn:
+            if int(conn.execute(text("SHOW server_version_num")).scalar()) < 140000:
+                pytest.skip("PostgreSQL < 14 has no per-column compression")
+        make_engine(postgres_url).dispose()   # a second server start finds it done
+        body = msd_request(3, n=401)
+        job = store.create_job("fit", [body], None)
+        task = store.claim("o", 30, 1)
+        assert json.loads(task.request) == body
+        store.finish(job, 0, "o", "succeeded", task.request, None)   # a result of the same size
+        with store.engine.connect() as conn:
+            stored = conn.execute(text(
+                "SELECT pg_column_compression(r.request), pg_column_size(r.request), length(r.request), "
+                "pg_column_compression(t.result), pg_column_size(t.result) FROM task_requests r "
+                "JOIN tasks t USING (job_id, idx) WHERE job_id = :j"), {"j": job}).one()
+        assert stored[0] == "lz4" and stored[3] == "lz4" and max(stored[1], stored[4]) < stored[2], stored
+        assert store.results(job)[0]["result"] == body
     finally:
         store.engine.dispose()

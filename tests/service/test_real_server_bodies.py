@@ -4,6 +4,13 @@ Parsing a 30 MB JSON body takes about a second of CPU with the interpreter lock 
 run in the web process (not even in a thread: the lock stalls the event loop just the same).
 /healthz is probed in open loop (one probe every 25 ms, each timed from when it was due), so a
 stall shows up in every probe it delays, not only in the one that was waiting.
+
+The bound scales with the machine: two parses of one body in this process, measured around the
+burst, and at least 0.5 s. Parsed in the web process (`GREYFIT_BODY_PARSER_PROCESSES=0`) the three
+bodies stalled the probes for about four such parses (p95 934 ms, one parse 214 ms); in parser
+processes the probes wait only for their share of the CPU (p95 ~30 ms on a quiet machine, 337 ms
+with one parse at 334 ms at load 3.6). A fixed 0.5 s measured the load instead: it failed at
+load 3.5, where everything, the probes included, ran several times slower.
 """
 import asyncio
 import copy
@@ -15,11 +22,13 @@ import httpx
 import numpy as np
 import pytest
 
+from schemas import FitRequest
+from service.json_parsing import parse_and_validate
 from tests.service.conftest import msd_request
 from tests.service.test_real_server import free_port, start_server, stop_server, wait_until_finished
 
-HEALTHZ_P95_BOUND_S = 0.5   # measured ~0.03 s with parser processes; 1-3 s when parsed in the web process
 BODY_MEGABYTES = 20
+HEALTHZ_P95_FLOOR_S = 0.5
 
 
 def large_fit_request(megabytes: float) -> dict:
@@ -54,6 +63,14 @@ def probe_healthz(base: str, stop: threading.Event, every: float = 0.025) -> lis
     return asyncio.run(run())
 
 
+def parse_seconds(body: bytes) -> float:
+    """Wall time of one parse and validation of `body` in this process, as a parser process does it."""
+    started = time.perf_counter()
+    outcome, _ = parse_and_validate(FitRequest, body)
+    assert outcome == "ok", outcome
+    return time.perf_counter() - started
+
+
 def split_in_two(request: dict) -> dict:
     """The same data as two experiments of half the length (within the server's sample limit)."""
     exp = request["experiments"][0]
@@ -82,6 +99,7 @@ def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
         answers: dict[str, httpx.Response] = {}
         stop = threading.Event()
         latencies: list[float] = []
+        one_parse = parse_seconds(bodies["/v1/fits"])
         prober = threading.Thread(target=lambda: latencies.extend(probe_healthz(base, stop)))
         prober.start()
 
@@ -100,9 +118,10 @@ def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
             t.join()
         stop.set()
         prober.join()
+        one_parse = (one_parse + parse_seconds(bodies["/v1/fits"])) / 2
         p95, worst = float(np.percentile(latencies, 95)), max(latencies)
         print(f"/healthz during the burst: p50 {np.median(latencies) * 1e3:.0f} ms, p95 {p95 * 1e3:.0f} ms, "
-              f"max {worst * 1e3:.0f} ms over {len(latencies)} probes")
+              f"max {worst * 1e3:.0f} ms over {len(latencies)} probes; one parse here {one_parse * 1e3:.0f} ms")
 
         statuses = {path: getattr(a, "status_code", repr(a)) for path, a in answers.items()}
         assert statuses == {"/v1/fits": 422, "/v1/jobs": 422, "/v1/jobs ": 202}, \
@@ -111,7 +130,8 @@ def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
         assert [e["loc"] for e in answers["/v1/fits"].json()["errors"]] == ["experiments[0].time"]
         assert [e["loc"] for e in answers["/v1/jobs"].json()["errors"]] == \
             [f"requests[0].experiments[0].outputs.x[{n - 1}]"]
-        assert p95 < HEALTHZ_P95_BOUND_S, f"/healthz p95 {p95:.2f} s, max {worst:.2f} s"
+        bound = max(HEALTHZ_P95_FLOOR_S, 2 * one_parse)
+        assert p95 < bound, f"/healthz p95 {p95:.2f} s, max {worst:.2f} s; one parse here {one_parse:.2f} s"
 
         job = wait_until_finished(base, answers["/v1/jobs "].json()["id"], timeout=60)
         assert job["status"] == "failed"

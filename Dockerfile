@@ -17,7 +17,10 @@ COPY --chown=greyfit pyproject.toml README.md ./
 COPY --chown=greyfit scripts/install.sh scripts/install.sh
 RUN mkdir schemas solvers service greyfit \
  && touch schemas/__init__.py solvers/__init__.py service/__init__.py greyfit/__init__.py \
- && bash scripts/install.sh report
+ && bash scripts/install.sh report \
+ && .venv/bin/python -c "import matplotlib.font_manager"
+# (the last step builds matplotlib's font cache in the image: otherwise each new container's first
+# report pays for it, about a second)
 
 # The source; the editable install above already points at /app.
 COPY --chown=greyfit schemas schemas

@@ -21,12 +21,18 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start_server(data_dir: Path, port: int, workers: int = 2, **env_overrides: str) -> subprocess.Popen:
+def start_server(data_dir: Path, port: int, workers: int = 2, log: Path | None = None,
+                 **env_overrides: str) -> subprocess.Popen:
+    """A `greyfit serve` subprocess, ready; its output goes to `log` when given, else nowhere."""
     env = {**os.environ, "GREYFIT_LEASE_SECONDS": "2", "GREYFIT_POLL_SECONDS": "0.02", **env_overrides}
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
-                             "--port", str(port), "--data-dir", str(data_dir), "--workers", str(workers)],
-                            cwd=ROOT, env=env, start_new_session=True,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    out = open(log, "ab") if log is not None else subprocess.DEVNULL
+    try:
+        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
+                                 "--port", str(port), "--data-dir", str(data_dir), "--workers", str(workers)],
+                                cwd=ROOT, env=env, start_new_session=True, stdout=out, stderr=subprocess.STDOUT)
+    finally:
+        if log is not None:
+            out.close()   # the child holds its own descriptor
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline:
         try:

@@ -13,7 +13,7 @@ USER greyfit
 
 # Dependencies first (a layer that survives source changes): the project's own install step on
 # empty package stubs, the same scripts/install.sh the README and CI use.
-COPY --chown=greyfit pyproject.toml README.md ./
+COPY --chown=greyfit pyproject.toml README.md constraints.txt ./
 COPY --chown=greyfit scripts/install.sh scripts/install.sh
 RUN mkdir schemas solvers service greyfit \
  && touch schemas/__init__.py solvers/__init__.py service/__init__.py greyfit/__init__.py \

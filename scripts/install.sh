@@ -6,4 +6,16 @@ cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 [ -x .venv/bin/python ] || "$PY" -m venv .venv
 .venv/bin/python -m pip install --quiet --disable-pip-version-check --upgrade pip
-.venv/bin/python -m pip install --quiet --disable-pip-version-check -e ".${1:+[$1]}"
+target=".${1:+[$1]}"
+install() { .venv/bin/python -m pip install --quiet --disable-pip-version-check "$@" -e "$target"; }
+# constraints.txt: the dependency versions the tests last passed with (on Python 3.11), so a fresh
+# machine installs what CI tested rather than whatever was released since. Where they cannot be
+# installed (another Python without their wheels) or GREYFIT_UNPINNED=1, the newest that fit
+# pyproject.toml's ranges.
+if [ "${GREYFIT_UNPINNED:-0}" = 1 ]; then
+    install
+elif ! install -c constraints.txt; then
+    echo "scripts/install.sh: the versions in constraints.txt do not install with $(.venv/bin/python -V);" \
+         "installing the newest versions pyproject.toml allows instead" >&2
+    install
+fi

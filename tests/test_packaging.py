@@ -12,8 +12,20 @@ def test_dockerfile_installs_with_the_project_script_and_serves_as_non_root():
     assert "HEALTHCHECK" in text and "/healthz" in text
     assert 'VOLUME ["/data"]' in text
     assert '"greyfit", "serve"' in text or 'greyfit", "serve' in text
-    # dependencies are installed before the source is copied
+    # dependencies are installed before the source is copied, at the versions CI tested
     assert text.index("bash scripts/install.sh") < text.index("COPY --chown=greyfit solvers")
+    assert re.search(r"^COPY .*constraints\.txt", text, re.M).start() < text.index("bash scripts/install.sh")
+
+
+def test_install_uses_the_tested_versions():
+    """install.sh installs constraints.txt's versions; they name every dependency of every extra."""
+    assert "-c constraints.txt" in (ROOT / "scripts" / "install.sh").read_text()
+    pinned = {re.split(r"[=<>!~]", line)[0].strip().lower().replace("_", "-")
+              for line in (ROOT / "constraints.txt").read_text().splitlines() if line and not line.startswith("#")}
+    declared = re.findall(r'"([A-Za-z0-9_.-]+)(?:\[[^\]]*\])?\s*[<>=~!]', (ROOT / "pyproject.toml").read_text())
+    assert {"casadi", "matplotlib", "schemathesis"} <= set(declared)
+    missing = {d.lower().replace("_", "-") for d in declared} - pinned - {"setuptools"}
+    assert not missing, f"constraints.txt lacks {sorted(missing)}: bash scripts/update_constraints.sh"
 
 
 def test_readme_commands_are_the_scripts_ci_runs():

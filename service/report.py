@@ -60,8 +60,37 @@ class Series:
     simulated: dict[str, np.ndarray]
 
 
+# A page stays readable, and a worker's CPU limit is not spent drawing, whatever the size of the
+# result: past these, a figure shows the first ones and the page's notes say what was left out
+MAX_RECORDS = 4       # columns of the compare figure
+MAX_OUTPUTS = 6       # rows of the compare and residual figures
+MAX_INPUTS = 3        # cross-correlation columns of the residual figure
+MAX_PARAMETERS = 40   # rows of the estimates figure
+MAX_LABELLED = 40     # correlation matrix: names on its axes up to this size
+
+
+def _shown(items: list, limit: int, what: str, figure: str, notes: list[str]) -> list:
+    if len(items) > limit:
+        notes.append(f"{figure}: the first {limit} of {len(items)} {what} are drawn (the result has them all)")
+    return items[:limit]
+
+
+def _grid_layout(fig, rows: int, cols: int, left: float = 0.8, bottom: float = 0.5, top: float = 0.35,
+                 wgap: float = 0.8, hgap: float = 0.6) -> None:
+    """Margins and gaps in inches, for a grid of axes whose labels are short (an output's name, "t",
+    "lag"). tight_layout measures every label by drawing each axes once more, which was half the
+    time of a many-axes figure."""
+    w, h = fig.get_size_inches()
+    right = 0.2
+    ax_w = max((w - left - right - (cols - 1) * wgap) / cols, 0.1)
+    ax_h = max((h - bottom - top - (rows - 1) * hgap) / rows, 0.1)
+    fig.subplots_adjust(left=left / w, right=1 - right / w, bottom=bottom / h, top=1 - top / h,
+                        wspace=wgap / ax_w, hspace=hgap / ax_h)
+
+
 def _save(plt, fig, name: str, title: str, svg: bool) -> Figure:
-    # every figure is laid out by tight_layout already: bbox_inches="tight" would draw it once more
+    # every figure is laid out before (tight_layout or _grid_layout): bbox_inches="tight" would draw it
+    # once more
     png = io.BytesIO()
     fig.savefig(png, format="png", dpi=110)
     text = None
@@ -104,12 +133,16 @@ def estimation_series(fit: FitResult, request: FitRequest | None, model) -> tupl
     return est, []
 
 
-def compare_figure(plt, records: list[Series], kind: str, svg: bool = False) -> Figure:
-    outputs = sorted({o for r in records for o in r.measured})
-    cols = min(len(records), 4)
+def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
+                   notes: list[str] | None = None) -> Figure:
+    notes = [] if notes is None else notes
+    records = _shown(records, MAX_RECORDS, "records", f"compare ({kind})", notes)
+    outputs = _shown(sorted({o for r in records for o in r.measured}), MAX_OUTPUTS, "outputs",
+                     f"compare ({kind})", notes)
+    cols = len(records)
     fig, axes = plt.subplots(len(outputs), cols, figsize=(5.2 * cols, 2.4 * len(outputs) + 0.6),
                              squeeze=False, sharex="col")
-    for c, rec in enumerate(records[:cols]):
+    for c, rec in enumerate(records):
         for r, out in enumerate(outputs):
             ax = axes[r][c]
             if out in rec.measured:
@@ -124,15 +157,18 @@ def compare_figure(plt, records: list[Series], kind: str, svg: bool = False) -> 
                 ax.set_title(f"{kind}: {rec.name}", fontsize=9)
             if r == len(outputs) - 1:
                 ax.set_xlabel("t")
-    fig.tight_layout()
+    _grid_layout(fig, len(outputs), cols, hgap=0.25)
     return _save(plt, fig, f"compare_{kind}", f"Measured and simulated outputs ({kind} records)", svg)
 
 
-def residual_figure(plt, fit: FitResult, svg: bool = False) -> Figure | None:
+def residual_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:
+    notes = [] if notes is None else notes
     analyses = [a for a in fit.residual_analysis if a.whiteness.lags > 0]
     if not analyses:
         return None
-    inputs = sorted({u for a in analyses for u in a.cross_correlation})
+    analyses = _shown(analyses, MAX_OUTPUTS, "outputs", "residuals", notes)
+    inputs = _shown(sorted({u for a in analyses for u in a.cross_correlation}), MAX_INPUTS, "inputs",
+                    "residuals", notes)
     fig, axes = plt.subplots(len(analyses), 1 + len(inputs), squeeze=False,
                              figsize=(4.2 * (1 + len(inputs)), 2.3 * len(analyses) + 0.5))
     for r, a in enumerate(analyses):
@@ -153,15 +189,16 @@ def residual_figure(plt, fit: FitResult, svg: bool = False) -> Figure | None:
                 ax.axhspan(-test.bound, test.bound, color="C2", alpha=0.15)
                 ax.set_title(f"cross-correlation e({a.output}) with {u}", fontsize=9)
             ax.set_xlabel("lag")
-    fig.tight_layout()
+    _grid_layout(fig, len(analyses), 1 + len(inputs), wgap=0.6, hgap=0.8)
     return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs (bands: a white, "
                  "independent residual stays inside at every lag with 99 % probability)", svg)
 
 
-def parameter_figure(plt, fit: FitResult, svg: bool = False) -> Figure | None:
+def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:
     free = [(k, p) for k, p in fit.parameters.items() if not p.fixed]
     if not free:
         return None
+    free = _shown(free, MAX_PARAMETERS, "free parameters", "estimates", [] if notes is None else notes)
     fig, ax = plt.subplots(figsize=(7, 0.45 * len(free) + 1.2))
     for i, (name, p) in enumerate(free):
         scale = abs(p.value) if p.value != 0 else 1.0
@@ -180,15 +217,21 @@ def parameter_figure(plt, fit: FitResult, svg: bool = False) -> Figure | None:
     return _save(plt, fig, "parameters", "Estimates with their confidence intervals", svg)
 
 
-def correlation_figure(plt, fit: FitResult, svg: bool = False) -> Figure | None:
+def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:
     if fit.correlation is None or len(fit.correlation.names) < 2:
         return None
     names, m = fit.correlation.names, np.array(fit.correlation.matrix)
     n = len(names)
-    fig, ax = plt.subplots(figsize=(max(4.5, 1.0 + 0.55 * n), max(3.5, 0.8 + 0.5 * n)))
+    # beyond MAX_LABELLED the matrix is drawn whole, unlabelled, at a fixed size
+    size = (max(4.5, 1.0 + 0.55 * n), max(3.5, 0.8 + 0.5 * n)) if n <= MAX_LABELLED else (7.0, 6.0)
+    fig, ax = plt.subplots(figsize=size)
     im = ax.imshow(m, cmap="RdBu_r", vmin=-1, vmax=1)
-    ax.set_xticks(range(n), names, rotation=60, ha="right", fontsize=8)
-    ax.set_yticks(range(n), names, fontsize=8)
+    if n <= MAX_LABELLED:
+        ax.set_xticks(range(n), names, rotation=60, ha="right", fontsize=8)
+        ax.set_yticks(range(n), names, fontsize=8)
+    elif notes is not None:
+        notes.append(f"correlation: {n} estimates, drawn without their names (in the order of the result's "
+                     "correlation.names)")
     if n <= 12:
         for i in range(n):
             for j in range(n):
@@ -232,7 +275,7 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
     without = {k: (0.0 if k.split("[", 1)[0] in added else v) for k, v in params.items()}
     before = _simulated_series(result.model, without, experiments, prepared.options, result.fit.initial_states)
     rec_a, rec_b = after[0], before[0]
-    outputs = list(rec_a.measured)
+    outputs = _shown(list(rec_a.measured), MAX_OUTPUTS, "outputs", "discovery overlay", notes)
     fig, axes = plt.subplots(len(outputs), 1, figsize=(9, 2.4 * len(outputs) + 0.6), squeeze=False, sharex=True)
     for r, out in enumerate(outputs):
         ax = axes[r][0]
@@ -263,13 +306,13 @@ def build_report(req: ReportRequest, svg: bool = False) -> Report:
             for e in request.experiments]})
     est, val = estimation_series(fit, request, model)
     if est:
-        report.figures.append(compare_figure(plt, est, "estimation", svg))
+        report.figures.append(compare_figure(plt, est, "estimation", svg, report.notes))
     else:
         report.notes.append("no measured-vs-simulated figure: give the request, or fit with return_traces")
     if val:
-        report.figures.append(compare_figure(plt, val, "validation", svg))
+        report.figures.append(compare_figure(plt, val, "validation", svg, report.notes))
     for make in (residual_figure, parameter_figure, correlation_figure):
-        figure = make(plt, fit, svg)
+        figure = make(plt, fit, svg, report.notes)
         if figure is not None:
             report.figures.append(figure)
     if discovery:

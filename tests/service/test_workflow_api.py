@@ -1,4 +1,7 @@
 """POST /v1/simulate, /v1/report, GET /v1/jobs/{id}/report and fits with validation, through the app."""
+import base64
+import re
+
 import numpy as np
 
 from tests.service.conftest import assert_problem, msd_request, wait_for_job
@@ -65,3 +68,37 @@ def test_report_page_for_a_result_and_for_a_job(client):
     resp = client.get(f"/v1/jobs/{job['id']}/report")
     assert resp.status_code == 200 and 'id="fig-compare_validation"' in resp.text
     assert client.get(f"/v1/jobs/{job['id']}/report?index=5").status_code == 404
+
+
+def png_size(page: str, figure: str) -> tuple[int, int]:
+    """(width, height) in pixels of a figure embedded in a report page, from its PNG header."""
+    encoded = re.search(rf'id="fig-{figure}".*?base64,([^"]+)"', page, re.S).group(1)
+    header = base64.b64decode(encoded[:44])
+    return int.from_bytes(header[16:20], "big"), int.from_bytes(header[20:24], "big")
+
+
+def test_report_of_a_result_with_hundreds_of_parameters_stays_a_readable_page(client):
+    """300 free estimates and 20 outputs: the estimates figure shows the first 40 and says so, the
+    correlation matrix is drawn whole without names, the residual figure the first 6 outputs; no
+    figure grows with the count (one did: 15 000 px tall, past a worker's CPU limit)."""
+    body = msd_request(3)
+    body["options"] = {"return_traces": True}   # the page is drawn from the result alone
+    fit = client.post("/v1/fits", json=body).json()
+    small = client.post("/v1/report", json={"result": fit}).text
+    one = fit["parameters"]["c"]
+    fit["parameters"] = {f"c{i}": {**one, "value": one["value"] * (1 + i / 300),
+                                   "ci95": [v * (1 + i / 300) for v in one["ci95"]]} for i in range(300)}
+    names = list(fit["parameters"])
+    fit["correlation"] = {"names": names, "matrix": np.eye(300).tolist()}
+    analysis = fit["residual_analysis"][0]
+    fit["residual_analysis"] = [{**analysis, "output": f"y{i}"} for i in range(20)]
+    resp = client.post("/v1/report", json={"result": fit})
+    assert resp.status_code == 200, resp.text
+    page = resp.text
+    assert "estimates: the first 40 of 300 free parameters are drawn" in page
+    assert "correlation: 300 estimates, drawn without their names" in page
+    assert "residuals: the first 6 of 20 outputs are drawn" in page
+    for figure in ("parameters", "correlation", "residuals"):
+        width, height = png_size(page, figure)
+        assert width <= 1200 and height <= 2500, (figure, width, height)
+    assert png_size(page, "compare_estimation") == png_size(small, "compare_estimation")

@@ -11,7 +11,7 @@ from typing import Annotated, Literal, Optional, Union
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
 from schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
-from schemas.model import RESERVED_NAMES, Expression, Model, Name, Parameter
+from schemas.model import RESERVED_NAMES, Expression, FiniteFloat, Model, Name, Parameter
 
 MAX_DEGREE = 40
 Coefficients = list[Expression]
@@ -139,7 +139,7 @@ class FrequencyData(BaseModel):
     gain_unit: Literal["abs", "dB"] = Field(default="abs", description="gain as |G| or 20 log10 |G|")
     phase_deg: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
     sine_tests: Optional[list[SineTest]] = Field(default=None, max_length=10_000)
-    constants: dict[Name, float] = Field(
+    constants: dict[Name, FiniteFloat] = Field(
         default_factory=dict, description="values of model constants for this data set (e.g. Kp, Ki)")
 
 
@@ -159,7 +159,7 @@ class FrequencyFitOptions(BaseModel):
     stability_margin: float = Field(default=1e-6, ge=0, le=1,
                                     description="margin of each normalised Hurwitz condition")
     penalty_weight: float = Field(default=1e3, gt=0)
-    also_stable_with: list[dict[Name, float]] = Field(
+    also_stable_with: list[dict[Name, FiniteFloat]] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
         description="further constant settings (e.g. other controller gains) whose closed loop must be stable")
     levy_start: bool = Field(default=True, description="start from a Levy / Sanathanan-Koerner fit")

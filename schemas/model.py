@@ -16,6 +16,7 @@ from schemas.online import (
 
 Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
 Expression = Annotated[str, StringConstraints(min_length=1, max_length=MAX_EXPRESSION_LENGTH)]
+FiniteFloat = Annotated[float, Field(allow_inf_nan=False)]
 
 RESERVED_NAMES = {"t", "pi", "e", "inf"}
 

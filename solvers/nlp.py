@@ -95,12 +95,20 @@ def solve_linear_least_squares(problem: LeastSquaresProblem, options: FitOptions
     """Closed-form solution when the residual is affine in θ and no bound or constraint is active.
 
     Returns None when the unconstrained optimum violates a bound or a constraint (Ipopt then
-    solves the convex QP).
+    solves the convex QP), and when the regressors are not finite or too large for the SVD (values
+    near the float limits): Ipopt then ends the fit with a status that says so.
     """
     start = time.perf_counter()
     w = problem.w
     a, b = problem.evaluate_jacobian(np.zeros(w.numel()))
-    sol, *_ = np.linalg.lstsq(a, -b, rcond=None)
+    if not (np.all(np.isfinite(a)) and np.all(np.isfinite(b))):
+        return None
+    try:
+        sol, *_ = np.linalg.lstsq(a, -b, rcond=None)
+    except np.linalg.LinAlgError:   # "SVD did not converge": entries near 1e308 overflow inside it
+        return None
+    if not np.all(np.isfinite(sol)):
+        return None
     feasible = np.all(sol >= problem.lbw - 1e-12) and np.all(sol <= problem.ubw + 1e-12)
     if problem.g.numel():
         gval = np.array(ca.Function("g", [w], [problem.g])(sol)).ravel()

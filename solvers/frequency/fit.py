@@ -22,7 +22,7 @@ from solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
 from solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
 from solvers.frequency.response import numeric_response
 from solvers.frequency.stability import poles, routh_first_column
-from solvers.nlp import LeastSquaresSolver, NlpOutcome
+from solvers.nlp import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
 from solvers.parameters import build_layout
 from solvers.statistics import information_criteria
 
@@ -75,6 +75,20 @@ def _loop_report(loop: ClosedLoop, p: np.ndarray) -> LoopStability:
                          max_real_part=mx, stable=bool(mx < 0), routh_first_column=routh_first_column(den))
 
 
+def _check_finite_loops(loops: list[ClosedLoop], extra: list[ClosedLoop], layout) -> None:
+    """Each closed loop's coefficients are finite at the initial values, else a DataError naming the
+    constants that overflowed them (e.g. Ki = 1e308: finite, but its products are not)."""
+    p0 = layout.initial / layout.scale
+    for k, loop in enumerate(loops + extra):
+        p = layout.full(k if k < len(loops) else 0, p0)
+        coefficients = np.concatenate([np.array(loop.num_fn(p), dtype=float).ravel(),
+                                       np.array(loop.den_fn(p), dtype=float).ravel()])
+        if not np.all(np.isfinite(coefficients)):
+            field = f"data[{k}].constants" if k < len(loops) else f"options.{loop.name}"
+            raise DataError("the closed loop's coefficients overflow at the initial parameter values: "
+                            "use units that keep the constants and parameters well inside ±1e150", field)
+
+
 def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     """Fit a transfer-function model to measured frequency responses; see `schemas.fit.FitResult`."""
     started = time.perf_counter()
@@ -106,6 +120,8 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
 
     loops = [tf.loop(s.name, s.constants) for s in sets]
     extra = [tf.loop(f"also_stable_with[{k}]", c) for k, c in enumerate(opts.also_stable_with)]
+    if not isinstance(request.model, LinearisedOdeModel):   # (a linearised model's NaN has its own report)
+        _check_finite_loops(loops, extra, layout)
     stability_loops = [(loop, e) for e, loop in enumerate(loops)] + [(loop, 0) for loop in extra]
     fp = build_frequency_problem(tf, loops, stability_loops, sets, layout, opts)
 
@@ -116,7 +132,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         # leave it (seen on seed 001's structure); bounds and constraints act in the fit proper
         levy = levy_fit(loops, sets, layout, iterations=opts.sk_iterations,
                         data_weights=data_weights(sets, opts.cost), constrained=False, options=engine_opts)
-        if np.all(np.isfinite(levy.theta)):
+        if np.all(np.isfinite(levy.theta)) and levy.status in SUCCESS_STATUSES:   # else it is just the start
             levy_theta = levy.theta
             starts.insert(0, _interior(levy.theta, layout))
     outcome, n_starts = _solve_multistart(fp, starts, engine_opts)

@@ -84,8 +84,15 @@ def routh_first_column(den: np.ndarray) -> list[float]:
 
 
 def poles(den: np.ndarray) -> np.ndarray:
+    """Roots of the denominator; NaN (one, unknown) where its coefficients are not finite, e.g. a
+    constant near the float limits overflowed them: such a loop is not reported stable."""
     a = np.trim_zeros(np.asarray(den, dtype=float), "f")
-    return np.roots(a) if a.size > 1 else np.zeros(0, dtype=complex)
+    if not np.all(np.isfinite(a)):
+        return np.array([complex(np.nan, np.nan)])
+    try:
+        return np.roots(a) if a.size > 1 else np.zeros(0, dtype=complex)
+    except np.linalg.LinAlgError:   # the companion matrix's eigenvalues did not converge
+        return np.array([complex(np.nan, np.nan)])
 
 
 def is_stable(den: np.ndarray) -> bool:

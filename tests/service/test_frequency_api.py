@@ -82,3 +82,33 @@ def test_cli_fit_accepts_a_frequency_request(tmp_path, capsys):
     result = json.loads(capsys.readouterr().out)
     assert result["parameters"]["a3"]["value"] == pytest.approx(TRUTH["a3"], rel=0.02)
     assert result["frequency_response"]["stable"] is True
+
+
+@pytest.mark.parametrize("where,value,field", [
+    ("constants", {"Kp": 1.0, "Ki": 1e308}, "data[0].constants"),
+    ("also_stable_with", [{"Kp": 3.0, "Ki": -1e308}], "options.also_stable_with[0]"),
+])
+def test_constants_that_overflow_the_loop_are_a_422_naming_them(client, where, value, field):
+    """Finite but so large that the closed loop's coefficients overflow (these were 500s: the Levy
+    start's SVD and the pole report's eigenvalues failed on them)."""
+    body = _body()
+    if where == "constants":
+        body["data"][0]["constants"] = value
+    else:
+        body["options"] = {"also_stable_with": value}
+    body = assert_problem(client.post("/v1/frequency-fits", json=body), 422, field, "overflow")
+    assert body["errors"][0]["loc"] == field
+
+
+def test_measured_response_near_the_float_limit_is_an_answer_not_a_500(client):
+    """A measured point of -1e308 among exact ones: the Levy start is skipped (its SVD does not
+    converge; this was a 500) and the relative cost bounds that point's residual by 1, so the other
+    points still give the truth."""
+    body = _body()
+    body["data"][0]["imag"][2] = -1e308
+    resp = client.post("/v1/frequency-fits", json=body)
+    assert resp.status_code == 200, resp.text
+    result = resp.json()
+    assert result["frequency_response"]["levy_start"] is None
+    for n in NAMES:
+        assert result["parameters"][n]["value"] == pytest.approx(TRUTH[n], rel=1e-3)

@@ -118,7 +118,9 @@ class Evidence(BaseModel):
     noise_model_order: Optional[int] = Field(
         default=None, description="order of that AR noise model (BIC; 0: the residual is white)")
     residual_correlation_before: float
-    residual_correlation_after: float
+    residual_correlation_after: Optional[float] = Field(
+        default=None, description="the same correlation with the refitted model's output residual; null where "
+                                  "it is not defined (scored on states, or a constant residual or column)")
 
 
 class NewParameter(BaseModel):

@@ -349,16 +349,17 @@ def t_value_of(fit: FitResult, names: list[str]) -> float | None:
     return min(vals)
 
 
-def correlation_after(sc: Scored, new_req: FitRequest, new_fit: FitResult, screening: Screening) -> float:
+def correlation_after(sc: Scored, new_req: FitRequest, new_fit: FitResult, screening: Screening) -> float | None:
     """Correlation of the refitted model's output residual with the candidate's column (was: corr_before).
-    One simulation of the refitted model; the column is the one screened."""
+    One simulation of the refitted model; the column is the one screened. None where it is not
+    defined."""
     try:
         if sc.scored_on != "outputs" or screening.output_scorer is None:
-            return float("nan")
+            return None
         g = screening.output_scorer.stack(sc.candidate.equations, sc.candidate.outputs)
         r = output_residual(new_req, new_fit)
         if g is None or g.size != r.size or np.std(g) == 0 or np.std(r) == 0:
-            return float("nan")
+            return None
         return float(np.corrcoef(r, g)[0, 1])
     except (FitError, RuntimeError, ValueError):
-        return float("nan")
+        return None

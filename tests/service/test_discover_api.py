@@ -4,6 +4,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jsonschema_rs
 import numpy as np
 import pytest
 
@@ -28,6 +29,15 @@ def test_discover_endpoint_finds_the_cubic_spring(client):
     assert body["steps"][0]["parameters"][0]["value"] == pytest.approx(20.0, rel=0.05)
     assert body["after"]["rmse"]["x"] < 0.5 * body["before"]["rmse"]["x"]
     assert "x^3" in body["model"]["equations"]["v"]
+    # as the OpenAPI describes it, also where the correlation after the refit is not defined (it
+    # was NaN, sent as null where the schema said number)
+    assert abs(body["steps"][0]["evidence"]["residual_correlation_after"]) < 0.1
+    spec = client.get("/openapi.json").json()
+    schema = jsonschema_rs.validator_for({"$ref": "#/components/schemas/DiscoveryResult",
+                                          "components": spec["components"]})
+    assert not [e.message for e in schema.iter_errors(body)][:3]
+    body["steps"][0]["evidence"]["residual_correlation_after"] = None
+    assert not [e.message for e in schema.iter_errors(body)][:3]
 
 
 def test_discover_rejects_bad_options_naming_the_field(client):

@@ -8,6 +8,10 @@ from solvers.errors import DataError, FitError, ModelDefinitionError
 _ERRORS = {"DataError": DataError, "ModelDefinitionError": ModelDefinitionError}
 
 
+class WorkerTaskFailed(Exception):
+    """A worker's task ended in an unexpected exception: answered as a 500 like any other bug."""
+
+
 def outcome_or_raise(outcome: dict) -> Response:
     """The worker's result JSON as the response (not parsed again), or the matching error."""
     if outcome["status"] == "succeeded":
@@ -22,4 +26,5 @@ def outcome_or_raise(outcome: dict) -> Response:
         raise HTTPException(501, err["detail"])
     if err["type"] == "ValidationError":
         raise FitError(err["detail"])
-    raise HTTPException(500, f"{err['type']}: {err['detail']}")
+    # a bug in the task (the dispatcher logged its trace): the answer every bug gets, with a request id
+    raise WorkerTaskFailed(f"{err['type']}: {err['detail']}")

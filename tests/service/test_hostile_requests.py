@@ -116,3 +116,25 @@ def test_synchronous_queue_is_bounded_with_503(tmp_path):
             for f in futures:
                 dispatcher.cancel_sync(f)
         assert c.post("/v1/fits", json=msd_request(1, n=41)).status_code == 200
+
+
+def test_a_task_that_fails_unexpectedly_is_a_500_with_the_logged_request_id(tmp_path, caplog):
+    """A bug inside a worker's task (here: a task kind no worker knows) is answered like any other
+    bug: problem+json `internal-error` with the request id the server logged its trace under, and
+    not the exception's text."""
+    from fastapi import Request
+
+    from service.routes.sync import run_sync
+
+    app = create_app(make_settings(tmp_path))
+
+    async def worker_bug(request: Request):
+        return await run_sync(request, "no-such-task", {})
+
+    app.add_api_route("/worker-bug", worker_bug, methods=["POST"])
+    with TestClient(app, raise_server_exceptions=False) as c:
+        resp = c.post("/worker-bug")
+    body = assert_problem(resp, 500)
+    assert body["type"].endswith("/internal-error") and body["request_id"] not in (None, "-")
+    assert body["request_id"] in body["detail"] and "no-such-task" not in body["detail"]
+    assert any(body["request_id"] in r.getMessage() for r in caplog.records)

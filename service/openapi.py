@@ -23,9 +23,10 @@ ANSWERS = {
     "500": "a bug in the server; logged under `request_id`",
     "503": "at capacity (bodies in flight, synchronous queue), the job store cannot be written, "
            "or shutting down; see Retry-After",
-    "504": "the synchronous fit exceeded its wall-time limit",
+    "504": "the synchronous fit (or report) exceeded its CPU- or wall-time limit",
 }
-SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits")
+SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits", "/v1/report",
+              "/v1/jobs/{job_id}/report")
 PUBLIC = ("/healthz", "/readyz")
 
 

@@ -69,6 +69,11 @@ MAX_PARAMETERS = 40   # rows of the estimates figure
 MAX_LABELLED = 40     # correlation matrix: names on its axes up to this size
 
 
+def _short(name: str, limit: int = 40) -> str:
+    """A name as a label: a 5 000-character one cost two seconds of text layout."""
+    return name if len(name) <= limit else name[: limit - 1] + "…"
+
+
 def _shown(items: list, limit: int, what: str, figure: str, notes: list[str]) -> list:
     if len(items) > limit:
         notes.append(f"{figure}: the first {limit} of {len(items)} {what} are drawn (the result has them all)")
@@ -152,9 +157,9 @@ def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
                 ax.plot(rec.time, y, color="0.55", lw=0.9, label="measured")
                 ax.plot(rec.time, yh, color="C0", lw=1.2, label=f"simulated (fit {fit:.1f} %)")
                 ax.legend(loc="upper right", fontsize=7, frameon=False)
-            ax.set_ylabel(out)
+            ax.set_ylabel(_short(out))
             if r == 0:
-                ax.set_title(f"{kind}: {rec.name}", fontsize=9)
+                ax.set_title(f"{kind}: {_short(rec.name)}", fontsize=9)
             if r == len(outputs) - 1:
                 ax.set_xlabel("t")
     _grid_layout(fig, len(outputs), cols, hgap=0.25)
@@ -177,7 +182,8 @@ def residual_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | N
         # vlines: one collection, where bar() draws a patch per lag (most of this figure's time)
         ax.vlines(lags[1:], 0, a.autocorrelation[1:], lw=2.5, color="C0" if a.whiteness.passed else "C3")
         ax.axhspan(-a.whiteness.bound, a.whiteness.bound, color="C2", alpha=0.15, label="band: all lags inside 99 %")
-        ax.set_title(f"autocorrelation of e({a.output}): {'white' if a.whiteness.passed else 'not white'}", fontsize=9)
+        ax.set_title(f"autocorrelation of e({_short(a.output)}): {'white' if a.whiteness.passed else 'not white'}",
+                     fontsize=9)
         ax.set_xlabel("lag")
         for c, u in enumerate(inputs, start=1):
             ax = axes[r][c]
@@ -187,7 +193,7 @@ def residual_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | N
                 k = np.arange(xc.size) - (xc.size - 1) // 2
                 ax.vlines(k, 0, xc, lw=2.5, color="C0" if test.passed else "C3")
                 ax.axhspan(-test.bound, test.bound, color="C2", alpha=0.15)
-                ax.set_title(f"cross-correlation e({a.output}) with {u}", fontsize=9)
+                ax.set_title(f"cross-correlation e({_short(a.output, 20)}) with {_short(u, 20)}", fontsize=9)
             ax.set_xlabel("lag")
     _grid_layout(fig, len(analyses), 1 + len(inputs), wgap=0.6, hgap=0.8)
     return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs (bands: a white, "
@@ -207,9 +213,9 @@ def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | 
             ax.errorbar([0], [i], xerr=[[-lo], [hi]], fmt="o", color="C0", capsize=4)
         else:
             ax.plot([0], [i], "o", color="C3")
-        label = f"{name} = {p.value:.5g}" + (f" ± {p.stderr:.2g}" if p.stderr is not None else " (no CI)")
+        label = f"{_short(name)} = {p.value:.5g}" + (f" ± {p.stderr:.2g}" if p.stderr is not None else " (no CI)")
         ax.annotate(label, (0, i), xytext=(8, 6), textcoords="offset points", fontsize=8)
-    ax.set_yticks(range(len(free)), [k for k, _ in free])
+    ax.set_yticks(range(len(free)), [_short(k) for k, _ in free])
     ax.axvline(0, color="0.7", lw=0.8)
     ax.set_xlabel("95 % confidence interval, % of the estimate")
     ax.invert_yaxis()
@@ -227,8 +233,8 @@ def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] 
     fig, ax = plt.subplots(figsize=size)
     im = ax.imshow(m, cmap="RdBu_r", vmin=-1, vmax=1)
     if n <= MAX_LABELLED:
-        ax.set_xticks(range(n), names, rotation=60, ha="right", fontsize=8)
-        ax.set_yticks(range(n), names, fontsize=8)
+        ax.set_xticks(range(n), [_short(k) for k in names], rotation=60, ha="right", fontsize=8)
+        ax.set_yticks(range(n), [_short(k) for k in names], fontsize=8)
     elif notes is not None:
         notes.append(f"correlation: {n} estimates, drawn without their names (in the order of the result's "
                      "correlation.names)")
@@ -244,7 +250,7 @@ def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] 
 
 def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) -> tuple[list[Figure], list[str]]:
     figs, notes = [], []
-    outs = list(result.before.rmse)
+    outs = _shown(list(result.before.rmse), 4 * MAX_OUTPUTS, "outputs", "discovery metrics", notes)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     x = np.arange(len(outs))
     for ax, key, label in ((axes[0], "rmse", "RMSE"), (axes[1], "fit_percent", "fit %")):
@@ -252,11 +258,11 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
         after = [getattr(result.after, key)[o] for o in outs]
         ax.bar(x - 0.2, before, 0.4, label="declared model", color="0.6")
         ax.bar(x + 0.2, after, 0.4, label="with the added terms", color="C0")
-        ax.set_xticks(x, outs)
+        ax.set_xticks(x, [_short(o, 20) for o in outs])
         ax.set_title(label, fontsize=9)
     axes[0].legend(fontsize=7, frameon=False)
     terms = "; ".join(f"+ {s.term} in d{s.equation}/dt" for s in result.steps) or "nothing added"
-    fig.suptitle(terms, fontsize=8)
+    fig.suptitle(_short(terms, 160), fontsize=8)
     fig.tight_layout()
     figs.append(_save(plt, fig, "discovery_metrics", "Before and after discovery", svg))
     if request is None or not result.steps:
@@ -281,8 +287,8 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
         ax = axes[r][0]
         ax.plot(rec_a.time, rec_a.measured[out], color="0.55", lw=0.9, label="measured")
         ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=1.0, label="without the added terms")
-        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=1.2, label="with " + terms)
-        ax.set_ylabel(out)
+        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=1.2, label="with " + _short(terms, 100))
+        ax.set_ylabel(_short(out))
         ax.legend(fontsize=7, frameon=False, loc="upper right")
     axes[-1][0].set_xlabel("t")
     fig.tight_layout()

@@ -6,8 +6,10 @@ from sqlalchemy import and_, select
 
 from schemas.report import ReportRequest
 from service.deps import require_api_key
-from service.json_body import StrictJSONRoute, validated_text
-from service.routes.sync import run_sync
+from service.json_body import StrictJSONRoute
+from service.limits import check_limits, data_values
+from service.routes.sync import run_sync, run_sync_request
+from service.settings import Settings
 from service.store import task_requests, tasks
 
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
@@ -21,10 +23,23 @@ async def _page(request: Request, payload: dict | str) -> HTMLResponse:
     return HTMLResponse(json.loads(response.body)["html"])
 
 
+def _check_report(body: ReportRequest, settings: Settings) -> None:
+    """The request that comes with a result is simulated again: the fits' limits apply to it."""
+    if body.request is not None:
+        check_limits(body.request, settings, "request.")
+
+
+def _report_values(body: ReportRequest) -> int:
+    return data_values(body.request) if body.request is not None else 0
+
+
 @router.post("/report", response_class=HTMLResponse, responses=HTML)
 async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
     """The report page of a result (with its request for the measured-vs-simulated figures)."""
-    return await _page(request, validated_text(request, body))
+    response = await run_sync_request(request, "report", body, check=_check_report, count=_report_values,
+                                      elsewhere="Draw it with the command line: greyfit report result.json "
+                                                "--request request.json --out DIR")
+    return HTMLResponse(json.loads(response.body)["html"])
 
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=HTML)

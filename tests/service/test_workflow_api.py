@@ -102,3 +102,22 @@ def test_report_of_a_result_with_hundreds_of_parameters_stays_a_readable_page(cl
         width, height = png_size(page, figure)
         assert width <= 1200 and height <= 2500, (figure, width, height)
     assert png_size(page, "compare_estimation") == png_size(small, "compare_estimation")
+
+
+def test_report_request_is_held_to_the_fits_limits(tmp_path, client):
+    """The request sent with a result is simulated again in the worker: the limits of a synchronous
+    fit apply to it, named by field (it went to the worker unchecked)."""
+    from fastapi.testclient import TestClient
+
+    from service.app import create_app
+    from tests.service.conftest import make_settings
+
+    body = msd_request(3)
+    fit = client.post("/v1/fits", json=body).json()
+    with TestClient(create_app(make_settings(tmp_path, max_samples_per_experiment=50))) as small:
+        assert_problem(small.post("/v1/report", json={"result": fit, "request": body}), 422,
+                       "request.experiments[0].time", "101 samples")
+    with TestClient(create_app(make_settings(tmp_path / "b", sync_max_values=200))) as small:
+        assert_problem(small.post("/v1/report", json={"result": fit, "request": body}), 413,
+                       "greyfit report result.json")
+        assert small.post("/v1/report", json={"result": fit}).status_code == 200

@@ -187,7 +187,8 @@ class LoopStability(BaseModel):
     setting: str
     poles_real: list[float]
     poles_imag: list[float]
-    max_real_part: float
+    max_real_part: Optional[float] = Field(
+        description="null (and no poles, no Routh column) where the fitted loop's coefficients are not finite")
     stable: bool
     routh_first_column: list[float]
 

@@ -69,6 +69,9 @@ def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: F
 
 def _loop_report(loop: ClosedLoop, p: np.ndarray) -> LoopStability:
     den = np.array(loop.den_fn(p)).ravel()
+    if not np.all(np.isfinite(den)):   # e.g. a linearised model with no equilibrium there
+        return LoopStability(setting=loop.name, poles_real=[], poles_imag=[], max_real_part=None, stable=False,
+                             routh_first_column=[])
     pl = poles(den)
     mx = float(np.max(pl.real)) if pl.size else -np.inf
     return LoopStability(setting=loop.name, poles_real=pl.real.tolist(), poles_imag=pl.imag.tolist(),

@@ -188,3 +188,19 @@ def test_improper_transfer_function_is_refused():
     with pytest.raises(ModelDefinitionError) as err:
         compile_transfer_function(FrequencyFitRequest.model_validate({"model": model, "data": [_data()]}).model)
     assert err.value.field == "model.numerator" and "improper" in err.value.message
+
+
+def test_loop_with_overflowing_coefficients_is_reported_unknown_not_stable():
+    """Ki = 1e308 makes the closed loop's coefficients overflow: no poles, no Routh column, stable
+    false (np.roots raised on them, a 500 through the service)."""
+    from solvers.frequency.fit import _loop_report
+    from solvers.frequency.stability import is_stable, poles
+
+    request = FrequencyFitRequest.model_validate({"model": seed001_model(TRUTH), "data": [_data()]})
+    tf = compile_transfer_function(request.model)
+    p = np.array([TRUTH[n] for n in NAMES])
+    report = _loop_report(tf.loop("huge", {"Kp": 1.0, "Ki": 1e308}), p)
+    assert report.max_real_part is None and report.stable is False
+    assert report.poles_real == [] and report.routh_first_column == []
+    assert _loop_report(tf.loop("pi", {"Kp": 1.0, "Ki": 1.0}), p).stable is True   # the truth's loop
+    assert not is_stable(np.array([1.0, np.inf, 2.0])) and np.isnan(poles(np.array([1.0, np.nan])).real).all()

@@ -210,7 +210,11 @@ def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | 
         scale = abs(p.value) if p.value != 0 else 1.0
         if p.ci95 is not None:
             lo, hi = (p.ci95[0] - p.value) / scale * 100, (p.ci95[1] - p.value) / scale * 100
-            ax.errorbar([0], [i], xerr=[[-lo], [hi]], fmt="o", color="C0", capsize=4)
+            # drawn as its two ends, not errorbar(): a result from elsewhere whose interval does not
+            # hold its estimate (negative xerr) would fail the whole page
+            ax.hlines(i, lo, hi, color="C0")
+            ax.plot([lo, 0, hi], [i, i, i], color="C0", marker="o", markevery=[1], ls="none")
+            ax.plot([lo, hi], [i, i], color="C0", marker="|", ms=9, ls="none")
         else:
             ax.plot([0], [i], "o", color="C3")
         label = f"{_short(name)} = {p.value:.5g}" + (f" ± {p.stderr:.2g}" if p.stderr is not None else " (no CI)")

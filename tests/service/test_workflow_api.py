@@ -88,6 +88,7 @@ def test_report_of_a_result_with_hundreds_of_parameters_stays_a_readable_page(cl
     one = fit["parameters"]["c"]
     fit["parameters"] = {f"c{i}": {**one, "value": one["value"] * (1 + i / 300),
                                    "ci95": [v * (1 + i / 300) for v in one["ci95"]]} for i in range(300)}
+    fit["parameters"]["c0"]["ci95"] = [1.1 * one["value"], 1.2 * one["value"]]   # not made by greyfit: drawn too
     names = list(fit["parameters"])
     fit["correlation"] = {"names": names, "matrix": np.eye(300).tolist()}
     analysis = fit["residual_analysis"][0]

@@ -14,9 +14,8 @@ USER greyfit
 # Dependencies first (a layer that survives source changes): the project's own install step on
 # empty package stubs, the same scripts/install.sh the README and CI use.
 COPY --chown=greyfit pyproject.toml README.md constraints.txt ./
-COPY --chown=greyfit scripts/install.sh scripts/install.sh
-RUN mkdir schemas solvers service greyfit \
- && touch schemas/__init__.py solvers/__init__.py service/__init__.py greyfit/__init__.py \
+COPY --chown=greyfit scripts/install.sh scripts/stub_packages.py scripts/
+RUN python3 scripts/stub_packages.py \
  && bash scripts/install.sh report \
  && .venv/bin/python -c "import matplotlib.font_manager"
 # (the last step builds matplotlib's font cache in the image: otherwise each new container's first

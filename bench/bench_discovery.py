@@ -29,10 +29,10 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from schemas.discovery import DiscoverRequest  # noqa: E402
-from schemas.fit import FitRequest  # noqa: E402
-from solvers.discovery import discover  # noqa: E402
-from solvers.fit import fit_model  # noqa: E402
+from greyfit.schemas.discovery import DiscoverRequest  # noqa: E402
+from greyfit.schemas.fit import FitRequest  # noqa: E402
+from greyfit.solvers.discovery import discover  # noqa: E402
+from greyfit.solvers.fit import fit_model  # noqa: E402
 from tests import coloured_records as cr  # noqa: E402
 from tests import partial_systems as ps  # noqa: E402
 
@@ -66,8 +66,8 @@ def case(name: str, n: int) -> tuple[dict, dict]:
 BASELINE = """
 import json, sys, time
 sys.path.insert(0, sys.argv[1])
-from schemas.discovery import DiscoverRequest
-from solvers.discovery import discover
+from greyfit.schemas.discovery import DiscoverRequest
+from greyfit.solvers.discovery import discover
 body = json.load(sys.stdin)
 t0 = time.perf_counter()
 res = discover(DiscoverRequest.model_validate(body))

@@ -28,8 +28,8 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from schemas.discovery import DiscoverRequest  # noqa: E402
-from solvers.discovery import confirm, discover  # noqa: E402
+from greyfit.schemas.discovery import DiscoverRequest  # noqa: E402
+from greyfit.solvers.discovery import confirm, discover  # noqa: E402
 from tests import coloured_records as cr  # noqa: E402
 
 FIXED = {"cubic_stiffness", "quadratic_drag", "offset", "output_offset", "output_gain"}

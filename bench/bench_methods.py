@@ -29,8 +29,8 @@ def start_guess() -> dict:
 
 
 def run_greyfit(method: str, noise: float, queue) -> None:
-    from schemas import FitRequest
-    from solvers.fit import fit_model
+    from greyfit.schemas import FitRequest
+    from greyfit.solvers.fit import fit_model
     t, x, dx, w, wd = simulate_seat(seed=0)
     # equation error on seed 000's own setting: measured q, q', q'' without noise
     exp = seat_experiment(t, x, w, wd, dx=dx if method == "equation_error" else None,

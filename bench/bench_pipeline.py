@@ -34,7 +34,7 @@ NESTED = {"finite_result": "assess_fit"}
 
 
 def msd_sync_request():
-    from schemas import FitRequest
+    from greyfit.schemas import FitRequest
     from tests.systems import msd_experiment, msd_model, simulate_msd
     t = np.linspace(0, 10, 101)
     return FitRequest.model_validate({"model": msd_model(c=0.5, k=3.0), "method": "multiple_shooting",
@@ -43,8 +43,8 @@ def msd_sync_request():
 
 def run_case(case: str, fits: int, queue) -> None:
     os.environ.update({"GREYFIT_COMPILE": "always", "OPENBLAS_NUM_THREADS": "1"})
-    import solvers.fit as fit
-    import solvers.quality as quality
+    import greyfit.solvers.fit as fit
+    import greyfit.solvers.checks.quality as quality
     from bench.bench_speed import seat_request
     spent: dict[str, float] = defaultdict(float)
 
@@ -86,10 +86,10 @@ def _scipy_peer(req, fits: int) -> float | None:
         from scipy.optimize import lsq_linear
     except ImportError:
         return None
-    from solvers.data import prepare_experiments
-    from solvers.equation_error import build_equation_error
-    from solvers.model_compiler import compile_model
-    from solvers.parameters import build_layout
+    from greyfit.solvers.data.experiments import prepare_experiments
+    from greyfit.solvers.methods.equation_error import build_equation_error
+    from greyfit.solvers.model.compiler import compile_model
+    from greyfit.solvers.model.parameters import build_layout
     cm = compile_model(req.model)
     data = prepare_experiments(req.experiments, cm)
     layout = build_layout(req.model, [d.name for d in data])

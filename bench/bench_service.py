@@ -55,7 +55,7 @@ def msd_bodies(count: int, n: int) -> list[dict]:
 
 
 def serve(workers: int, data_dir: str, port: int) -> subprocess.Popen:
-    proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--port", str(port),
+    proc = subprocess.Popen([sys.executable, "-m", "greyfit.service.cli", "serve", "--port", str(port),
                              "--data-dir", data_dir, "--workers", str(workers)], cwd=ROOT,
                             start_new_session=True, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             )

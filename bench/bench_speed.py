@@ -40,7 +40,7 @@ def _timed(fit, req):
 
 
 def seat_request(method: str):
-    from schemas import FitRequest
+    from greyfit.schemas import FitRequest
     t, x, dx, w, wd = simulate_seat(seed=0)
     if method == "equation_error":   # seed 000's own setting: noise-free q, q', q''
         exp = seat_experiment(t, x, w, wd, dx=dx)
@@ -51,7 +51,7 @@ def seat_request(method: str):
 
 
 def msd_request(n: int):
-    from schemas import FitRequest
+    from greyfit.schemas import FitRequest
     t = np.arange(n) * 0.01
     model = msd_model()
     model["outputs"] = {"x": "x"}
@@ -61,7 +61,7 @@ def msd_request(n: int):
 
 def run_case(case: str, arg, env: dict, queue) -> None:
     os.environ.update(env)
-    from solvers.fit import fit_model
+    from greyfit.solvers.fit import fit_model
     req, truth = seat_request(arg) if case == "seat" else msd_request(arg)
     cold_wall, cold_cpu, res = _timed(fit_model, req)
     warm = [_timed(fit_model, req) for _ in range(3)]

@@ -1,4 +1,4 @@
-"""Monte Carlo calibration of the residual tests (solvers/diagnostics.py): false alarms and power.
+"""Monte Carlo calibration of the residual tests (solvers/checks/diagnostics.py): false alarms and power.
 
 Compares, on the same residuals, the old rule (max |r(k)| over the lags against the per-lag 99 % band
 2.58/√N, as MATLAB's resid draws it), the current Šidák-corrected max test (family-wise 1 %), and a
@@ -24,7 +24,7 @@ from scipy.stats import chi2
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from solvers.diagnostics import LEVEL, MAX_LAGS, residual_analysis, sidak_z  # noqa: E402
+from greyfit.solvers.checks.diagnostics import LEVEL, MAX_LAGS, residual_analysis, sidak_z  # noqa: E402
 
 OLD_Z = 2.58
 
@@ -132,8 +132,8 @@ def _fit_cases(seeds: int):
 
 
 def fits(seeds: int) -> None:
-    from schemas import FitRequest
-    from solvers.fit import fit_model
+    from greyfit.schemas import FitRequest
+    from greyfit.solvers.fit import fit_model
     keys = ["white old", "white new", "white LB", "indep old", "indep new", "HAC old", "HAC new", "suspect"]
     print(f"\n## residuals of real fits (default method), {seeds} seeds: % flagged per output test")
     print("| case | model | " + " | ".join(keys) + " |")

@@ -1,1 +1,61 @@
-"""greyfit's Python entry points for other tools: `from greyfit.client import Client`."""
+"""greyfit: fit the physical parameters of ODE models to measured data (CasADi + Ipopt).
+
+The public face of the library::
+
+    import greyfit
+    result = greyfit.fit(greyfit.FitRequest.model_validate(request_dict))
+    print(result.params["k"].value)
+
+`fit`, `discover`, `simulate` and `frequency_fit` take the same requests as the HTTP service's
+routes and return the same results; `Client` calls a running service. The numerics load on first
+use, so `from greyfit import Client` does not import CasADi.
+"""
+from __future__ import annotations
+
+from importlib.metadata import PackageNotFoundError, version
+from typing import TYPE_CHECKING, Any
+
+try:
+    __version__ = version("greyfit")
+except PackageNotFoundError:   # running from a source tree that was never installed
+    __version__ = "0+unknown"
+
+if TYPE_CHECKING:
+    from greyfit.client import Client
+    from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
+    from greyfit.schemas.fit import FitOptions, FitRequest, FitResult
+    from greyfit.schemas.frequency import FrequencyFitRequest
+    from greyfit.schemas.simulate import SimulateRequest, SimulateResult
+
+# name -> (module, attribute): resolved on first access (PEP 562), so importing greyfit is cheap
+_LAZY = {
+    "fit": ("greyfit.solvers.fit", "fit_model"),
+    "discover": ("greyfit.solvers.discovery.loop", "discover"),
+    "simulate": ("greyfit.solvers.simulation.simulate", "simulate_request"),
+    "frequency_fit": ("greyfit.solvers.frequency.fit", "fit_frequency_response"),
+    "Client": ("greyfit.client", "Client"),
+    "FitRequest": ("greyfit.schemas.fit", "FitRequest"),
+    "FitResult": ("greyfit.schemas.fit", "FitResult"),
+    "FitOptions": ("greyfit.schemas.fit", "FitOptions"),
+    "DiscoverRequest": ("greyfit.schemas.discovery", "DiscoverRequest"),
+    "DiscoveryResult": ("greyfit.schemas.discovery", "DiscoveryResult"),
+    "SimulateRequest": ("greyfit.schemas.simulate", "SimulateRequest"),
+    "SimulateResult": ("greyfit.schemas.simulate", "SimulateResult"),
+    "FrequencyFitRequest": ("greyfit.schemas.frequency", "FrequencyFitRequest"),
+}
+
+__all__ = ["__version__", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name not in _LAZY:
+        raise AttributeError(f"module 'greyfit' has no attribute {name!r}")
+    import importlib
+    module, attribute = _LAZY[name]
+    value = getattr(importlib.import_module(module), attribute)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(__all__)

@@ -18,11 +18,11 @@ from typing import Any, Optional, Sequence, Union
 
 from pydantic import BaseModel
 
-from schemas.discovery import DiscoverRequest, DiscoveryResult
-from schemas.fit import FitRequest, FitResult
-from schemas.frequency import FrequencyFitRequest
-from schemas.jobs import JobPublic, JobResults
-from schemas.simulate import SimulateRequest, SimulateResult
+from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.frequency import FrequencyFitRequest
+from greyfit.schemas.jobs import JobPublic, JobResults
+from greyfit.schemas.simulate import SimulateRequest, SimulateResult
 
 FINISHED = ("succeeded", "failed", "cancelled")
 JOB_KINDS = {"fit": (FitRequest, "/v1/jobs"), "discover": (DiscoverRequest, "/v1/discover/jobs"),

@@ -1,7 +1,7 @@
 """Public contract of greyfit: pydantic models only (no numerics, no I/O)."""
-from schemas.model import Model, Parameter
-from schemas.experiment import Experiment
-from schemas.fit import (
+from greyfit.schemas.model import Model, Parameter
+from greyfit.schemas.experiment import Experiment
+from greyfit.schemas.fit import (
     CovariancePublic,
     FitMethod,
     FitOptions,
@@ -13,9 +13,9 @@ from schemas.fit import (
     ExperimentTrace,
     ResidualAnalysis,
 )
-from schemas.preprocess import Preprocess
-from schemas.simulate import SimulateRequest, SimulateResult
-from schemas.validation import ValidationResult
+from greyfit.schemas.preprocess import Preprocess
+from greyfit.schemas.simulate import SimulateRequest, SimulateResult
+from greyfit.schemas.validation import ValidationResult
 
 __all__ = [
     "Model", "Parameter", "Experiment", "CovariancePublic", "FitMethod", "FitOptions",

@@ -5,8 +5,8 @@ from typing import Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.fit import FitRequest, FitResult
-from schemas.model import Expression, Model, Name
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.model import Expression, Model, Name
 
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "saturation",
                  "parameter_step", "parameter_drift", "state_dependent", "input_delay",

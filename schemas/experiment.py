@@ -5,9 +5,9 @@ from typing import Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.limits import MAX_SAMPLES
-from schemas.model import Name
-from schemas.preprocess import Preprocess
+from greyfit.schemas.limits import MAX_SAMPLES
+from greyfit.schemas.model import Name
+from greyfit.schemas.preprocess import Preprocess
 
 # null marks a missing sample; NaN/inf are rejected with a named field later (JSON has no NaN).
 Series = list[Optional[float]]

@@ -7,17 +7,17 @@ from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
-from schemas.experiment import Experiment
-from schemas.frequency import FrequencyResponseResult
-from schemas.limits import MAX_EXPERIMENTS
-from schemas.model import Model, Name
-from schemas.preprocess import PreprocessingReport
-from schemas.validation import ValidationResult
+from greyfit.schemas.experiment import Experiment
+from greyfit.schemas.frequency import FrequencyResponseResult
+from greyfit.schemas.limits import MAX_EXPERIMENTS
+from greyfit.schemas.model import Model, Name
+from greyfit.schemas.preprocess import PreprocessingReport
+from greyfit.schemas.validation import ValidationResult
 
 
 # A weight squared times the data squared must stay far from overflow (1e308).
 MIN_OUTPUT_WEIGHT, MAX_OUTPUT_WEIGHT = 1e-100, 1e100
-from schemas.online import MrasOptions, ParameterTrajectory, Prefilter, RlsOptions
+from greyfit.schemas.online import MrasOptions, ParameterTrajectory, Prefilter, RlsOptions
 
 
 class FitMethod(str, Enum):

@@ -10,8 +10,8 @@ from typing import Annotated, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
-from schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
-from schemas.model import RESERVED_NAMES, Expression, FiniteFloat, Model, Name, Parameter
+from greyfit.schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
+from greyfit.schemas.model import RESERVED_NAMES, Expression, FiniteFloat, Model, Name, Parameter
 
 MAX_DEGREE = 40
 Coefficients = list[Expression]

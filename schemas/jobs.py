@@ -5,8 +5,8 @@ from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.fit import FitRequest
-from schemas.frequency import FrequencyFitRequest
+from greyfit.schemas.fit import FitRequest
+from greyfit.schemas.frequency import FrequencyFitRequest
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TaskStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]

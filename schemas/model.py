@@ -6,11 +6,11 @@ from typing import Annotated, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, StringConstraints, Tag, model_validator
 
-from schemas.templates import LinearStateSpace, expand_linear_state_space
-from schemas.limits import (
+from greyfit.schemas.templates import LinearStateSpace, expand_linear_state_space
+from greyfit.schemas.limits import (
     MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
 )
-from schemas.online import (
+from greyfit.schemas.online import (
     ArmaxTemplate, ArxTemplate, DiscreteTime, TimeVarying, expand_arx_template, template_kind,
 )
 

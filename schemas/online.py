@@ -10,7 +10,7 @@ from typing import Annotated, Literal, Optional
 
 from pydantic import AliasChoices, BaseModel, ConfigDict, Field, StringConstraints, model_validator
 
-from schemas.limits import MAX_NAME_LENGTH, NAME_PATTERN
+from greyfit.schemas.limits import MAX_NAME_LENGTH, NAME_PATTERN
 
 _Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
 

@@ -5,8 +5,8 @@ from typing import Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.discovery import DiscoverRequest, DiscoveryResult
-from schemas.fit import FitRequest, FitResult
+from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
+from greyfit.schemas.fit import FitRequest, FitResult
 
 
 class ReportRequest(BaseModel):

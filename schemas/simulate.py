@@ -5,12 +5,12 @@ from typing import Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from schemas.discovery import DiscoveryResult
-from schemas.experiment import Experiment
-from schemas.fit import FitOptions, FitResult
-from schemas.limits import MAX_EXPERIMENTS
-from schemas.model import Model, Name
-from schemas.validation import InitialStateSource, ValidationResult
+from greyfit.schemas.discovery import DiscoveryResult
+from greyfit.schemas.experiment import Experiment
+from greyfit.schemas.fit import FitOptions, FitResult
+from greyfit.schemas.limits import MAX_EXPERIMENTS
+from greyfit.schemas.model import Model, Name
+from greyfit.schemas.validation import InitialStateSource, ValidationResult
 
 class SimulatedExperiment(BaseModel):
     name: str

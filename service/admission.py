@@ -9,7 +9,7 @@ from __future__ import annotations
 from fastapi import HTTPException
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.problems import problem
+from greyfit.service.problems import problem
 
 
 class BodyBudget:

@@ -11,18 +11,18 @@ from typing import Optional
 from fastapi import FastAPI
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.admission import BodyBudget
-from service.auth import ApiKeyGate
-from service.dispatcher import Dispatcher
-from service.executors import make_executor
-from service.json_body import BodyParser, body_model
-from service.metrics import Metrics
-from service.openapi import install_openapi
-from service.problems import install_handlers
-from service.routes import discover, fits, frequency, health, jobs, ops
-from service.routes import report as report_routes, simulate as simulate_routes
-from service.settings import Settings, get_settings
-from service.store import JobStore, make_engine
+from greyfit.service.admission import BodyBudget
+from greyfit.service.auth import ApiKeyGate
+from greyfit.service.dispatcher import Dispatcher
+from greyfit.service.executors import make_executor
+from greyfit.service.json_body import BodyParser, body_model
+from greyfit.service.metrics import Metrics
+from greyfit.service.openapi import install_openapi
+from greyfit.service.problems import install_handlers
+from greyfit.service.routes import discover, fits, frequency, health, jobs, ops
+from greyfit.service.routes import report as report_routes, simulate as simulate_routes
+from greyfit.service.settings import Settings, get_settings
+from greyfit.service.store import JobStore, make_engine
 
 log = logging.getLogger("greyfit.service")
 
@@ -89,7 +89,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     # what the parser processes import when they start: the schemas (a model defined in a route's
     # module would bring the whole web stack into them)
     body_modules = sorted({m.__module__ for r in routers for m in map(body_model, r.routes)
-                           if m is not None and m.__module__.startswith("schemas.")})
+                           if m is not None and m.__module__.startswith("greyfit.schemas.")})
 
     install_openapi(app, settings)
 

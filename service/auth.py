@@ -12,7 +12,7 @@ from typing import Optional
 
 from starlette.types import ASGIApp, Receive, Scope, Send
 
-from service.problems import problem
+from greyfit.service.problems import problem
 
 PUBLIC_PATHS = frozenset({"/healthz", "/readyz"})
 

@@ -23,13 +23,13 @@ def _validation_message(exc: ValidationError) -> str:
 
 
 def cmd_fit(args) -> int:
-    from schemas import FitRequest
-    from solvers.fit import fit_model
+    from greyfit.schemas import FitRequest
+    from greyfit.solvers.fit import fit_model
     body = _read_json(args.request)
     if isinstance(body, dict) and isinstance(body.get("model"), dict) and \
             body["model"].get("kind") in ("transfer_function", "linearised_ode"):   # a frequency-response fit
-        from schemas.frequency import FrequencyFitRequest
-        from solvers.frequency import fit_frequency_response
+        from greyfit.schemas.frequency import FrequencyFitRequest
+        from greyfit.solvers.frequency import fit_frequency_response
         result = fit_frequency_response(FrequencyFitRequest.model_validate(body))
     else:
         result = fit_model(FitRequest.model_validate(body))
@@ -38,8 +38,8 @@ def cmd_fit(args) -> int:
 
 
 def cmd_discover(args) -> int:
-    from schemas.discovery import DiscoverRequest
-    from solvers.discovery import discover
+    from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.solvers.discovery import discover
     request = DiscoverRequest.model_validate(_read_json(args.request))
     result = discover(request)
     print(result.model_dump_json(indent=2 if args.pretty else None))
@@ -92,7 +92,7 @@ def main(argv: list[str] | None = None) -> int:
     for extra in _extra_commands():
         extra(sub)
     args = parser.parse_args(argv)
-    from solvers.errors import FitError
+    from greyfit.solvers.errors import FitError
     try:
         return args.func(args)
     except FileNotFoundError as exc:
@@ -107,8 +107,8 @@ def main(argv: list[str] | None = None) -> int:
 
 
 def _extra_commands():
-    from service.cli_service import add_batch, add_serve
-    from service.cli_workflow import add_report, add_simulate
+    from greyfit.service.cli_service import add_batch, add_serve
+    from greyfit.service.cli_workflow import add_report, add_simulate
     return [add_serve, add_batch, add_simulate, add_report]
 
 

@@ -20,8 +20,8 @@ def cmd_serve(args) -> int:
     import gc
 
     import uvicorn
-    from service.app import create_app
-    from service.settings import Settings
+    from greyfit.service.app import create_app
+    from greyfit.service.settings import Settings
     overrides = {}
     if args.workers:
         overrides["workers"] = args.workers
@@ -39,8 +39,8 @@ def cmd_serve(args) -> int:
     return 0
 
 
-BATCH_SCHEMAS = {"fit": ("schemas.fit", "FitRequest"), "discover": ("schemas.discovery", "DiscoverRequest"),
-                 "frequency_fit": ("schemas.frequency", "FrequencyFitRequest")}
+BATCH_SCHEMAS = {"fit": ("greyfit.schemas.fit", "FitRequest"), "discover": ("greyfit.schemas.discovery", "DiscoverRequest"),
+                 "frequency_fit": ("greyfit.schemas.frequency", "FrequencyFitRequest")}
 
 
 def add_batch(sub) -> None:
@@ -58,8 +58,8 @@ def cmd_batch(args) -> int:
 
     from pydantic import ValidationError
 
-    from service.executors import LocalWorkerPool
-    from service.settings import Settings
+    from greyfit.service.executors import LocalWorkerPool
+    from greyfit.service.settings import Settings
     settings = Settings(**({"workers": args.workers} if args.workers else {}))
     module, name = BATCH_SCHEMAS[args.kind]
     schema = getattr(importlib.import_module(module), name)

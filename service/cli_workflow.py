@@ -11,16 +11,16 @@ def _read(path: str) -> dict:
 
 
 def cmd_simulate(args) -> int:
-    from schemas.simulate import SimulateRequest
-    from solvers.simulate import simulate_request
+    from greyfit.schemas.simulate import SimulateRequest
+    from greyfit.solvers.simulation.simulate import simulate_request
     result = simulate_request(SimulateRequest.model_validate(_read(args.request)))
     print(result.model_dump_json(indent=2 if args.pretty else None))
     return 0
 
 
 def cmd_report(args) -> int:
-    from schemas.report import ReportRequest
-    from service.report import ReportDependencyMissing, write_report
+    from greyfit.schemas.report import ReportRequest
+    from greyfit.service.report import ReportDependencyMissing, write_report
     body = {"result": _read(args.result), "title": args.title}
     if args.request:
         body["request"] = _read(args.request)

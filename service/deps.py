@@ -5,7 +5,7 @@ import hmac
 
 from fastapi import HTTPException, Request
 
-from service.settings import Settings
+from greyfit.service.settings import Settings
 
 
 def settings_of(request: Request) -> Settings:

@@ -33,9 +33,9 @@ import uuid
 from collections import deque
 from typing import Optional
 
-from service.metrics import Metrics
-from service.settings import Settings
-from service.store import JobStore, TaskRow
+from greyfit.service.metrics import Metrics
+from greyfit.service.settings import Settings
+from greyfit.service.store import JobStore, TaskRow
 
 log = logging.getLogger("greyfit.dispatcher")
 

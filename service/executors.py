@@ -25,7 +25,7 @@ from collections import deque
 from dataclasses import dataclass, field
 from typing import Any, Optional
 
-from service.tasks import run_task
+from greyfit.service.tasks import run_task
 
 Outcome = dict[str, Any]
 
@@ -53,7 +53,7 @@ def _take(msg, todo: deque, conn) -> bool:
 def _worker_main(conn, cpu_seconds: float) -> None:
     """Loop of one local worker process: receive tasks, run each under a CPU-time limit, reply."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the server, which stops us
-    import solvers.fit  # noqa: F401  (import CasADi once, not per task)
+    import greyfit.solvers.fit  # noqa: F401  (import CasADi once, not per task)
     todo: deque = deque()
     while True:
         try:

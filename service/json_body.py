@@ -30,7 +30,7 @@ from fastapi import HTTPException, Request, Response
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
 
-from service.json_parsing import exit_with_parent, loads_strict, parse_and_validate, validate_fast, warm_up
+from greyfit.service.json_parsing import exit_with_parent, loads_strict, parse_and_validate, validate_fast, warm_up
 
 LARGE_BODY_BYTES = 1 << 20
 

@@ -1,9 +1,9 @@
 """This server's size limits (settings), applied after the schema's own hard limits."""
 from __future__ import annotations
 
-from schemas.fit import FitRequest
-from service.problems import LimitExceeded
-from service.settings import Settings
+from greyfit.schemas.fit import FitRequest
+from greyfit.service.problems import LimitExceeded
+from greyfit.service.settings import Settings
 
 
 def check_limits(req: FitRequest, settings: Settings, prefix: str = "") -> None:

@@ -9,8 +9,8 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
 
-from service.problems import PROBLEM, Problem
-from service.settings import Settings
+from greyfit.service.problems import PROBLEM, Problem
+from greyfit.service.settings import Settings
 
 SCHEME = "bearerAuth"
 ANSWERS = {

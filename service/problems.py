@@ -12,9 +12,9 @@ from sqlalchemy.exc import InterfaceError, InternalError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from service.json_body import InvalidBody
-from service.store import StoreUnavailable
-from solvers.errors import DataError, FitError, ModelDefinitionError
+from greyfit.service.json_body import InvalidBody
+from greyfit.service.store import StoreUnavailable
+from greyfit.solvers.errors import DataError, FitError, ModelDefinitionError
 
 log = logging.getLogger("greyfit.service")
 PROBLEM = "application/problem+json"

@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
-from schemas.discovery import DiscoveryResult
-from schemas.fit import FitRequest, FitResult
-from schemas.report import ReportPublic, ReportRequest
+from greyfit.schemas.discovery import DiscoveryResult
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.report import ReportPublic, ReportRequest
 
 
 class ReportDependencyMissing(ImportError):
@@ -108,8 +108,8 @@ def _save(plt, fig, name: str, title: str, svg: bool) -> Figure:
 
 
 def _simulated_series(model, params, experiments, options, initial_states, sources=None) -> list[Series]:
-    from solvers.model_compiler import compile_model
-    from solvers.simulate import simulate_arrays
+    from greyfit.solvers.model.compiler import compile_model
+    from greyfit.solvers.simulation.simulate import simulate_arrays
     cm = compile_model(model)
     sims = simulate_arrays(model, params, experiments, options, initial_states, cm=cm,
                            provided_source=sources)
@@ -122,7 +122,7 @@ def estimation_series(fit: FitResult, request: FitRequest | None, model) -> tupl
     """(estimation, validation) records: simulated again from the request, else from the traces."""
     params = {k: v.value for k, v in fit.parameters.items()}
     if request is not None:
-        from solvers.preprocess import prepare_request
+        from greyfit.solvers.data.preprocess import prepare_request
         prepared, _ = prepare_request(request)
         est = _simulated_series(model, params, prepared.experiments, prepared.options, fit.initial_states)
         val = []
@@ -273,7 +273,7 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
         if request is None:
             notes.append("the before/after overlay needs the request (measured data)")
         return figs, notes
-    from solvers.preprocess import prepare_request
+    from greyfit.solvers.data.preprocess import prepare_request
     prepared, _ = prepare_request(request)
     experiments = []
     for exp in prepared.experiments:

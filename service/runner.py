@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from fastapi import HTTPException, Response
 
-from solvers.errors import DataError, FitError, ModelDefinitionError
+from greyfit.solvers.errors import DataError, FitError, ModelDefinitionError
 
 _ERRORS = {"DataError": DataError, "ModelDefinitionError": ModelDefinitionError}
 

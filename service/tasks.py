@@ -12,8 +12,8 @@ TASK_KINDS = ("fit", "discover", "simulate", "report", "frequency_fit")
 
 @lru_cache(maxsize=None)   # built once per worker process: a fit of milliseconds notices the imports
 def _runners() -> dict[str, Callable[[dict, float], Any]]:
-    from schemas import FitRequest
-    from solvers.fit import fit_model
+    from greyfit.schemas import FitRequest
+    from greyfit.solvers.fit import fit_model
 
     def fit(request: dict | str, cpu_seconds: float):
         req = _parse(FitRequest, request)
@@ -22,16 +22,16 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
         return fit_model(req)
 
     def frequency_fit(request: dict | str, cpu_seconds: float):
-        from schemas.frequency import FrequencyFitRequest
-        from solvers.frequency import fit_frequency_response
+        from greyfit.schemas.frequency import FrequencyFitRequest
+        from greyfit.solvers.frequency import fit_frequency_response
         req = _parse(FrequencyFitRequest, request)
         req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
         return fit_frequency_response(req)
 
     runners = {"fit": fit, "frequency_fit": frequency_fit}
     try:
-        from schemas.discovery import DiscoverRequest
-        from solvers.discovery import discover
+        from greyfit.schemas.discovery import DiscoverRequest
+        from greyfit.solvers.discovery import discover
 
         def disc(request: dict | str, cpu_seconds: float):
             req = _parse(DiscoverRequest, request)
@@ -47,16 +47,16 @@ def _runners() -> dict[str, Callable[[dict, float], Any]]:
 
 def _workflow_runners() -> dict[str, Callable[[dict, float], Any]]:
     """Simulation and report pages also run in workers (CPU-bound: never in the web process)."""
-    from schemas.report import ReportRequest
-    from schemas.simulate import SimulateRequest
+    from greyfit.schemas.report import ReportRequest
+    from greyfit.schemas.simulate import SimulateRequest
 
     def simulate(request: dict | str, cpu_seconds: float):
-        from solvers.simulate import simulate_request
+        from greyfit.solvers.simulation.simulate import simulate_request
         return simulate_request(_parse(SimulateRequest, request))
 
     def report(request: dict | str, cpu_seconds: float):
-        from service.report import report_public
-        from solvers.errors import DataError
+        from greyfit.service.report import report_public
+        from greyfit.solvers.errors import DataError
         parsed = _parse(ReportRequest, request)
         try:
             return report_public(parsed)
@@ -79,7 +79,7 @@ def run_task(kind: str, request: dict | str, cpu_seconds: float = 600.0) -> dict
     The request may be the JSON text itself, and the result comes back as JSON text: the server
     stores and returns both without parsing them again.
     """
-    from solvers.errors import FitError
+    from greyfit.solvers.errors import FitError
     try:
         runner = _runners()[kind]
         result = runner(request, cpu_seconds)

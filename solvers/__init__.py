@@ -1,4 +1,4 @@
 """Numerics of greyfit: expression compiler, problem builders, covariance, diagnostics."""
-from solvers.errors import CovarianceUnavailable, DataError, FitError, ModelDefinitionError
+from greyfit.solvers.errors import CovarianceUnavailable, DataError, FitError, ModelDefinitionError
 
 __all__ = ["FitError", "ModelDefinitionError", "DataError", "CovarianceUnavailable"]

@@ -6,33 +6,33 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from schemas.fit import (
+from greyfit.schemas.fit import (
     CovariancePublic, ExperimentTrace, FitMethod, FitMetrics, FitRequest, FitResult,
     ParameterEstimate, SolverInfo,
 )
-from solvers.covariance import correlation_from, estimate_covariance
-from solvers.data import ExperimentData, prepare_experiments
-from solvers.diagnostics import residual_analyses
-from solvers.equation_error import EquationErrorProblem, build_equation_error
-from solvers.errors import DataError
-from solvers.fixed_fit import fixed_parameter_result
-from solvers.fit_checks import (
+from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
+from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
+from greyfit.solvers.checks.diagnostics import residual_analyses
+from greyfit.solvers.methods.equation_error import EquationErrorProblem, build_equation_error
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
+from greyfit.solvers.checks.fit_checks import (
     active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
 )
-from solvers.extensions import prepare_batch
-from solvers.model_compiler import CompiledModel, compile_model
-from solvers.node_initialisation import node_warnings
-from solvers.nlp import NlpOutcome, solve_linear_least_squares
-from solvers.parameters import ParameterLayout, build_layout
-from solvers.preprocess import prepare_request
-from solvers.profile import check_profile_names, run_profiles
-from solvers.shooting import (
+from greyfit.solvers.methods.extensions import prepare_batch
+from greyfit.solvers.model.compiler import CompiledModel, compile_model
+from greyfit.solvers.methods.node_initialisation import node_warnings
+from greyfit.solvers.nlp.solver import NlpOutcome, solve_linear_least_squares
+from greyfit.solvers.model.parameters import ParameterLayout, build_layout
+from greyfit.solvers.data.preprocess import prepare_request
+from greyfit.solvers.inference.profile import check_profile_names, run_profiles
+from greyfit.solvers.methods.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
-from solvers.quality import QualityInputs, assess_fit
-from solvers.shooting_curvature import make_solver
-from solvers.statistics import information_criteria
-from solvers.validate import validate_fit
+from greyfit.solvers.checks.quality import QualityInputs, assess_fit
+from greyfit.solvers.methods.shooting_curvature import make_solver
+from greyfit.solvers.inference.statistics import information_criteria
+from greyfit.solvers.simulation.validate import validate_fit
 
 BOUND_TOLERANCE = 1e-5
 
@@ -108,7 +108,7 @@ def fit_model(request: FitRequest) -> FitResult:
     and `validation` records are simulated after.
     """
     if request.method in (FitMethod.recursive_least_squares, FitMethod.mras):   # online estimators
-        from solvers.online import fit_online
+        from greyfit.solvers.methods.online.estimate import fit_online
         return fit_online(request)
     prepared, preprocessing = prepare_request(request)
     result = _fit_prepared(prepared)

@@ -11,7 +11,7 @@ EXAMPLE = ROOT / "examples" / "msd_request.json"
 
 
 def run_cli(*args, stdin=None):
-    return subprocess.run([sys.executable, "-m", "service.cli", *args], cwd=ROOT, input=stdin,
+    return subprocess.run([sys.executable, "-m", "greyfit.service.cli", *args], cwd=ROOT, input=stdin,
                           capture_output=True, text=True, timeout=300)
 
 

@@ -12,7 +12,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_batch(requests: Path, out: Path):
-    return subprocess.run([sys.executable, "-m", "service.cli", "batch", str(requests), "--out", str(out),
+    return subprocess.run([sys.executable, "-m", "greyfit.service.cli", "batch", str(requests), "--out", str(out),
                            "--workers", "2"], cwd=ROOT, capture_output=True, text=True, timeout=300)
 
 

@@ -2,12 +2,12 @@ from fastapi import APIRouter, Request, Response
 from pydantic import BaseModel, ConfigDict, Field
 from typing import Optional
 
-from schemas.discovery import DiscoverRequest, DiscoveryResult
-from schemas.jobs import JobPublic
-from service.json_body import StrictJSONRoute
-from service.limits import check_limits, data_values
-from service.routes.sync import run_sync_request
-from service.routes.jobs import submit_job
+from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
+from greyfit.schemas.jobs import JobPublic
+from greyfit.service.json_body import StrictJSONRoute
+from greyfit.service.limits import check_limits, data_values
+from greyfit.service.routes.sync import run_sync_request
+from greyfit.service.routes.jobs import submit_job
 
 router = APIRouter(prefix="/v1", tags=["discovery"], route_class=StrictJSONRoute)
 

@@ -1,9 +1,9 @@
 from fastapi import APIRouter, Request
 
-from schemas.fit import FitRequest, FitResult
-from service.json_body import StrictJSONRoute
-from service.limits import check_limits, data_values
-from service.routes.sync import run_sync_request
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.service.json_body import StrictJSONRoute
+from greyfit.service.limits import check_limits, data_values
+from greyfit.service.routes.sync import run_sync_request
 
 router = APIRouter(prefix="/v1", tags=["fits"], route_class=StrictJSONRoute)
 

@@ -1,12 +1,12 @@
 from fastapi import APIRouter, Request, Response
 
-from schemas.fit import FitResult
-from schemas.frequency import FrequencyFitRequest
-from schemas.jobs import FrequencyJobCreate, JobPublic
-from service.json_body import StrictJSONRoute
-from service.limits import check_frequency_limits, frequency_values
-from service.routes.jobs import submit_job
-from service.routes.sync import run_sync_request
+from greyfit.schemas.fit import FitResult
+from greyfit.schemas.frequency import FrequencyFitRequest
+from greyfit.schemas.jobs import FrequencyJobCreate, JobPublic
+from greyfit.service.json_body import StrictJSONRoute
+from greyfit.service.limits import check_frequency_limits, frequency_values
+from greyfit.service.routes.jobs import submit_job
+from greyfit.service.routes.sync import run_sync_request
 
 router = APIRouter(prefix="/v1", tags=["frequency fits"], route_class=StrictJSONRoute)
 

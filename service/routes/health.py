@@ -1,7 +1,7 @@
 from fastapi import APIRouter, Request
 
-from service.problems import Problem, problem
-from service.store import StoreUnavailable
+from greyfit.service.problems import Problem, problem
+from greyfit.service.store import StoreUnavailable
 
 router = APIRouter(tags=["health"])
 

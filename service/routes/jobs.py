@@ -7,11 +7,11 @@ from typing import Any, Callable, Optional
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel
 
-from schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
-from service.json_body import StrictJSONRoute, request_texts
-from service.limits import check_limits
-from service.problems import LimitExceeded
-from service.store import job_status
+from greyfit.schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
+from greyfit.service.json_body import StrictJSONRoute, request_texts
+from greyfit.service.limits import check_limits
+from greyfit.service.problems import LimitExceeded
+from greyfit.service.store import job_status
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
 

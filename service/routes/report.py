@@ -4,13 +4,13 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
 from sqlalchemy import and_, select
 
-from schemas.report import ReportRequest
-from service.deps import require_api_key
-from service.json_body import StrictJSONRoute
-from service.limits import check_limits, data_values
-from service.routes.sync import run_sync, run_sync_request
-from service.settings import Settings
-from service.store import task_requests, tasks
+from greyfit.schemas.report import ReportRequest
+from greyfit.service.deps import require_api_key
+from greyfit.service.json_body import StrictJSONRoute
+from greyfit.service.limits import check_limits, data_values
+from greyfit.service.routes.sync import run_sync, run_sync_request
+from greyfit.service.settings import Settings
+from greyfit.service.store import task_requests, tasks
 
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
                    route_class=StrictJSONRoute)

@@ -10,10 +10,10 @@ from typing import Callable
 from fastapi import HTTPException, Request, Response
 from pydantic import BaseModel
 
-from service.json_body import validated_text
-from service.problems import Overloaded, RequestTooLarge
-from service.runner import outcome_or_raise
-from service.settings import Settings
+from greyfit.service.json_body import validated_text
+from greyfit.service.problems import Overloaded, RequestTooLarge
+from greyfit.service.runner import outcome_or_raise
+from greyfit.service.settings import Settings
 
 DISCONNECT_POLL_SECONDS = 0.25
 

@@ -3,6 +3,6 @@
 The steps in the order they run are in `loop`; screening in `screening`, `scoring_equations`,
 `scoring_outputs`; the effect library in `effects` and `output_effects`; model rewrites in `augment`.
 """
-from solvers.discovery.loop import discover
+from greyfit.solvers.discovery.loop import discover
 
 __all__ = ["discover"]

@@ -1,8 +1,8 @@
 """Rewrite a model with a new effect: a term added to an equation, or a parameter made variable."""
 from __future__ import annotations
 
-from schemas.model import Model
-from solvers.expressions import parse, substitute, unparse
+from greyfit.schemas.model import Model
+from greyfit.solvers.model.expressions import parse, substitute, unparse
 
 
 def add_term(model: Model, equation: str, term: str, sign: str = "+") -> Model:
@@ -49,7 +49,7 @@ def _substitute_name(model: Model, name: str, replacement: str, in_outputs: bool
 
 def with_parameter(model: Model, name: str, value: float, lower=None, upper=None, unit=None,
                    per_experiment: bool = False) -> Model:
-    from schemas.model import Parameter
+    from greyfit.schemas.model import Parameter
     params = list(model.parameters) + [Parameter(name=name, value=value, lower=lower, upper=upper,
                                                  unit=unit, per_experiment=per_experiment)]
     return model.model_copy(update={"parameters": params})

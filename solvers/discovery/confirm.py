@@ -14,20 +14,20 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.discovery import (
+from greyfit.schemas.discovery import (
     DiscoverRequest, DiscoveryOptions, DiscoveryStep, Evidence, NewParameter, RejectedCandidate, ValidationSummary,
 )
-from schemas.fit import FitRequest, FitResult
-from schemas.model import Model
-from solvers.discovery.budget import Clock
-from solvers.discovery.effects import Candidate
-from solvers.discovery.screening import Scored, Screening, screen
-from solvers.discovery.refit_test import output_residual, refit_likelihood_ratio
-from solvers.discovery.scoring_outputs import OutputScorer
-from solvers.discovery.summary import equation_names, summarize, validate, validation_worse
-from solvers.discovery.warm_start import gauss_newton_start
-from solvers.errors import FitError
-from solvers.fit import fit_model
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.discovery.effects import Candidate
+from greyfit.solvers.discovery.screening import Scored, Screening, screen
+from greyfit.solvers.discovery.refit_test import output_residual, refit_likelihood_ratio
+from greyfit.solvers.discovery.scoring_outputs import OutputScorer
+from greyfit.solvers.discovery.summary import equation_names, summarize, validate, validation_worse
+from greyfit.solvers.discovery.warm_start import gauss_newton_start
+from greyfit.solvers.errors import FitError
+from greyfit.solvers.fit import fit_model
 
 
 @dataclass

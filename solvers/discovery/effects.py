@@ -7,11 +7,11 @@ from typing import Callable
 
 import numpy as np
 
-from schemas.discovery import CustomCandidate
-from schemas.model import Model
-from solvers.discovery.augment import add_term, fresh_name, replace_in_equations, replace_parameter, with_parameter
-from solvers.discovery.scoring_equations import TraceData
-from solvers.expressions import compile_expression, parse
+from greyfit.schemas.discovery import CustomCandidate
+from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.augment import add_term, fresh_name, replace_in_equations, replace_parameter, with_parameter
+from greyfit.solvers.discovery.scoring_equations import TraceData
+from greyfit.solvers.model.expressions import compile_expression, parse
 
 import casadi as ca
 

@@ -30,16 +30,16 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
-from schemas.fit import FitRequest, FitResult
-from solvers.discovery.budget import Clock
-from solvers.discovery.confirm import LoopState, confirm_candidate, screen_state
-from solvers.discovery.screening import Screening
-from solvers.discovery.summary import added_inputs, public_scores, summarize, validate
-from solvers.errors import ModelDefinitionError
-from solvers.expressions import compile_expression
-from solvers.fit import fit_model
-from solvers.preprocess import prepare_request
+from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.discovery.confirm import LoopState, confirm_candidate, screen_state
+from greyfit.solvers.discovery.screening import Screening
+from greyfit.solvers.discovery.summary import added_inputs, public_scores, summarize, validate
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.model.expressions import compile_expression
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.data.preprocess import prepare_request
 
 __all__ = ["discover", "LoopState", "try_in_rank_order"]
 

@@ -8,10 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.model import Model
-from solvers.data import ExperimentData
-from solvers.discovery.augment import fresh_name, rewrite_output, with_parameter
-from solvers.discovery.effects import Candidate, _fmt
+from greyfit.schemas.model import Model
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.discovery.augment import fresh_name, rewrite_output, with_parameter
+from greyfit.solvers.discovery.effects import Candidate, _fmt
 
 OUTPUT_EFFECTS = ("output_offset", "output_gain", "output_abs", "output_saturation")
 

@@ -17,11 +17,11 @@ import math
 
 import numpy as np
 
-from schemas.fit import FitRequest, FitResult
-from solvers.discovery.scoring import chi2_sf
-from solvers.discovery.screening import fitted_values
-from solvers.errors import FitError
-from solvers.shooting import OutputErrorModel
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.solvers.discovery.scoring import chi2_sf
+from greyfit.solvers.discovery.screening import fitted_values
+from greyfit.solvers.errors import FitError
+from greyfit.solvers.methods.shooting import OutputErrorModel
 
 AR_MAX_ORDER = 20
 

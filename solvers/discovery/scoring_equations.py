@@ -15,11 +15,11 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from schemas.fit import FitOptions
-from solvers.data import ExperimentData
-from solvers.derivatives import savgol_coefficients, smooth_and_differentiate
-from solvers.discovery.scoring import RegressionScorer
-from solvers.model_compiler import CompiledModel
+from greyfit.schemas.fit import FitOptions
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.data.derivatives import savgol_coefficients, smooth_and_differentiate
+from greyfit.solvers.discovery.scoring import RegressionScorer
+from greyfit.solvers.model.compiler import CompiledModel
 
 
 @dataclass

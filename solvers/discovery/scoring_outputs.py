@@ -20,9 +20,9 @@ from types import SimpleNamespace
 import casadi as ca
 import numpy as np
 
-from solvers.discovery.scoring import RegressionScorer
-from solvers.integration import make_step
-from solvers.shooting import OutputErrorModel, sensitivity_jacobian
+from greyfit.solvers.discovery.scoring import RegressionScorer
+from greyfit.solvers.dynamics.integration import make_step
+from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 
 
 def _disturbed_step(oem: OutputErrorModel) -> ca.Function:

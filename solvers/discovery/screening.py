@@ -6,17 +6,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.discovery import DiscoveryOptions
-from schemas.fit import FitMethod, FitRequest, FitResult
-from solvers.data import prepare_experiments
-from solvers.discovery.effects import Candidate, library
-from solvers.discovery.output_effects import output_effects
-from solvers.discovery.scoring import RegressionScorer, Score
-from solvers.discovery.scoring_equations import EquationScorer, build_trace
-from solvers.discovery.scoring_outputs import OutputScorer
-from solvers.model_compiler import compile_model
-from solvers.parameters import build_layout
-from solvers.shooting import OutputErrorModel
+from greyfit.schemas.discovery import DiscoveryOptions
+from greyfit.schemas.fit import FitMethod, FitRequest, FitResult
+from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.discovery.effects import Candidate, library
+from greyfit.solvers.discovery.output_effects import output_effects
+from greyfit.solvers.discovery.scoring import RegressionScorer, Score
+from greyfit.solvers.discovery.scoring_equations import EquationScorer, build_trace
+from greyfit.solvers.discovery.scoring_outputs import OutputScorer
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.methods.shooting import OutputErrorModel
 
 
 @dataclass

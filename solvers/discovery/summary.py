@@ -1,12 +1,12 @@
 """Reporting pieces of the loop: validation metrics, before/after summaries, the public screen."""
 from __future__ import annotations
 
-from schemas.discovery import CandidateScore, DiscoverRequest, FitSummary, ValidationSummary
-from schemas.fit import FitRequest, FitResult
-from schemas.model import Model
-from solvers.discovery.effects import Candidate
-from solvers.discovery.screening import Scored, Screening
-from solvers.errors import FitError
+from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, FitSummary, ValidationSummary
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.effects import Candidate
+from greyfit.solvers.discovery.screening import Scored, Screening
+from greyfit.solvers.errors import FitError
 
 
 def equation_names(screening: Screening, cand: Candidate) -> str:
@@ -22,7 +22,7 @@ def validate(request: DiscoverRequest, model: Model, fit: FitResult, experiments
     """Simulation metrics on the validation experiments (initial states estimated on a leading window)."""
     if not experiments:
         return None
-    from solvers.simulate import validation_metrics
+    from greyfit.solvers.simulation.simulate import validation_metrics
     values = {name: p.value for name, p in fit.parameters.items() if p.experiment is None}
     try:
         res = validation_metrics(model, values, experiments, request.options)

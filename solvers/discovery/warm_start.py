@@ -20,10 +20,10 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from schemas.fit import FitResult
-from schemas.model import Model
-from solvers.discovery.scoring import RegressionScorer
-from solvers.model_compiler import compile_model
+from greyfit.schemas.fit import FitResult
+from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.scoring import RegressionScorer
+from greyfit.solvers.model.compiler import compile_model
 
 MAX_RELATIVE_MOVE = 0.5
 

@@ -1,4 +1,4 @@
 """Frequency-response fitting of transfer-function models (optionally inside a known feedback loop)."""
-from solvers.frequency.fit import fit_frequency_response
+from greyfit.solvers.frequency.fit import fit_frequency_response
 
 __all__ = ["fit_frequency_response"]

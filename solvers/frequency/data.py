@@ -5,9 +5,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from schemas.frequency import FrequencyData, TransferFunctionModel
-from solvers.errors import DataError
-from solvers.frequency.sine_tests import response_from_sine_tests
+from greyfit.schemas.frequency import FrequencyData, TransferFunctionModel
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.frequency.sine_tests import response_from_sine_tests
 
 
 @dataclass

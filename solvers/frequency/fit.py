@@ -6,25 +6,25 @@ import time
 import casadi as ca
 import numpy as np
 
-from schemas.fit import (
+from greyfit.schemas.fit import (
     CovariancePublic, FitMethod, FitMetrics, FitOptions, FitResult, ParameterEstimate, SolverInfo,
 )
-from schemas.frequency import (
+from greyfit.schemas.frequency import (
     DataSetResponse, FrequencyFitRequest, FrequencyResponseResult, LinearisedOdeModel, LoopStability,
 )
-from solvers.covariance import correlation_from, estimate_covariance
-from solvers.errors import DataError
-from solvers.fit import _at_bound, _message, draw_starts
-from solvers.frequency.data import prepare_frequency_data
-from solvers.frequency.levy import levy_fit
-from solvers.frequency.linearise import compile_linearised_model
-from solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
-from solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
-from solvers.frequency.response import numeric_response
-from solvers.frequency.stability import poles, routh_first_column
-from solvers.nlp import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
-from solvers.parameters import build_layout
-from solvers.statistics import information_criteria
+from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.fit import _at_bound, _message, draw_starts
+from greyfit.solvers.frequency.data import prepare_frequency_data
+from greyfit.solvers.frequency.levy import levy_fit
+from greyfit.solvers.frequency.linearise import compile_linearised_model
+from greyfit.solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
+from greyfit.solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
+from greyfit.solvers.frequency.response import numeric_response
+from greyfit.solvers.frequency.stability import poles, routh_first_column
+from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.inference.statistics import information_criteria
 
 FEASIBILITY_TOLERANCE = 1e-7
 

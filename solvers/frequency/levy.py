@@ -13,13 +13,13 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from schemas.fit import FitOptions
-from solvers.frequency.data import FrequencySet
-from solvers.frequency.polynomials import ClosedLoop
-from solvers.frequency.response import evaluate_polynomial
-from solvers.nlp import LeastSquaresSolver, solve_linear_least_squares
-from solvers.parameters import ParameterLayout
-from solvers.problem import LeastSquaresProblem
+from greyfit.schemas.fit import FitOptions
+from greyfit.solvers.frequency.data import FrequencySet
+from greyfit.solvers.frequency.polynomials import ClosedLoop
+from greyfit.solvers.frequency.response import evaluate_polynomial
+from greyfit.solvers.nlp.solver import LeastSquaresSolver, solve_linear_least_squares
+from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
 
 @dataclass

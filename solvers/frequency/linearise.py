@@ -20,10 +20,10 @@ from __future__ import annotations
 import casadi as ca
 import numpy as np
 
-from schemas.frequency import LinearisedOdeModel
-from solvers.errors import DataError, ModelDefinitionError
-from solvers.frequency.polynomials import CompiledTransferFunction, Poly, _probe_points
-from solvers.model_compiler import CompiledModel, compile_model
+from greyfit.schemas.frequency import LinearisedOdeModel
+from greyfit.solvers.errors import DataError, ModelDefinitionError
+from greyfit.solvers.frequency.polynomials import CompiledTransferFunction, Poly, _probe_points
+from greyfit.solvers.model.compiler import CompiledModel, compile_model
 
 MAX_LINEARISED_STATES = 20          # det/adj coefficients of larger A lose too many digits
 EQUILIBRIUM_TOLERANCE = 1e-8        # |f| (relative to the point's scale) that counts as zero

@@ -10,10 +10,10 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from schemas.frequency import TransferFunctionModel
-from solvers.constraints import compile_constraints
-from solvers.errors import ModelDefinitionError
-from solvers.expressions import compile_expression
+from greyfit.schemas.frequency import TransferFunctionModel
+from greyfit.solvers.model.constraints import compile_constraints
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.model.expressions import compile_expression
 
 Poly = list  # list of SX scalars, descending powers of s
 

@@ -6,14 +6,14 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from schemas.frequency import FrequencyFitOptions
-from solvers.errors import ModelDefinitionError
-from solvers.frequency.data import FrequencySet
-from solvers.frequency.polynomials import ClosedLoop, CompiledTransferFunction
-from solvers.frequency.response import closed_loop_response
-from solvers.frequency.stability import lienard_chipart
-from solvers.parameters import ParameterLayout
-from solvers.problem import LeastSquaresProblem
+from greyfit.schemas.frequency import FrequencyFitOptions
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.frequency.data import FrequencySet
+from greyfit.solvers.frequency.polynomials import ClosedLoop, CompiledTransferFunction
+from greyfit.solvers.frequency.response import closed_loop_response
+from greyfit.solvers.frequency.stability import lienard_chipart
+from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
 
 @dataclass

@@ -10,8 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from schemas.frequency import SineTest
-from solvers.errors import DataError
+from greyfit.schemas.frequency import SineTest
+from greyfit.solvers.errors import DataError
 
 
 def _as_array(values, where: str) -> np.ndarray:

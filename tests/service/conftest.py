@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
-from service.settings import Settings
+from greyfit.service.app import create_app
+from greyfit.service.settings import Settings
 from tests.systems import msd_experiment, msd_model, simulate_msd
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "msd_request.json"

@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 
 from greyfit.client import Client, GreyfitError
-from schemas import FitResult
-from schemas.simulate import SimulateResult
+from greyfit.schemas import FitResult
+from greyfit.schemas.simulate import SimulateResult
 from tests.service.conftest import msd_request
 from tests.service.test_discover_api import duffing_body
 from tests.service.test_real_server import free_port, start_server, stop_server

@@ -2,7 +2,7 @@
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
+from greyfit.service.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 distributed = pytest.importorskip("distributed")
@@ -34,7 +34,7 @@ def test_jobs_and_sync_fits_run_on_the_dask_cluster(tmp_path, cluster):
     # the fits ran on the cluster's workers, not in this process
     info = distributed.Client(cluster.scheduler_address, set_as_default=False)
     try:
-        logs = info.run(lambda: __import__("sys").modules.get("solvers.fit") is not None)
+        logs = info.run(lambda: __import__("sys").modules.get("greyfit.solvers.fit") is not None)
         assert any(logs.values()), "no Dask worker imported the fit engine"
     finally:
         info.close()

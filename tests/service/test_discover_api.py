@@ -67,7 +67,7 @@ def test_discovery_as_a_batch_job(client):
 def test_cli_discover_prints_json_and_a_table(tmp_path):
     path = tmp_path / "discover.json"
     path.write_text(json.dumps(duffing_body()))
-    proc = subprocess.run([sys.executable, "-m", "service.cli", "discover", str(path), "--summary"], cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "discover", str(path), "--summary"], cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     assert json.loads(proc.stdout)["steps"][0]["effect"] == "cubic_stiffness"

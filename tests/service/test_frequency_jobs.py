@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
-from service.store import JobStore, make_engine
+from greyfit.service.app import create_app
+from greyfit.service.store import JobStore, make_engine
 from tests.frequency_systems import NAMES, TRUTH, frequency_data, seed001_model
 from tests.service.conftest import assert_problem, make_settings, wait_for_job
 
@@ -98,7 +98,7 @@ def test_greyfit_batch_runs_frequency_requests(tmp_path):
     bad = frequency_request(4)
     bad["data"][0]["omega"][3] = -1.0
     requests.write_text("\n".join(json.dumps(b) for b in [frequency_request(3), bad, {"model": {}}]) + "\n")
-    proc = subprocess.run([sys.executable, "-m", "service.cli", "batch", str(requests), "--out", str(out),
+    proc = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "batch", str(requests), "--out", str(out),
                            "--workers", "1", "--kind", "frequency_fit"], cwd=ROOT, capture_output=True,
                           text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr

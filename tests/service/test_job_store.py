@@ -7,8 +7,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import Column, Float, Integer, MetaData, String, Table, Text, create_engine, inspect, select, text
 
-from service.app import create_app
-from service.store import JobStore, make_engine, task_requests, tasks
+from greyfit.service.app import create_app
+from greyfit.service.store import JobStore, make_engine, task_requests, tasks
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 

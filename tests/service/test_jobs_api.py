@@ -6,8 +6,8 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
-from service.executors import LocalWorkerPool
+from greyfit.service.app import create_app
+from greyfit.service.executors import LocalWorkerPool
 from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
 
 

@@ -8,9 +8,9 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from service.app import create_app
-from service.json_body import LARGE_BODY_BYTES
-from service.json_parsing import parse_and_validate
+from greyfit.service.app import create_app
+from greyfit.service.json_body import LARGE_BODY_BYTES
+from greyfit.service.json_parsing import parse_and_validate
 from tests.service.conftest import assert_problem, make_settings, msd_request, wait_for_job
 from tests.service.test_real_server_bodies import large_fit_request
 
@@ -70,8 +70,8 @@ def test_a_large_body_with_a_duplicate_key_is_refused(large):
 def test_a_duplicate_key_deep_in_a_job_body_is_found_where_the_numbers_are():
     """Valid bodies take pydantic's JSON parser, which keeps the last of two equal keys: the
     duplicate check must still see a key twice beside arrays of numbers and inside any request."""
-    from schemas.fit import FitRequest
-    from schemas.jobs import JobCreate
+    from greyfit.schemas.fit import FitRequest
+    from greyfit.schemas.jobs import JobCreate
     fit = json.dumps(msd_request(0, n=41))
     x = fit.index('"x": [', fit.index('"outputs"'))
     doubled = fit[:x] + '"x": [1.0, 2e-3, -3.5], ' + fit[x:]             # outputs.x twice

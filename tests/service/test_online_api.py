@@ -53,7 +53,7 @@ def test_time_varying_over_http_and_bad_options_are_422(client):
 def test_rls_through_the_cli(tmp_path):
     path = tmp_path / "rls.json"
     path.write_text(json.dumps(rls_body()))
-    proc = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(path)], cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "fit", str(path)], cwd=ROOT,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
     result = json.loads(proc.stdout)

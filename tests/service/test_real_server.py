@@ -27,7 +27,7 @@ def start_server(data_dir: Path, port: int, workers: int = 2, log: Path | None =
     env = {**os.environ, "GREYFIT_LEASE_SECONDS": "2", "GREYFIT_POLL_SECONDS": "0.02", **env_overrides}
     out = open(log, "ab") if log is not None else subprocess.DEVNULL
     try:
-        proc = subprocess.Popen([sys.executable, "-m", "service.cli", "serve", "--host", "127.0.0.1",
+        proc = subprocess.Popen([sys.executable, "-m", "greyfit.service.cli", "serve", "--host", "127.0.0.1",
                                  "--port", str(port), "--data-dir", str(data_dir), "--workers", str(workers)],
                                 cwd=ROOT, env=env, start_new_session=True, stdout=out, stderr=subprocess.STDOUT)
     finally:

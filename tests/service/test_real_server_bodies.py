@@ -22,8 +22,8 @@ import httpx
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from service.json_parsing import parse_and_validate
+from greyfit.schemas import FitRequest
+from greyfit.service.json_parsing import parse_and_validate
 from tests.service.conftest import msd_request
 from tests.service.test_real_server import free_port, start_server, stop_server, wait_until_finished
 

@@ -53,10 +53,10 @@ def report_dir(tmp_path_factory):
     request = {"model": duffing_model(), "experiments": [record("est", t[:301], x[:, :301], u[:301], 1)],
                "validation": [record("val", t[300:], x[:, 300:], u[300:], 2)], "options": {"substeps": 2}}
     (tmp / "request.json").write_text(json.dumps(request))
-    fit = subprocess.run([sys.executable, "-m", "service.cli", "fit", str(tmp / "request.json")],
+    fit = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "fit", str(tmp / "request.json")],
                          cwd=ROOT, capture_output=True, text=True, check=True)
     (tmp / "result.json").write_text(fit.stdout)
-    subprocess.run([sys.executable, "-m", "service.cli", "report", str(tmp / "result.json"), "--request",
+    subprocess.run([sys.executable, "-m", "greyfit.service.cli", "report", str(tmp / "result.json"), "--request",
                     str(tmp / "request.json"), "--out", str(tmp / "out")], cwd=ROOT, check=True,
                    capture_output=True, text=True)
     return tmp / "out"

@@ -7,11 +7,11 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from schemas import FitRequest
-from schemas.model import Model
-from solvers.errors import DataError
-from solvers.fit import fit_model
-from solvers.model_compiler import compile_model
+from greyfit.schemas import FitRequest
+from greyfit.schemas.model import Model
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.model.compiler import compile_model
 
 A, B, C = [1.0, -1.5, 0.7], [0.0, 1.0, 0.5], [1.0, -1.0, 0.2]
 TRUTH = {"a1": -1.5, "a2": 0.7, "b1": 1.0, "b2": 0.5, "c1": -1.0, "c2": 0.2}

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from schemas import FitRequest
-from solvers.errors import DataError, ModelDefinitionError
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.errors import DataError, ModelDefinitionError
+from greyfit.solvers.fit import fit_model
 from tests.systems import msd_experiment, msd_model, simulate_msd
 
 T = np.linspace(0, 5, 101)

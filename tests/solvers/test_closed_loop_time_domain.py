@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from schemas.fit import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.frequency_systems import NAMES, TRUTH, closed_loop
 
 KP, KI = 1.0, 1.0

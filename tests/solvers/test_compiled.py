@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers import compiled as compiled_mod
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.dynamics import compiled as compiled_mod
+from greyfit.solvers.fit import fit_model
 from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
 
 needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C compiler on this machine")
@@ -118,11 +118,11 @@ def test_missing_samples_and_two_experiments_on_the_structured_path(method):
 
 @needs_cc
 def test_columns_in_c_equal_casadis_map_and_mapaccum(cache, monkeypatch):
-    """The compiled loop over samples (solvers/columns.py) gives CasADi's own map/mapaccum numbers:
+    """The compiled loop over samples (solvers/dynamics/columns.py) gives CasADi's own map/mapaccum numbers:
     per-sample and shared inputs, a sparse output, accumulation; the function is named `step`,
     as glibc's legacy regexp function is, which the library must not call instead of its own."""
     import casadi as ca
-    from solvers.columns import Columns
+    from greyfit.solvers.dynamics.columns import Columns
     monkeypatch.setenv("GREYFIT_COMPILE", "always")
     x, p, u = ca.SX.sym("x", 3), ca.SX.sym("p", 2), ca.SX.sym("u")
     y = ca.vertcat(x[0] * p[0] + u, x[1] * x[2], ca.sin(p[1]))
@@ -201,7 +201,7 @@ def test_a_failed_background_compile_is_tried_again_later(cache, monkeypatch):
 
 BUILD_ONE = """
 import casadi as ca, sys
-from solvers import compiled
+from greyfit.solvers.dynamics import compiled
 x = ca.SX.sym("x", 2)
 fn = ca.Function("race_probe", [x], [ca.vertcat(ca.sin(x[0]) * x[1], x[0] ** 3)])
 ext, is_c = compiled.compiled(fn, 1e9)

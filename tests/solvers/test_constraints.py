@@ -3,11 +3,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from schemas.frequency import TransferFunctionModel
-from schemas.model import Model
-from solvers.errors import ModelDefinitionError
-from solvers.frequency.polynomials import compile_transfer_function
-from solvers.model_compiler import compile_model
+from greyfit.schemas.frequency import TransferFunctionModel
+from greyfit.schemas.model import Model
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.frequency.polynomials import compile_transfer_function
+from greyfit.solvers.model.compiler import compile_model
 from tests.frequency_systems import seed001_model
 from tests.systems import msd_model
 

@@ -2,9 +2,9 @@
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
-from solvers.statistics import student_t_quantile
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.inference.statistics import student_t_quantile
 from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
 
 T = np.linspace(0, 10, 201)
@@ -145,7 +145,7 @@ def test_stderr_holds_when_outputs_have_very_different_noise():
 
 
 def test_non_converged_fit_is_a_result_and_non_finite_jacobian_gives_a_note():
-    from solvers.covariance import estimate_covariance
+    from greyfit.solvers.inference.covariance import estimate_covariance
     r = msd_fit(0, method="multiple_shooting")
     body = {"model": msd_model(c=0.1, k=1.0), "method": "single_shooting", "options": {"max_iter": 1},
             "experiments": [msd_experiment(T, STATES, noise=NOISE, seed=0)]}

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from solvers.diagnostics import LEVEL, _xcorr, max_abs_p_value, residual_analysis, rmse_and_fit, sidak_z
+from greyfit.solvers.checks.diagnostics import LEVEL, _xcorr, max_abs_p_value, residual_analysis, rmse_and_fit, sidak_z
 
 
 def test_cross_correlation_matches_the_direct_sum():
@@ -105,8 +105,8 @@ def test_complete_model_fit_on_a_short_record_is_white_and_keeps_the_classical_c
     # O(p/N)); on 201 samples of the Duffing the old band flagged 32 % of 50 seeds (at lags 11-13 in
     # seeds 4, 6, 9, 10: chance over 25 lags, the noise-free fit's residual is 1e-6) and so switched
     # `auto` to HAC; the calibrated test flagged none (bench/bench_whiteness.py)
-    from schemas import FitRequest
-    from solvers.fit import fit_model
+    from greyfit.schemas import FitRequest
+    from greyfit.solvers.fit import fit_model
     from tests import partial_systems as ps
     model = ps.duffing_model()
     model["parameters"] = model["parameters"] + [{"name": "k3", "value": 1.0}]

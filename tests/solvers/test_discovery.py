@@ -4,10 +4,10 @@ EMPS positioning system."""
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from schemas.discovery import DiscoverRequest
-from solvers.discovery import discover
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.schemas.discovery import DiscoverRequest
+from greyfit.solvers.discovery import discover
+from greyfit.solvers.fit import fit_model
 from tests.emps import PUBLISHED, emps_request
 from tests.systems import (
     SEAT_TRUTH, msd_experiment, msd_model, seat_experiment, seat_k4_step, seat_model, simulate_msd,

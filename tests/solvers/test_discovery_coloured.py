@@ -7,8 +7,8 @@ in bench/bench_discovery_noise.py."""
 import numpy as np
 import pytest
 
-from schemas.discovery import DiscoverRequest
-from solvers.discovery import discover
+from greyfit.schemas.discovery import DiscoverRequest
+from greyfit.solvers.discovery import discover
 from tests import coloured_records as cr
 from tests import partial_systems as ps
 

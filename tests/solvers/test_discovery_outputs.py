@@ -4,12 +4,12 @@ declared without it, measurement noise, and a second record for validation."""
 import numpy as np
 import pytest
 
-from schemas.discovery import DiscoverRequest, DiscoveryOptions
-from schemas.fit import FitRequest
-from solvers.discovery import discover
-from solvers.discovery.loop import LoopState, try_in_rank_order
-from solvers.discovery.screening import Scored, screen
-from solvers.fit import fit_model
+from greyfit.schemas.discovery import DiscoverRequest, DiscoveryOptions
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.discovery import discover
+from greyfit.solvers.discovery.loop import LoopState, try_in_rank_order
+from greyfit.solvers.discovery.screening import Scored, screen
+from greyfit.solvers.fit import fit_model
 from tests import partial_systems as ps
 from tests.emps import PUBLISHED, emps_position_request
 from tests.systems import msd_model, msd_input, simulate_msd

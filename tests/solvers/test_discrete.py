@@ -3,9 +3,9 @@ import numpy as np
 import pytest
 from scipy import signal
 
-from schemas import FitRequest
-from solvers.errors import DataError
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.fit import fit_model
 from tests.online_systems import SECOND_ORDER, rl_experiment, rl_model, simulate_rl
 
 T = 1e-3

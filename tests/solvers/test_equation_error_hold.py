@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from schemas.fit import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.fit import fit_model
 
 A, B, TS, N = 100.0, 200.0, 1e-3, 1001
 

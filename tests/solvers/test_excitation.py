@@ -3,10 +3,10 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from schemas import FitRequest
-from solvers.errors import DataError
-from solvers.excitation import persistent_excitation_order
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.checks.excitation import persistent_excitation_order
+from greyfit.solvers.fit import fit_model
 from tests.systems import MOTOR_A, MOTOR_B, motor_model
 
 T = np.arange(0, 5, 0.005)

@@ -2,8 +2,8 @@
 import casadi as ca
 import pytest
 
-from solvers.errors import ModelDefinitionError
-from solvers.expressions import MAX_DEPTH, compile_expression
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.model.expressions import MAX_DEPTH, compile_expression
 
 X, K = ca.SX.sym("x"), ca.SX.sym("k")
 ENV = {"x": X, "k": K}

@@ -2,15 +2,15 @@
 import numpy as np
 import pytest
 
-from schemas.frequency import FrequencyData, FrequencyFitRequest, SineTest
-from solvers.errors import DataError, ModelDefinitionError
-from solvers.frequency import fit_frequency_response
-from solvers.frequency.data import prepare_frequency_data
-from solvers.frequency.levy import levy_fit
-from solvers.frequency.polynomials import compile_transfer_function
-from solvers.frequency.sine_tests import response_from_sine_tests
-from solvers.frequency.stability import routh_first_column
-from solvers.parameters import build_layout
+from greyfit.schemas.frequency import FrequencyData, FrequencyFitRequest, SineTest
+from greyfit.solvers.errors import DataError, ModelDefinitionError
+from greyfit.solvers.frequency import fit_frequency_response
+from greyfit.solvers.frequency.data import prepare_frequency_data
+from greyfit.solvers.frequency.levy import levy_fit
+from greyfit.solvers.frequency.polynomials import compile_transfer_function
+from greyfit.solvers.frequency.sine_tests import response_from_sine_tests
+from greyfit.solvers.frequency.stability import routh_first_column
+from greyfit.solvers.model.parameters import build_layout
 from tests.frequency_systems import (
     NAMES, OMEGA, TRUTH, closed_loop, frequency_data, response, seed001_model, sine_records,
 )
@@ -193,8 +193,8 @@ def test_improper_transfer_function_is_refused():
 def test_loop_with_overflowing_coefficients_is_reported_unknown_not_stable():
     """Ki = 1e308 makes the closed loop's coefficients overflow: no poles, no Routh column, stable
     false (np.roots raised on them, a 500 through the service)."""
-    from solvers.frequency.fit import _loop_report
-    from solvers.frequency.stability import is_stable, poles
+    from greyfit.solvers.frequency.fit import _loop_report
+    from greyfit.solvers.frequency.stability import is_stable, poles
 
     request = FrequencyFitRequest.model_validate({"model": seed001_model(TRUTH), "data": [_data()]})
     tf = compile_transfer_function(request.model)

@@ -5,10 +5,10 @@ Truths are worked out by hand in tests/linearised_systems.py (seed 001's plant t
 import numpy as np
 import pytest
 
-from schemas.frequency import FrequencyFitRequest
-from solvers.errors import DataError, ModelDefinitionError
-from solvers.frequency import fit_frequency_response
-from solvers.frequency.linearise import characteristic_polynomial, transfer_polynomials
+from greyfit.schemas.frequency import FrequencyFitRequest
+from greyfit.solvers.errors import DataError, ModelDefinitionError
+from greyfit.solvers.frequency import fit_frequency_response
+from greyfit.solvers.frequency.linearise import characteristic_polynomial, transfer_polynomials
 from tests.frequency_systems import NAMES, TRUTH, frequency_data, seed001_model
 from tests.linearised_systems import (
     PENDULUM_TRUTH, TANK_INFLOW, TANK_TRUTH, pendulum_equilibrium, pendulum_model, pendulum_response,

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.systems import (
     MSD_TRUTH, SEAT_TRUTH, motor_inputs, motor_model, motor_truth, msd_experiment, msd_model,
     seat_experiment, seat_model, simulate_motor, simulate_msd, simulate_seat,

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.online_systems import rl_continuous_model, rl_experiment, rl_model, simulate_rl
 
 

@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from schemas.fit import FitRequest
-from solvers.data import prepare_experiments
-from solvers.fit import fit_model
-from solvers.model_compiler import compile_model
-from solvers.parameters import build_layout
-from solvers.shooting import OutputErrorModel, build_multiple_shooting
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting
 
 T = np.linspace(0, 10, 201)
 

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
 
 T = np.linspace(0, 10, 201)

@@ -8,8 +8,8 @@ discrete models declared in their physical parameters. The error is the mean rel
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.online_systems import (
     FIRST_ORDER, SECOND_ORDER, first_order_model, second_order_model, seed004_experiment, simulate_seed004,
 )

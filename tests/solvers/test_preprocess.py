@@ -2,9 +2,9 @@
 import numpy as np
 import scipy.signal as ss
 
-from schemas import Experiment, FitRequest
-from solvers.fit import fit_model
-from solvers.preprocess import anti_alias_taps, preprocess_experiment, zero_phase_filter
+from greyfit.schemas import Experiment, FitRequest
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.data.preprocess import anti_alias_taps, preprocess_experiment, zero_phase_filter
 from tests.systems import msd_input, msd_model, simulate_msd
 
 

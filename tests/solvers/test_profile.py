@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 from scipy.optimize import brentq, minimize_scalar
 
-from schemas.fit import FitRequest
-from solvers.errors import DataError
-from solvers.fit import fit_model
-from solvers.statistics import student_t_quantile
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.inference.statistics import student_t_quantile
 
 T = np.linspace(0, 3, 31)
 

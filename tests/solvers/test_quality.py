@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.systems import msd_experiment, msd_model, simulate_msd
 
 

@@ -7,8 +7,8 @@ b = T/L and maps them back to R and L with the delta method.
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.online_systems import rl_experiment, rl_model, simulate_rl
 
 

@@ -5,8 +5,8 @@ At steady state the truth should lie inside θ̂ ± 2σ about 95 % of the time. 
 """
 import numpy as np
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.online_systems import RL_T, RL_TRUTH, rl_experiment, rl_model, simulate_rl
 
 RUNS, DURATION = 20, 0.8

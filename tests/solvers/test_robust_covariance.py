@@ -4,8 +4,8 @@ import pytest
 from scipy.integrate import solve_ivp
 from scipy.signal import lfilter
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 
 A, B, RHO, SIGMA = 2.0, 3.0, 0.9, 0.05
 T = np.arange(0, 20, 0.05)
@@ -55,7 +55,7 @@ def test_robust_stderr_matches_monte_carlo_spread_where_classical_does_not():
 @pytest.mark.parametrize("n,lags,cols", [(1000, 500, 8), (300, 40, 3), (50, 49, 2), (400, 12, 4)])
 def test_bartlett_sum_equals_the_lag_by_lag_definition(n, lags, cols):
     """Γ0 + Σ w_l (Γ_l + Γ_lᵀ) from moving-window sums = the sum written out."""
-    from solvers.robust_covariance import _bartlett_sum
+    from greyfit.solvers.inference.robust_covariance import _bartlett_sum
     b = np.cumsum(np.random.default_rng(n).standard_normal((n, cols)), axis=0)   # smooth scores
     expected = b.T @ b
     for lag in range(1, lags + 1):

@@ -6,12 +6,12 @@ import numpy as np
 import pytest
 
 import tests.partial_systems as ps
-from schemas.fit import FitRequest
-from solvers.data import prepare_experiments
-from solvers.fit import fit_model
-from solvers.model_compiler import compile_model
-from solvers.parameters import build_layout
-from solvers.shooting import OutputErrorModel, build_multiple_shooting
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting
 
 
 def _problem(body):
@@ -73,8 +73,8 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     """tanh(v/ε) with ε a thousandth of the speed range: the exact curvature is huge and
     indefinite (Ipopt's regularisation went to 1e15 at 13 s per iteration). The curvature-first
     solver gives up on it quickly and keeps the better of it and plain Gauss-Newton."""
-    from solvers.nlp import LeastSquaresSolver
-    from solvers.shooting_curvature import HybridShootingSolver, make_solver
+    from greyfit.solvers.nlp.solver import LeastSquaresSolver
+    from greyfit.solvers.methods.shooting_curvature import HybridShootingSolver, make_solver
     from tests.systems import msd_experiment, msd_model, simulate_msd
     t = np.linspace(0, 10, 501)
     states = simulate_msd(t, extra_force=lambda x, v: 0.5 * np.tanh(v / 1e-4))

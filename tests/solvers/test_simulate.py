@@ -2,9 +2,9 @@
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from schemas import Experiment, FitOptions, FitRequest, Model
-from solvers.fit import fit_model
-from solvers.simulate import simulate_experiments, validation_metrics
+from greyfit.schemas import Experiment, FitOptions, FitRequest, Model
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.simulation.simulate import simulate_experiments, validation_metrics
 from tests.systems import (
     SEAT_TRUTH, msd_experiment, msd_input, msd_model, seat_model, seat_rhs, simulate_msd, simulate_seat,
 )

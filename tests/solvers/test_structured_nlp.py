@@ -1,4 +1,4 @@
-"""The structured shooting NLP (solvers/shooting_structured.py) evaluates the same f, g and
+"""The structured shooting NLP (solvers/methods/shooting_structured.py) evaluates the same f, g and
 derivatives as CasADi's own differentiation of the generic graph.
 
 Truth: `ca.jacobian` of the generic graph's residual and gaps. The case exercises what the block
@@ -11,11 +11,11 @@ import casadi as ca
 import numpy as np
 import pytest
 
-from schemas.fit import FitRequest
-from solvers.data import prepare_experiments
-from solvers.model_compiler import compile_model
-from solvers.parameters import build_layout
-from solvers.shooting import OutputErrorModel, build_multiple_shooting, build_single_shooting
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting, build_single_shooting
 
 
 def _body(method: str, output_gain: bool) -> dict:

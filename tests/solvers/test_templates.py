@@ -3,8 +3,8 @@ import numpy as np
 import pytest
 from pydantic import ValidationError
 
-from schemas import FitRequest, Model
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest, Model
+from greyfit.solvers.fit import fit_model
 from tests.systems import MOTOR_A, MOTOR_B, motor_inputs, motor_model, motor_truth, simulate_motor
 
 MOTOR_TEMPLATE = {

@@ -2,8 +2,8 @@
 import numpy as np
 import pytest
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 from tests.online_systems import rl_experiment, rl_model, simulate_rl
 from tests.systems import SEAT_TRUTH, seat_experiment, seat_k4_step, seat_model, simulate_seat
 
@@ -55,7 +55,7 @@ def test_time_varying_is_refused_by_online_methods_and_constraints():
     t, u, i = simulate_rl(0.5)
     model = rl_model()
     model["parameters"][0]["time_varying"] = {"kind": "piecewise_constant", "segments": 2}
-    from solvers.errors import DataError, ModelDefinitionError
+    from greyfit.solvers.errors import DataError, ModelDefinitionError
     with pytest.raises(DataError, match="time_varying"):
         fit_model(FitRequest.model_validate({"model": model, "experiments": [rl_experiment(t, u, i)],
                                              "method": "recursive_least_squares"}))

@@ -2,8 +2,8 @@
 import numpy as np
 from scipy.integrate import solve_ivp
 
-from schemas import FitRequest
-from solvers.fit import fit_model
+from greyfit.schemas import FitRequest
+from greyfit.solvers.fit import fit_model
 
 DUFFING_TRUTH = {"c": 0.3, "k": 2.0, "k3": 1.5}
 NOISE = 0.01

@@ -1,0 +1,232 @@
+"""Is the answer trustworthy? Checks after the fit, the `quality` verdict and a finite result.
+
+`success` means converged AND sane: any warning whose code is in SUSPECT_CODES makes the
+result `suspect` (success false), any in FAILED_CODES makes it `failed`; the other codes inform.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from greyfit.schemas.fit import FitResult, FitWarning
+from greyfit.solvers.inference.covariance import CovarianceEstimate, combination, null_directions
+
+FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
+SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
+                 "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation"}
+INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
+              "input_faster_than_sampling", "integration_step_coarse", "initial_simulation_diverged",
+              "robust_covariance", "poor_excitation_at_start"}
+
+NOISE_FLOOR_RATIO = 5.0      # rmse this many times the data's own noise estimate ...
+NOISE_FLOOR_POINTS = 20.0    # ... and the fit % this many points below what that noise allows
+GAP_RATIO = 2.0              # simulated cost vs the multiple-shooting optimum
+STATE_RATIO = 1e3            # fitted state magnitude vs the simulation at the initial guess
+NEAR_SINGULAR = 1e8          # condition of the equilibrated information matrix
+FLAT_RELATIVE = 1e-6         # cost change for a 100 % step along a direction, relative to the cost
+FAR_FROM_WHITE = 0.95        # residual autocorrelation at some lag
+NEGLIGIBLE_FIT = 99.0        # fit % above which the residual's colour does not matter
+
+
+@dataclass
+class QualityInputs:
+    """What the checks need from `fit_model`; arrays in the solver's scaled units."""
+
+    converged: bool
+    status: str
+    cost: float                        # from the re-simulated (reported) residual
+    nlp_cost: float                    # the optimiser's own objective
+    method: str
+    covariance: CovarianceEstimate
+    jac: np.ndarray                    # weighted residual Jacobian, kept columns only
+    jac_labels: list[str]
+    measured: dict[str, list[np.ndarray]] = field(default_factory=dict)   # per output channel
+    fitted_state_peak: np.ndarray | None = None     # max |x(t)| per state at the solution
+    guess_state_peak: np.ndarray | None = None      # max |x(t)| per state at the initial guess
+    state_names: list[str] = field(default_factory=list)
+    simulation_failures: list[str] = field(default_factory=list)
+    before: list[FitWarning] = field(default_factory=list)
+    active_constraints: list[str] = field(default_factory=list)
+    sign_constrained: set[str] = field(default_factory=set)   # bounded to one sign (e.g. lower 0)
+
+
+def noise_level(y: np.ndarray) -> float:
+    """Measurement-noise std from second differences, var(Δ²e) = 6σ² for white noise.
+
+    A smooth signal adds little to Δ²y when it is sampled finely, so this bounds from above the
+    white-noise part of the data; no model is needed.
+    """
+    y = y[np.isfinite(y)]
+    if y.size < 5:
+        return math.nan
+    return float(np.sqrt(np.mean(np.diff(y, 2) ** 2) / 6.0))
+
+
+def _fit_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
+    out = []
+    if q.method == "equation_error":
+        return out   # channels are derivatives, smoothed: their differences do not show the noise
+    for name, series in q.measured.items():
+        rmse = result.metrics.rmse.get(name)
+        fit = result.metrics.fit_percent.get(name)
+        if rmse is None or fit is None or not series:
+            continue
+        sigma = float(np.sqrt(np.mean([noise_level(s) ** 2 for s in series])))
+        y = np.concatenate([s[np.isfinite(s)] for s in series])
+        spread = float(np.std(y))
+        if not (np.isfinite(sigma) and spread > 0):
+            continue
+        allowed = 100.0 * (1.0 - sigma / spread)
+        if rmse > NOISE_FLOOR_RATIO * sigma and fit < allowed - NOISE_FLOOR_POINTS:
+            out.append(FitWarning(
+                code="fit_below_noise_level",
+                message=f"output '{name}': fit {fit:.1f} % where the data's noise (σ ≈ {sigma:.3g}) "
+                        f"allows about {allowed:.1f} %; the model does not explain the data (wrong "
+                        "structure, a local minimum, or a degenerate multiple-shooting point)",
+                detail={"output": name, "fit_percent": fit, "noise_std": sigma,
+                        "achievable_fit_percent": allowed, "rmse": rmse}))
+    return out
+
+
+def _solution_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
+    out = []
+    if q.method == "multiple_shooting" and np.isfinite(q.cost) and np.isfinite(q.nlp_cost) \
+            and q.cost > GAP_RATIO * q.nlp_cost + 1e-12:
+        out.append(FitWarning(
+            code="continuity_gap",
+            message=f"simulating the fitted model from its initial state gives cost {q.cost:.4g}, "
+                    f"the multiple-shooting optimum {q.nlp_cost:.4g}: the trajectory pieces do not "
+                    "join into one simulation; try single_shooting from this result",
+            detail={"simulated_cost": q.cost, "shooting_cost": q.nlp_cost}))
+    if q.fitted_state_peak is not None and q.guess_state_peak is not None:
+        for i, s in enumerate(q.state_names):
+            ref = max(float(q.guess_state_peak[i]), 1e-12)
+            peak = float(q.fitted_state_peak[i])
+            if np.isfinite(peak) and peak > STATE_RATIO * ref:
+                out.append(FitWarning(
+                    code="extreme_state",
+                    message=f"state '{s}' reaches {peak:.3g} in the fitted simulation, {peak / ref:.0e} "
+                            f"times its size at the initial guess ({ref:.3g}); an unmeasured state "
+                            "wandered off to compensate (a degenerate point)",
+                    detail={"state": s, "peak": peak, "peak_at_guess": ref}))
+    for label, p in result.parameters.items():
+        if p.at_bound:
+            out.append(FitWarning(
+                code="parameter_at_bound", message=f"'{label}' is on its {p.at_bound} bound",
+                detail={"parameter": label, "bound": p.at_bound, "value": p.value}))
+        elif p.stderr is not None and p.stderr > abs(p.value) and label in q.sign_constrained:
+            out.append(FitWarning(
+                code="parameter_uncertain",
+                message=f"'{label}' = {p.value:.4g} ± {p.stderr:.3g}: its confidence interval "
+                        "spans orders of magnitude and includes zero",
+                detail={"parameter": label, "value": p.value, "stderr": p.stderr}))
+    for text in q.active_constraints:
+        out.append(FitWarning(code="constraint_active", message=f"constraint '{text}' is active",
+                              detail={"constraint": text}))
+    return out
+
+
+def _curvature_warnings(q: QualityInputs) -> list[FitWarning]:
+    out = []
+    cov = q.covariance
+    if cov.condition is not None and (cov.matrix is None or cov.condition > NEAR_SINGULAR):
+        nulls = cov.null_directions
+        if not nulls and q.jac.size:
+            norms = np.linalg.norm(q.jac, axis=0)
+            d = np.where(norms > 0, norms, 1.0)
+            eigval, eigvec = np.linalg.eigh((q.jac.T @ q.jac) / np.outer(d, d))
+            nulls = null_directions(eigval, eigvec, q.jac_labels, NEAR_SINGULAR)
+        out.append(FitWarning(
+            code="hessian_singular",
+            message=f"the information matrix is (nearly) singular (condition {cov.condition:.1e}); "
+                    f"poorly determined: {'; '.join(nulls)}",
+            detail={"condition": cov.condition, "null_directions": nulls}))
+    if q.jac.size and np.all(np.isfinite(q.jac)) and np.isfinite(q.cost):
+        eigval, eigvec = np.linalg.eigh(q.jac.T @ q.jac)
+        floor = FLAT_RELATIVE * max(2 * q.cost, 1e-10 * max(float(eigval[-1]), 1e-300))
+        flat = [k for k in range(eigval.size) if eigval[k] <= floor]
+        if flat:
+            dirs = [combination(eigvec[:, k], q.jac_labels) for k in flat]
+            out.append(FitWarning(
+                code="flat_cost",
+                message="the cost hardly changes (relative < 1e-6) when these combinations change "
+                        f"by 100 %: {'; '.join(dirs)}; the optimiser stopped on a plateau, not at a "
+                        "determined value",
+                detail={"directions": dirs}))
+    return out
+
+
+def _residual_warnings(result: FitResult) -> list[FitWarning]:
+    out = []
+    for a in result.residual_analysis:
+        if a.whiteness.lags and not a.whiteness.passed:
+            # a residual that is a negligible part of the signal (noise-free data) may be coloured
+            far = a.whiteness.max_abs > FAR_FROM_WHITE and (a.fit_percent or 0.0) < NEGLIGIBLE_FIT
+            out.append(FitWarning(
+                code="residual_far_from_white" if far else "residual_not_white",
+                message=f"residual of '{a.output}' is {'far from ' if far else 'not '}white (max "
+                        f"|autocorrelation| {a.whiteness.max_abs:.2f}, band {a.whiteness.bound:.3f}): "
+                        "unmodelled dynamics or coloured noise"
+                        + ("" if not far else "; the estimates may be biased"),
+                detail={"output": a.output, "max_abs": a.whiteness.max_abs, "bound": a.whiteness.bound}))
+    return out
+
+
+def _at_start_only(w: FitWarning) -> FitWarning:
+    """A start far from the answer can be poorly excited where the answer is not: when the
+    information matrix at the solution is well conditioned (no `hessian_singular`, `flat_cost`),
+    the warning from before the fit informs and does not make the result suspect (seed 001's closed
+    loop from a start at 0.3x the truth reached the truth and was called suspect for it)."""
+    return FitWarning(code="poor_excitation_at_start",
+                      message=w.message + " (at the initial guess only: at the solution the information "
+                                          "matrix is well conditioned)", detail=w.detail)
+
+
+def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
+    """Attach warnings and the quality verdict; `success` becomes converged and good."""
+    warnings = list(q.before)
+    if not q.converged:
+        warnings.append(FitWarning(code="not_converged", message=result.message,
+                                   detail={"return_status": q.status}))
+    for reason in q.simulation_failures:
+        warnings.append(FitWarning(code="simulation_failed", message=reason, detail={}))
+    if not np.isfinite(q.cost):
+        warnings.append(FitWarning(code="non_finite_cost",
+                                   message="the cost is not finite at the result (the simulation "
+                                           "overflowed or failed); the estimates are not usable",
+                                   detail={}))
+    else:
+        warnings += _fit_warnings(result, q) + _solution_warnings(result, q)
+        curvature = _curvature_warnings(q)
+        warnings += curvature + _residual_warnings(result)
+        if q.covariance.matrix is not None and not curvature:
+            warnings = [_at_start_only(w) if w.code == "poor_excitation" else w for w in warnings]
+    if q.covariance.robust_bandwidth is not None:
+        warnings.append(FitWarning(code="robust_covariance", message=q.covariance.note or "",
+                                   detail={"bandwidth": q.covariance.robust_bandwidth}))
+    codes = {w.code for w in warnings}
+    quality = "failed" if codes & FAILED_CODES else "suspect" if codes & SUSPECT_CODES else "good"
+    update = {"warnings": warnings, "quality": quality, "success": quality == "good",
+              "status": {"good": "success", "suspect": "suspect", "failed": "failed"}[quality]}
+    if quality == "suspect" and q.converged:
+        update["message"] = result.message + "; but the result is suspect: " + "; ".join(
+            sorted(codes & SUSPECT_CODES))
+    return finite_result(result.model_copy(update=update))
+
+
+def _plain(value):
+    """numpy scalars and arrays in free-form fields (warning details) as JSON values."""
+    if isinstance(value, np.generic):
+        return value.item()
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    raise TypeError(f"{type(value).__name__} is not a JSON value")
+
+
+def finite_result(result: FitResult) -> FitResult:
+    """The result with every NaN/inf replaced by null (JSON has neither; the schema allows null
+    exactly where a value can be undefined): pydantic writes them as null, and reading the text
+    back is one pass in its Rust core instead of a walk over every number in Python."""
+    return FitResult.model_validate_json(result.model_dump_json(fallback=_plain))

@@ -1,0 +1,1 @@
+"""Measured records turned into arrays: checks, windows, detrending, derivatives, prefilters."""

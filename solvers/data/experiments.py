@@ -1,0 +1,147 @@
+"""Check experiments against a compiled model and turn them into numpy arrays."""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from greyfit.schemas.experiment import Experiment
+from greyfit.schemas.online import measured_output_inputs
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.model.compiler import CompiledModel
+
+
+# Beyond this, squares and sums of squares overflow double precision.
+MAX_ABS_VALUE = 1e100
+
+
+@dataclass
+class ExperimentData:
+    """Arrays of one experiment; missing output samples are NaN and masked out."""
+
+    name: str
+    t: np.ndarray            # (N,)
+    u: np.ndarray            # (nu, N)
+    y: np.ndarray            # (ny, N), NaN where missing
+    x0_known: dict[int, float]
+    derivatives: dict[int, np.ndarray]  # state index -> (N,), NaN where missing
+
+    @property
+    def n(self) -> int:
+        return self.t.size
+
+    @property
+    def mask(self) -> np.ndarray:
+        return np.isfinite(self.y)
+
+
+def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
+    if len(values) != n:
+        raise DataError(f"{len(values)} values, time has {n}; give one value per time sample", where)
+    arr = np.array(values, dtype=float)   # None becomes NaN
+    if arr.size and np.max(np.abs(arr)) <= MAX_ABS_VALUE:   # complete and in range: nothing to report
+        return arr
+    finite = np.isfinite(arr)
+    bad = [] if finite.all() else [int(i) for i in np.flatnonzero(~finite) if values[i] is not None]
+    if bad:
+        raise DataError(f"value at index {bad[0]} is {values[bad[0]]}; only finite numbers "
+                        "(or null for a missing sample) are allowed", where)
+    huge = np.flatnonzero(np.abs(arr) > MAX_ABS_VALUE)   # NaN compares False
+    if huge.size:
+        raise DataError(f"value at index {int(huge[0])} is {values[int(huge[0])]:g}; magnitudes above "
+                        f"{MAX_ABS_VALUE:g} overflow when squared: change the units", where)
+    if not allow_missing and not finite.all():
+        i = int(np.flatnonzero(np.isnan(arr))[0])
+        raise DataError(f"missing value (null) at index {i}; inputs must be complete: "
+                        "interpolate or trim the experiment", where)
+    return arr
+
+
+def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> ExperimentData:
+    """Validate one experiment; every error names `experiments[i].<field>`."""
+    base = f"experiments[{index}]"
+    t = np.asarray(exp.time, dtype=float)
+    if not np.all(np.isfinite(t)):
+        i = int(np.flatnonzero(~np.isfinite(t))[0])
+        raise DataError(f"time[{i}] is not a finite number", f"{base}.time")
+    if np.any(np.abs(t) > MAX_ABS_VALUE):
+        i = int(np.flatnonzero(np.abs(t) > MAX_ABS_VALUE)[0])
+        raise DataError(f"time[{i}] = {t[i]:g} is too large; change the time unit or origin", f"{base}.time")
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        i = int(np.flatnonzero(steps <= 0)[0])
+        raise DataError(f"time must increase strictly; time[{i + 1}] = {t[i + 1]} follows "
+                        f"time[{i}] = {t[i]}", f"{base}.time")
+    n = t.size
+
+    unknown = sorted(set(exp.inputs) - set(cm.inputs))
+    if unknown:
+        raise DataError(f"'{unknown[0]}' is not an input of the model (inputs: {cm.inputs})",
+                        f"{base}.inputs.{unknown[0]}")
+    u = np.zeros((cm.nu, n))
+    fed = measured_output_inputs(cm.model.template)   # ARMAX: the predictor reads the measured output
+    for i, name in enumerate(cm.inputs):
+        if name not in exp.inputs and fed.get(name) in exp.outputs:
+            u[i] = _series(exp.outputs[fed[name]], f"{base}.outputs.{fed[name]}", n, allow_missing=False)
+            continue
+        if name not in exp.inputs:
+            raise DataError(f"no data for model input '{name}'; every input needs a series",
+                            f"{base}.inputs.{name}")
+        u[i] = _series(exp.inputs[name], f"{base}.inputs.{name}", n, allow_missing=False)
+
+    unknown = sorted(set(exp.outputs) - set(cm.outputs))
+    if unknown:
+        raise DataError(f"'{unknown[0]}' is not an output of the model (outputs: {cm.outputs}); "
+                        "declare it in model.outputs", f"{base}.outputs.{unknown[0]}")
+    y = np.full((cm.ny, n), np.nan)
+    for i, name in enumerate(cm.outputs):
+        if name in exp.outputs:
+            y[i] = _series(exp.outputs[name], f"{base}.outputs.{name}", n, allow_missing=True)
+            if np.isnan(y[i]).all():
+                raise DataError("every sample is null; give data or leave the output out",
+                                f"{base}.outputs.{name}")
+
+    x0 = {}
+    for name, value in exp.initial_state.items():
+        if name not in cm.states:
+            raise DataError(f"'{name}' is not a state (states: {cm.states})",
+                            f"{base}.initial_state.{name}")
+        if not math.isfinite(value) or abs(value) > MAX_ABS_VALUE:
+            raise DataError(f"must be a finite number of magnitude at most {MAX_ABS_VALUE:g}",
+                            f"{base}.initial_state.{name}")
+        x0[cm.states.index(name)] = float(value)
+
+    derivatives = {}
+    for name, values in exp.derivatives.items():
+        if name not in cm.states:
+            raise DataError(f"'{name}' is not a state (states: {cm.states})",
+                            f"{base}.derivatives.{name}")
+        derivatives[cm.states.index(name)] = _series(
+            values, f"{base}.derivatives.{name}", n, allow_missing=True)
+
+    return ExperimentData(exp.name, t, u, y, x0, derivatives)
+
+
+def prepare_experiments(experiments: list[Experiment], cm: CompiledModel,
+                        require_outputs: bool = True) -> list[ExperimentData]:
+    """Checked arrays of every experiment; `require_outputs=False` when nothing is fitted (simulation)."""
+    names = [e.name for e in experiments]
+    for i, name in enumerate(names):
+        if names.index(name) != i:
+            raise DataError(f"name '{name}' is used twice; experiment names must be unique",
+                            f"experiments[{i}].name")
+    data = [prepare_experiment(e, cm, i) for i, e in enumerate(experiments)]
+    for j, out in enumerate(cm.outputs if require_outputs else []):
+        if not any(np.isfinite(d.y[j]).any() for d in data):
+            raise DataError(f"output '{out}' has no data in any experiment; give its samples "
+                            "or remove it from model.outputs", f"experiments[*].outputs.{out}")
+    return data
+
+
+def fill_missing(series: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Linear interpolation over NaN gaps (used only to initialise, never to fit)."""
+    ok = np.isfinite(series)
+    if ok.all():
+        return series.copy()
+    return np.interp(t, t[ok], series[ok])

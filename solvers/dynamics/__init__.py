@@ -1,0 +1,1 @@
+"""Integrators and compiled per-sample kernels shared by every time-domain method."""

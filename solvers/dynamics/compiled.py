@@ -1,0 +1,230 @@
+"""Small CasADi Functions generated as C, compiled once per structure and cached (memory and disk).
+
+What is compiled is the per-sample work (an integrator step with its Jacobians, an output with its
+Jacobians); the NLP around it stays a CasADi graph that calls the compiled code through `map`, so
+compiling costs ~1 s per model instead of the 12-25 s of JIT-compiling a whole NLP.
+
+The cache key is a hash of the Function's serialised form (its exact expression graph), the CasADi
+version and the compiler flags: two requests with the same model structure share the library,
+whatever their data or parameter values. The disk cache (`GREYFIT_CACHE_DIR`, default
+`~/.cache/greyfit`; the service sets it under its data directory) survives restarts and is shared by
+worker processes; libraries are written to a temporary name and renamed, so a reader never loads a
+half-written file, and built under a lock file, so worker processes that meet a new model at the same
+moment (the first fits of a batch) run the compiler once: the others wait and load its library.
+
+`GREYFIT_COMPILE`: `auto` (default) compiles when a C compiler is present and the expected
+interpreted work is large enough to repay the compile, and otherwise compiles in the background so
+the next fit of that model finds it (a failed background compile is tried again after a back-off:
+1 min, doubling, at most hourly); `always` compiles whenever it can; `never` keeps the interpreter.
+"""
+from __future__ import annotations
+
+import contextlib
+import functools
+import hashlib
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+import time
+from collections import OrderedDict
+from pathlib import Path
+
+import casadi as ca
+
+try:
+    import fcntl
+except ImportError:   # not POSIX: no cross-process lock, at worst a library is built twice
+    fcntl = None
+
+# -Bsymbolic: the columns driver must call this library's own function, not a namesake loaded
+# before it (glibc exports a legacy `step`)
+CFLAGS = ["-O1", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
+# interpreted SX costs ~10 ns per instruction here; gcc ~1 s for a few thousand: compile in the
+# foreground when a fit would spend more than about a second interpreting
+FOREGROUND_WORK = 1e8          # instructions × expected evaluations
+COMPILE_TIMEOUT_S = 120
+# a background compile that failed (disk full, killed, out of memory) is tried again after this,
+# doubled after each failure: a compiler that always fails costs one attempt per hour at most
+RETRY_AFTER_S = 60.0
+MAX_RETRY_S = 3600.0
+
+# Appended to every library: evaluates the function at n samples, input i of sample k at
+# arg[i] + k * astride[i] (stride 0: the same for every sample), output j at res[j] + k * rstride[j];
+# `accumulate` feeds output 0 of sample k-1 to input 0 of sample k (mapaccum). Called through
+# ctypes on numpy buffers (solvers/dynamics/columns.py): no CasADi matrices, no copies.
+COLUMNS_DRIVER = r"""
+#include <stdlib.h>
+int greyfit_columns_FN(long long n, const double** arg, const long long* astride, double** res,
+                       const long long* rstride, int accumulate) {
+  casadi_int sz_arg, sz_res, sz_iw, sz_w, i, k;
+  casadi_int n_in = FN_n_in(), n_out = FN_n_out();
+  int flag = 0;
+  FN_work(&sz_arg, &sz_res, &sz_iw, &sz_w);
+  const double** a = (const double**) calloc(sz_arg + 1, sizeof(double*));
+  double** r = (double**) calloc(sz_res + 1, sizeof(double*));
+  casadi_int* iw = (casadi_int*) malloc((sz_iw + 1) * sizeof(casadi_int));
+  double* w = (double*) malloc((sz_w + 1) * sizeof(double));
+  if (!a || !r || !iw || !w) flag = 1;
+  for (k = 0; k < n && !flag; ++k) {
+    for (i = 0; i < n_in; ++i) a[i] = arg[i] ? arg[i] + k * astride[i] : 0;
+    if (accumulate && k > 0) a[0] = res[0] + (k - 1) * rstride[0];
+    for (i = 0; i < n_out; ++i) r[i] = res[i] ? res[i] + k * rstride[i] : 0;
+    flag = FN(a, r, iw, w, 0);
+  }
+  free(a); free(r); free(iw); free(w);
+  return flag;
+}
+"""
+
+_memory: dict[str, ca.Function] = {}
+_pending: set[str] = set()                      # keys compiled in the background now
+_failed: dict[str, tuple[int, float]] = {}       # key -> (failures, monotonic time of the next try)
+_lock = threading.Lock()
+
+
+def mode() -> str:
+    value = os.environ.get("GREYFIT_COMPILE", "auto").strip().lower()
+    return value if value in ("auto", "always", "never") else "auto"
+
+
+def cache_dir() -> Path:
+    return Path(os.environ.get("GREYFIT_CACHE_DIR") or Path.home() / ".cache" / "greyfit") / "compiled"
+
+
+def compiler() -> str | None:
+    return _which(os.environ.get("CC", "gcc"))
+
+
+@functools.lru_cache(maxsize=8)
+def _which(name: str) -> str | None:   # a PATH search costs ~0.2 ms, asked on every Function
+    return shutil.which(name)
+
+
+_keys: "OrderedDict[int, tuple[ca.Function, str]]" = OrderedDict()
+
+
+def function_key(fn: ca.Function) -> str:
+    """Hash of the Function's graph; remembered per Function object (serialising costs ~ms)."""
+    known = _keys.get(id(fn))
+    if known is not None and known[0] is fn:
+        return known[1]
+    text = fn.serialize() + ca.__version__ + " ".join(CFLAGS) + COLUMNS_DRIVER
+    key = hashlib.sha256(text.encode()).hexdigest()[:24]
+    _keys[id(fn)] = (fn, key)   # holding fn keeps its id from being reused
+    while len(_keys) > 256:
+        _keys.popitem(last=False)
+    return key
+
+
+def loaded(fn: ca.Function) -> ca.Function | None:
+    """The compiled Function of `fn` if this process has loaded it already (no policy weighing)."""
+    if mode() == "never" or compiler() is None:
+        return None
+    key = function_key(fn)
+    with _lock:
+        return _memory.get(key)
+
+
+def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bool]:
+    """(Function to use, whether it is compiled C) for `fn`, evaluated about `evaluations` times.
+
+    Never raises for a missing compiler or a failed compile: the interpreted `fn` is returned.
+    """
+    ready = loaded(fn)
+    if ready is not None:
+        return ready, True
+    path = library(fn, evaluations)
+    if path is None:
+        return fn, False
+    return _load(fn, function_key(fn), path), True
+
+
+def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
+    """The compiled library of `fn` (built now, found on disk, or None while it is built in the
+    background / where nothing can be compiled), under the policy of `GREYFIT_COMPILE`."""
+    how = mode()
+    if how == "never" or compiler() is None:
+        return None
+    key = function_key(fn)
+    path = cache_dir() / f"{fn.name()}_{key}.so"
+    if path.exists():
+        return path
+    if how == "always" or fn.n_instructions() * evaluations >= FOREGROUND_WORK:
+        return path if _build(fn, path) else None
+    with _lock:
+        failed = _failed.get(key)
+        start = key not in _pending and (failed is None or time.monotonic() >= failed[1])
+        if start:
+            _pending.add(key)
+    if start:   # the next fit of this model structure will find it
+        threading.Thread(target=_build_in_background, args=(fn, path, key), daemon=True).start()
+    return None
+
+
+def _build_in_background(fn: ca.Function, path: Path, key: str) -> None:
+    ok = _build(fn, path)
+    with _lock:
+        _pending.discard(key)
+        if ok:
+            _failed.pop(key, None)
+        else:
+            failures = _failed.get(key, (0, 0.0))[0] + 1
+            wait = min(RETRY_AFTER_S * 2 ** (failures - 1), MAX_RETRY_S)
+            _failed[key] = (failures, time.monotonic() + wait)
+
+
+def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:
+    # derivatives come as outputs of the compiled Functions themselves; finite differences only
+    # let CasADi build (never evaluate) the derivative functions an NLP interface asks for
+    ext = ca.external(fn.name(), str(library), {"enable_fd": True})
+    with _lock:
+        _memory[key] = ext
+    return ext
+
+
+def _build(fn: ca.Function, library: Path) -> bool:
+    try:
+        library.parent.mkdir(parents=True, exist_ok=True)
+        with _build_lock(library):
+            if library.exists():   # another process built it while this one waited
+                return True
+            with tempfile.TemporaryDirectory(dir=library.parent) as tmp:
+                source = f"{fn.name()}.c"
+                gen = ca.CodeGenerator(source, {"with_header": False})
+                gen.add(fn)
+                gen.generate(tmp + os.sep)
+                with open(Path(tmp) / source, "a") as c_file:   # columns.py's loop over samples
+                    c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
+                target = Path(tmp) / "lib.so"
+                subprocess.run([compiler(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
+                               check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)
+                os.replace(target, library)   # atomic: other processes see all of it or nothing
+        return True
+    except (OSError, subprocess.SubprocessError, RuntimeError):
+        return False
+
+
+@contextlib.contextmanager
+def _build_lock(library: Path):
+    """Exclusive across processes while `library` is built. The kernel drops a flock when its holder
+    dies, so a killed build never leaves the others waiting; a holder that outlives a compile's
+    timeout is not waited for any longer (the waiter then builds too, as without the lock)."""
+    if fcntl is None:
+        yield
+        return
+    with open(library.with_suffix(".lock"), "a") as handle:
+        deadline = time.monotonic() + COMPILE_TIMEOUT_S + 10
+        while True:
+            try:
+                fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                break
+            except BlockingIOError:
+                if time.monotonic() > deadline:
+                    break
+                time.sleep(0.02)
+        try:
+            yield
+        finally:
+            fcntl.flock(handle, fcntl.LOCK_UN)

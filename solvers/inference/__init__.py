@@ -1,0 +1,1 @@
+"""Uncertainty: Jacobian covariance, HAC, profile likelihood, small statistics."""

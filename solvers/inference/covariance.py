@@ -1,0 +1,136 @@
+"""Jacobian-based covariance σ²(JᵀJ)⁻¹ with bound handling and identifiability notes."""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from greyfit.solvers.inference.robust_covariance import hac_meat
+from greyfit.solvers.inference.statistics import student_t_quantile
+
+CONDITION_LIMIT = 1e12
+
+
+@dataclass
+class CovarianceEstimate:
+    """Covariance of the free, interior parameters (physical units) or None with a note."""
+
+    names: list[str]
+    matrix: np.ndarray | None
+    stderr: dict[str, float]
+    ci: dict[str, tuple[float, float]]
+    note: str | None
+    condition: float | None = None   # of the column-equilibrated information matrix
+    null_directions: list[str] = field(default_factory=list)   # every (near-)null combination
+    classical: np.ndarray | None = None     # σ²(JᵀJ)⁻¹ (sandwich per output) when `matrix` is HAC
+    classical_stderr: dict[str, float] = field(default_factory=dict)
+    robust_bandwidth: float | None = None   # set when `matrix` is the HAC covariance
+
+
+def null_directions(eigval: np.ndarray, eigvec: np.ndarray, labels: list[str],
+                    limit: float = CONDITION_LIMIT) -> list[str]:
+    """Every eigen-direction whose eigenvalue is below λmax/limit, as a named combination."""
+    top = max(float(eigval[-1]), 1e-300)
+    return [combination(eigvec[:, k], labels) for k in range(eigval.size) if eigval[k] <= top / limit]
+
+
+def combination(vector: np.ndarray, labels: list[str]) -> str:
+    order = np.argsort(-np.abs(vector))
+    terms = [f"{vector[i]:+.2f}*{labels[i]}" for i in order if abs(vector[i]) > 0.1][:6]
+    return " ".join(terms) if terms else labels[int(order[0])]
+
+
+def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str], values: np.ndarray,
+                        scale: np.ndarray, keep: np.ndarray, n_params: int,
+                        level: float = 0.95, groups: np.ndarray | None = None,
+                        sample_keys: np.ndarray | None = None, experiment_keys: np.ndarray | None = None,
+                        robust: bool = False) -> CovarianceEstimate:
+    """Covariance from the residual Jacobian in scaled variables.
+
+    Parameters
+    ----------
+    jac : (ndata, ncols) Jacobian of the weighted residual w.r.t. the scaled decision variables;
+        the first `n_params` columns are parameters, the rest nuisance variables (initial states).
+    residual : weighted residual at the solution.
+    labels, values, scale : per column; values in physical units, physical = scale * scaled.
+    keep : columns to include (parameters on an active bound are left out, reported as such).
+    groups : the output (or equation) of each residual row, a non-negative integer. Each group gets
+        its own noise variance s_g² = r_gᵀr_g / (n_g (1 - p/n)) and the covariance is the sandwich (JᵀJ)⁻¹ JᵀSJ (JᵀJ)⁻¹,
+        S = diag(s_g²): the fit's weights (1/std of each output by default) need not match the
+        noise levels. With one group this is the usual σ²(JᵀJ)⁻¹.
+    sample_keys, experiment_keys, robust : with `robust`, the reported matrix is the HAC
+        (Newey-West) covariance of `solvers.robust_covariance`, the classical one kept beside it.
+    """
+    cols = np.flatnonzero(keep)
+    j = jac[:, cols]
+    ndata, nvar = j.shape
+    dof = ndata - nvar
+    names = [labels[c] for c in cols if c < n_params]
+    if not (np.all(np.isfinite(j)) and np.all(np.isfinite(residual))):
+        return CovarianceEstimate(names, None, {}, {}, "the residual or its Jacobian is not finite at the "
+                                  "solution (the simulation diverged); no covariance")
+    if nvar == 0:
+        return CovarianceEstimate(names, None, {}, {}, "every free variable is on a bound; no covariance "
+                                  "(widen the bounds to get standard errors)")
+    if dof <= 0:
+        return CovarianceEstimate(names, None, {}, {}, f"{ndata} residuals for {nvar} free variables: "
+                                  "no degree of freedom left to estimate the noise")
+    info = j.T @ j
+    if not np.all(np.isfinite(info)):
+        return CovarianceEstimate(names, None, {}, {}, "the information matrix overflows (weighted residual "
+                                  "Jacobian too large); rescale the data or the output weights")
+    d = np.sqrt(np.maximum(np.diag(info), 1e-300))
+    normed = info / np.outer(d, d)   # column-equilibrated, so the test does not depend on units
+    eigval, eigvec = np.linalg.eigh(normed)
+    condition = float(eigval[-1] / max(eigval[0], 1e-300))
+    lab = [labels[c] for c in cols]
+    if eigval[0] <= eigval[-1] / CONDITION_LIMIT:
+        kind = "indefinite" if eigval[0] < 0 else "singular"
+        nulls = null_directions(eigval, eigvec, lab)
+        return CovarianceEstimate(
+            names, None, {}, {},
+            f"information matrix is {kind} (condition {condition:.1e}); "
+            f"not identifiable from these data: {'; '.join(nulls)}", condition, nulls)
+    inv = np.linalg.inv(normed) / np.outer(d, d)
+    counts = None if groups is None else np.bincount(groups)
+    if counts is not None and np.count_nonzero(counts) > 1:
+        group_var = np.bincount(groups, weights=residual * residual) / np.maximum(counts * dof / ndata, 1e-300)
+        meat = j.T @ (j * group_var[groups][:, None])
+        cov_scaled = inv @ meat @ inv
+    else:
+        cov_scaled = float(residual @ residual) / dof * inv
+    sc = scale[cols]
+    npar = len(names)
+    cov = (cov_scaled * np.outer(sc, sc))[:npar, :npar]
+    if not (np.all(np.isfinite(cov)) and np.all(np.diag(cov) > 0)):
+        return CovarianceEstimate(names, None, {}, {}, "the covariance is numerically degenerate (a zero "
+                                  "or non-finite variance; the weights or scales differ by too many "
+                                  "orders of magnitude)", condition)
+    stderr, ci = _intervals(cov, cols[:npar], labels, values, level, dof)
+    if not robust or sample_keys is None:
+        return CovarianceEstimate(names, cov, stderr, ci, None, condition)
+    meat, bandwidth = hac_meat(j, residual, sample_keys, experiment_keys)
+    hac = (inv @ meat @ inv * (ndata / dof) * np.outer(sc, sc))[:npar, :npar]
+    if not (np.all(np.isfinite(hac)) and np.all(np.diag(hac) > 0)):
+        return CovarianceEstimate(names, cov, stderr, ci, "the robust covariance is degenerate; the "
+                                  "classical one is reported", condition)
+    r_stderr, r_ci = _intervals(hac, cols[:npar], labels, values, level, dof)
+    note = (f"stderr, ci95 and covariance are HAC (Newey-West, Bartlett kernel, bandwidth "
+            f"{bandwidth:.1f} samples) because the residual is not white; covariance_classical and "
+            "stderr_classical are σ²(JᵀJ)⁻¹, valid only for white residuals")
+    return CovarianceEstimate(names, hac, r_stderr, r_ci, note, condition, [], cov, stderr, bandwidth)
+
+
+def _intervals(cov: np.ndarray, cols, labels, values, level: float, dof: int):
+    t = student_t_quantile(0.5 + level / 2, dof)
+    stderr, ci = {}, {}
+    for k, c in enumerate(cols):
+        se = float(np.sqrt(max(cov[k, k], 0.0)))
+        stderr[labels[c]] = se
+        ci[labels[c]] = (float(values[c] - t * se), float(values[c] + t * se))
+    return stderr, ci
+
+
+def correlation_from(cov: np.ndarray) -> np.ndarray:
+    sd = np.sqrt(np.diag(cov))
+    return cov / np.outer(sd, sd)

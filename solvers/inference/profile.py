@@ -1,0 +1,171 @@
+"""Profile-likelihood intervals for named parameters (`options.profile`), as pyPESTO and D2D do.
+
+For a parameter θ_i the profile is c_PL(v) = min over the other variables of the cost with θ_i
+fixed to v (every other parameter and free initial state re-optimised, warm-started from the
+previous point). The interval is where c_PL rises less than
+
+    Δ = ½ t²(ν; (1 + level)/2) σ²,   σ² = 2 ĉ / ν,   ν = ndata − nvarys,
+
+the likelihood-ratio test with the noise variance estimated from the residual (as lmfit's
+conf_interval and D2D's "chi2" mode do); t² = F(1, ν) makes it exact for a linear model with
+Gaussian noise (where it equals the Wald interval) and tends to χ²(1) for large ν. Unlike the
+Wald interval θ ± t·stderr it follows the cost where it is not quadratic: asymmetric, or open
+towards a bound when the data cannot exclude it.
+
+Steps adapt so that each raises the cost by about Δ/4 (doubled when it rose by less than Δ/10,
+halved above Δ/2); once a step passes the threshold, the crossing is found by regula falsi on
+√(rise), exact for a quadratic profile, with up to REFINE more solves.
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from greyfit.schemas.fit import ProfileInterval
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.inference.statistics import student_t_quantile
+
+MAX_STEPS = 20        # per side
+REFINE = 4            # solves to locate a crossing
+TOLERANCE = 0.02      # of Δ, at the crossing
+MAX_FAILURES = 3      # unconverged re-optimisations on one side before giving up there
+
+
+@dataclass
+class ProfileContext:
+    problem: object       # LeastSquaresProblem
+    solver: object        # LeastSquaresSolver or CurvatureFirstSolver
+    w_hat: np.ndarray     # the fit's NLP solution (scaled)
+    cost_hat: float       # the NLP objective there
+    scale: np.ndarray     # physical = scaled * scale, per θ entry
+    ndata: int
+    nvarys: int
+    level: float
+    max_cpu_time: float
+    notes: list[str] = field(default_factory=list)
+
+
+def check_profile_names(names: list[str], labels: list[str]) -> None:
+    for k, name in enumerate(names):
+        if name not in labels:
+            raise DataError(f"'{name}' is not a free parameter (free: {labels}); profile a free parameter "
+                            "(per-experiment copies as name[experiment])", f"options.profile[{k}]")
+
+
+def profile_parameters(ctx: ProfileContext, names: list[str], labels: list[str],
+                       stderr: dict[str, float | None]) -> dict[str, ProfileInterval]:
+    dof = ctx.ndata - ctx.nvarys
+    out = {}
+    start = time.process_time()
+    for name in names:
+        i = labels.index(name)
+        if dof <= 0 or not math.isfinite(ctx.cost_hat):
+            out[name] = ProfileInterval(lower=None, upper=None, values=[], costs=[], threshold=None,
+                                        note="no degree of freedom or no finite cost: no profile")
+            continue
+        t = student_t_quantile(0.5 + ctx.level / 2, dof)
+        delta = 0.5 * t * t * (2.0 * ctx.cost_hat / dof)
+        se = stderr.get(name)
+        h0 = se / ctx.scale[i] if se is not None and math.isfinite(se) and se > 0 else \
+            0.1 * max(abs(ctx.w_hat[i]), 1.0)
+        points = [(float(ctx.w_hat[i]), ctx.cost_hat)]
+        ends, notes = [], []
+        for direction in (-1.0, 1.0):
+            end, pts, note = _walk(ctx, i, direction, h0, delta, start)
+            ends.append(end)
+            points += pts
+            if note:
+                notes.append(note)
+        points.sort()
+        notes += ctx.notes
+        ctx.notes = []
+        lower, upper = ends
+        out[name] = ProfileInterval(
+            lower=None if lower is None else lower * ctx.scale[i],
+            upper=None if upper is None else upper * ctx.scale[i],
+            values=[v * ctx.scale[i] for v, _ in points], costs=[c for _, c in points],
+            threshold=ctx.cost_hat + delta, note="; ".join(notes) or None)
+    return out
+
+
+def _solve_fixed(ctx: ProfileContext, i: int, v: float, w_start: np.ndarray):
+    lbw, ubw = ctx.problem.lbw.copy(), ctx.problem.ubw.copy()
+    lbw[i] = ubw[i] = v
+    w0 = w_start.copy()
+    w0[i] = v
+    return ctx.solver.solve(w0, lbw=lbw, ubw=ubw)
+
+
+def _walk(ctx: ProfileContext, i: int, direction: float, h0: float, delta: float, start: float):
+    """(crossing in scaled units or None, [(value, cost)], note) on one side of the estimate."""
+    bound = ctx.problem.lbw[i] if direction < 0 else ctx.problem.ubw[i]
+    side = "lower" if direction < 0 else "upper"
+    v_prev, rise_prev, w_prev = float(ctx.w_hat[i]), 0.0, ctx.w_hat
+    h, pts, failures = h0, [], 0
+    for _ in range(MAX_STEPS):
+        if time.process_time() - start > ctx.max_cpu_time:
+            return None, pts, f"{side} end not reached within max_cpu_time"
+        if v_prev == bound:
+            return None, pts, f"the cost stays below the threshold up to the {side} bound"
+        v = v_prev + direction * h
+        if np.isfinite(bound) and (v - bound) * direction > 0:
+            v = float(bound)
+        out = _solve_fixed(ctx, i, v, w_prev)
+        if not (out.success and np.isfinite(out.cost)):
+            # an unconverged point's cost is no profile value (multiple shooting: gaps still open)
+            failures += 1
+            if failures >= MAX_FAILURES:
+                return None, pts, (f"{side} end: the re-optimisation did not converge at "
+                                   f"{v * ctx.scale[i]:.6g} ({out.status})")
+            h /= 4
+            continue
+        rise = out.cost - ctx.cost_hat
+        pts.append((v, float(out.cost)))
+        if rise < -TOLERANCE * delta:
+            ctx.notes.append(f"the profile found a lower cost ({out.cost:.6g} < {ctx.cost_hat:.6g}) at "
+                             f"{v * ctx.scale[i]:.6g}: the fit is not at the optimum")
+        if rise >= delta:
+            crossing, more = _refine(ctx, i, (v_prev, rise_prev, w_prev), (v, rise, out.w), delta)
+            return crossing, pts + more, None
+        gain = rise - rise_prev
+        h = h * 2 if gain < delta / 10 else h / 2 if gain > delta / 2 else h
+        v_prev, rise_prev, w_prev = v, max(rise, 0.0), out.w
+    return None, pts, f"{side} end not reached in {MAX_STEPS} steps"
+
+
+def _refine(ctx: ProfileContext, i: int, inside, outside, delta: float):
+    """Regula falsi on s(v) = √rise − √Δ between a point inside and one outside the interval."""
+    (v_in, r_in, w_in), (v_out, r_out, _) = inside, outside
+    target = math.sqrt(delta)
+    pts = []
+    v = v_out
+    for _ in range(REFINE):
+        s_in, s_out = math.sqrt(max(r_in, 0.0)), math.sqrt(r_out)
+        v = v_in + (target - s_in) / (s_out - s_in) * (v_out - v_in) if s_out > s_in else 0.5 * (v_in + v_out)
+        out = _solve_fixed(ctx, i, v, w_in)
+        if not (out.success and np.isfinite(out.cost)):
+            break
+        rise = out.cost - ctx.cost_hat
+        pts.append((v, float(out.cost)))
+        if abs(rise - delta) <= TOLERANCE * delta:
+            break
+        if rise < delta:
+            v_in, r_in, w_in = v, rise, out.w
+        else:
+            v_out, r_out = v, rise
+    return v, pts
+
+
+def run_profiles(problem, options, outcome, layout, ndata: int, nvarys: int, cov) -> dict | None:
+    """`result.profile` for `options.profile` (None when empty); called by `fit_model`."""
+    if not options.profile:
+        return None
+    from greyfit.solvers.methods.shooting_curvature import make_warm_solver
+    ctx = ProfileContext(problem, make_warm_solver(problem, options), np.asarray(outcome.w, dtype=float),
+                         float(outcome.cost), layout.scale, ndata, nvarys, options.confidence_level,
+                         options.max_cpu_time)
+    stderr = {k: cov.classical_stderr.get(k, cov.stderr.get(k)) for k in layout.labels}
+    return profile_parameters(ctx, list(options.profile), list(layout.labels), stderr)

@@ -1,0 +1,1 @@
+"""Fit methods: equation error, output error (single and multiple shooting), online estimators."""

@@ -1,0 +1,1 @@
+"""Online estimators: recursive least squares with forgetting, MRAS."""

@@ -1,0 +1,196 @@
+"""Model-reference adaptive estimator (seed 003, 7.3): the plant is the reference model.
+
+For a continuous-time model whose right-hand side is affine in the estimated vector η,
+dx/dt = f₀(x, u) + G(x, u) η, the adjustable (parallel) model
+
+    dx̂/dt = f₀(x̂, u) + G(x̂, u) η̂,        e = x − x̂,
+
+is driven by the measured input, and η̂ follows the PI adaptation law of eqs. (7-29)/(7-30),
+
+    η̂ = η̂(0) + Kp·s(t) + Ki·∫ s dτ,      s = Gᵀ(x̂, u) e,
+
+which satisfies Popov's integral inequality (the proof in seed 003, example 7-3) when the error
+system's linear block is strictly positive real — true for a stable first-order plant (compensator
+P = 1); for higher orders seed 003 inserts P from the Lyapunov equation, which needs the unknown A:
+only P = I is implemented, so stability is guaranteed when A + Aᵀ < 0. To make the gains
+dimensionless the law runs on η scaled by its guess, e by the RMS of each state and every
+regressor column by its RMS. The adjustable model is integrated by Euler with `substeps` per
+sample, inputs linear between samples. There is no covariance: no band is returned.
+
+Discrete-time models (x[k+1] = f₀ + G η) use the sampled law with the a-posteriori error (Landau's
+parallel MRAS), `discrete_model_reference_adaptive` below.
+"""
+from __future__ import annotations
+
+import casadi as ca
+import numpy as np
+
+from greyfit.schemas.online import MrasOptions
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.model.discrete import delay_sources
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.methods.online.recursive import OnlineRun
+from greyfit.solvers.model.reparametrize import LinearForm
+
+
+def model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, equations: list[int], eta0: np.ndarray,
+                             opts: MrasOptions) -> OnlineRun:
+    """Run the MRAS over the experiment; estimates at the equation-error rows (scaled units)."""
+    cm, layout = form.cm, form.layout
+    if cm.model.discrete is not None:
+        return discrete_model_reference_adaptive(form, d, ed, equations, eta0, opts)
+    x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
+    eta = ca.SX.sym("eta", layout.size)
+    f = cm.rhs(x, u, ca.DM(layout.offset) + ca.DM(layout.matrix[0]) @ eta, t)[equations]
+    g = ca.jacobian(f, eta)                                    # G(x, u) in scaled η
+    f0 = ca.substitute(f, eta, ca.DM.zeros(layout.size))
+    fun = ca.Function("mras_parts", [x, u, t], [f0, g])
+
+    xs = ed.x                                                  # measured states (nx, N)
+    rows = ed.rows
+    first, last = int(rows[0]), int(rows[-1])
+    x_scale = np.array([np.sqrt(np.nanmean(xs[i, rows] ** 2)) or 1.0 for i in equations])
+    _, g_all = fun.map(rows.size)(xs[:, rows], d.u[:, rows], d.t[rows][None, :])
+    g_all = np.array(g_all).reshape(len(equations), rows.size, layout.size)
+    g_scale = np.sqrt(np.mean(g_all ** 2, axis=(0, 1)))
+    g_scale[g_scale == 0] = 1.0
+
+    xhat = xs[:, first].copy()
+    est = np.array(eta0, dtype=float)
+    integral = np.zeros(layout.size)
+    estimates = np.empty((rows.size, layout.size))
+    errors = np.empty((rows.size, len(equations)))
+    row_of = {int(r): k for k, r in enumerate(rows)}
+    for k in range(first, last + 1):
+        if k in row_of:
+            estimates[row_of[k]] = est
+            errors[row_of[k]] = xs[equations, k] - xhat[equations]
+        if k == last:
+            break
+        h = (d.t[k + 1] - d.t[k]) / opts.substeps
+        for j in range(opts.substeps):
+            frac = j / opts.substeps
+            uu = d.u[:, k] + frac * (d.u[:, k + 1] - d.u[:, k])
+            xm = xs[:, k] + frac * (xs[:, k + 1] - xs[:, k])   # measured states between samples
+            xhat_full = xm.copy()
+            xhat_full[equations] = xhat[equations]
+            f0v, gv = fun(xhat_full, uu, d.t[k] + frac * h * opts.substeps)
+            f0v, gv = np.array(f0v).ravel(), np.array(gv)
+            e = (xm[equations] - xhat[equations]) / x_scale
+            s = (gv / g_scale).T @ e
+            integral += h * s
+            est = eta0 + opts.kp * s + opts.ki * integral
+            xhat[equations] = xhat[equations] + h * (f0v + gv @ est)
+    return OnlineRun(estimates, None, errors, f"mras (Popov PI law, kp = {opts.kp:g}, ki = {opts.ki:g})",
+                     rows.size, 1.0, measured=xs[equations][:, rows], residual_weighted=False)
+
+
+class _DiscreteParts:
+    """f = f₀(x, u) + G(x, u) η and the full f, as numpy when f is bilinear in (x, u) and η
+    (every linear-coefficient form is), else through CasADi calls (slower per sample)."""
+
+    def __init__(self, form: LinearForm, equations: list[int]):
+        cm, layout = form.cm, form.layout
+        x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
+        eta = ca.SX.sym("eta", layout.size)
+        z = ca.vertcat(x, u)
+        f = cm.rhs(x, u, ca.DM(layout.offset) + ca.DM(layout.matrix[0]) @ eta, t)
+        self.eq = equations
+        g = ca.jacobian(f[equations], eta)
+        self.casadi_parts = ca.Function("mras_parts", [x, u, t], [ca.substitute(f[equations], eta, 0 * eta), g])
+        self.casadi_full = ca.Function("f_all", [x, u, t, eta], [f])
+        jz, je = ca.jacobian(f, z), ca.jacobian(f, eta)
+        self.bilinear = not (ca.depends_on(ca.vertcat(ca.vec(jz), ca.vec(je)), t)
+                             or ca.depends_on(jz, z) or ca.depends_on(je, eta))
+        if self.bilinear:
+            zero_z, zero_e = ca.DM.zeros(z.shape), ca.DM.zeros(eta.shape)
+            ev = lambda expr: np.array(ca.evalf(ca.substitute(ca.substitute(expr, z, zero_z), eta, zero_e)))
+            self.k0 = ev(f).ravel()
+            self.jz0, self.je0 = ev(jz), ev(je)
+            # ∂²f/∂z∂η: column j of ∂f/∂η is affine in z
+            self.t = np.stack([ev(ca.jacobian(je[:, j], z)) for j in range(layout.size)], axis=2)   # (nx, nz, nη)
+
+    def parts(self, x, u, t):
+        if not self.bilinear:
+            f0, g = self.casadi_parts(x, u, t)
+            return np.array(f0).ravel(), np.array(g)
+        z = np.concatenate([x, u])
+        f0 = self.k0[self.eq] + self.jz0[self.eq] @ z
+        return f0, self.je0[self.eq] + np.einsum("ijk,j->ik", self.t[self.eq], z)
+
+    def full(self, x, u, t, eta):
+        if not self.bilinear:
+            return np.array(self.casadi_full(x, u, t, eta)).ravel()
+        z = np.concatenate([x, u])
+        return self.k0 + self.jz0 @ z + (self.je0 + np.einsum("ijk,j->ik", self.t, z)) @ eta
+
+
+def _following(cm, equations: list[int]) -> list[int]:
+    """Delay states of estimated states (y_1 = y[k-1]): the parallel model shifts its own output."""
+    sources = delay_sources(cm)
+    out = []
+    for j in range(cm.nx):
+        seen, i = set(), j
+        while i in sources and sources[i][0] == "state" and i not in seen and i not in equations:
+            seen.add(i)
+            i = sources[i][1]
+        if j not in equations and i in equations:
+            out.append(j)
+    return out
+
+
+def discrete_model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, equations: list[int],
+                                      eta0: np.ndarray, opts: MrasOptions) -> OnlineRun:
+    """Seed 003's MRAS in discrete time: Landau's parallel model with a-posteriori errors.
+
+    With x[k+1] = f₀ + G η, the adjustable model x̂ runs on its own states (and on its own delayed
+    outputs); the PI law of (7-29/30), sampled, is
+
+        η̂_I[k+1] = η̂_I[k] + F_I Gᵀ ε[k+1],   η̂[k+1] = η̂_I[k+1] + F_P Gᵀ ε[k+1],
+        ε[k+1] = x[k+1] − f₀ − G η̂[k+1]          (the a-posteriori error, G = G(x̂[k], u[k])),
+
+    solved in closed form, ε = (I + G (F_I + F_P) Gᵀ)⁻¹ (x[k+1] − f₀ − G η̂_I[k]). F_I = ki·Ts,
+    F_P = kp. Using ε a posteriori makes the error system's linear block z(zI − A)⁻¹ (a first-order
+    plant: z/(z − a)), which is strictly positive real for |a| < 1: Popov's inequality then holds for
+    any positive gains (Landau's discrete-time hyperstability design), where the a-priori error of a
+    direct transcription would need small gains. Signals are normalised as in continuous time.
+    """
+    cm, layout = form.cm, form.layout
+    model = _DiscreteParts(form, equations)
+    follow = _following(cm, equations)
+    xs, nxt, rows = ed.x, ed.dx, ed.rows
+    first, last = int(rows[0]), int(rows[-1])
+    if not np.all(np.diff(rows) == 1):
+        raise DataError("the discrete-time MRAS runs over consecutive samples; this record has gaps",
+                        "experiments[0].outputs")
+    x_scale = np.array([np.sqrt(np.nanmean(xs[i, rows] ** 2)) or 1.0 for i in equations])
+    _, g_all = model.casadi_parts.map(rows.size)(xs[:, rows], d.u[:, rows], d.t[rows][None, :])
+    psi_all = np.array(g_all).reshape(len(equations), rows.size, layout.size) / x_scale[:, None, None]
+    psi_rms = np.sqrt(np.mean(psi_all ** 2, axis=(0, 1)))
+    psi_rms[psi_rms == 0] = 1.0
+    ts = cm.model.discrete.sample_time
+    f_i, f_p = opts.ki * ts, opts.kp
+
+    xhat = xs[:, first].copy()
+    eta_i = np.array(eta0, dtype=float)
+    est = eta_i.copy()
+    estimates = np.empty((rows.size, layout.size))
+    errors = np.empty((rows.size, len(equations)))
+    for r, k in enumerate(range(first, last + 1)):
+        estimates[r] = est
+        errors[r] = xs[equations, k] - xhat[equations]
+        f0v, gv = model.parts(xhat, d.u[:, k], d.t[k])
+        psi = gv / x_scale[:, None] / psi_rms                      # normalised regressor Ψ̄ (neq × nη)
+        prior = (nxt[equations, k] - f0v - gv @ eta_i) / x_scale
+        gram = (f_i + f_p) * psi @ psi.T
+        eps = prior / (1 + gram[0, 0]) if gram.shape == (1, 1) else np.linalg.solve(np.eye(len(gram)) + gram, prior)
+        step = (psi.T @ eps) / psi_rms                              # F = f·diag(1/ψ_rms²) on Ψ = G/x_scale
+        eta_i = eta_i + f_i * step
+        est = eta_i + f_p * step
+        full = model.full(xhat, d.u[:, k], d.t[k], est)
+        new = nxt[:, k].copy()
+        new[equations] = nxt[equations, k] - eps * x_scale         # x̂[k+1] = x[k+1] − ε[k+1]
+        new[follow] = full[follow]
+        xhat = new
+    return OnlineRun(estimates, None, errors, f"mras (discrete time, Landau a-posteriori PI law, kp = {opts.kp:g}, "
+                     f"ki = {opts.ki:g})", rows.size, 1.0, measured=xs[equations][:, rows], residual_weighted=False)

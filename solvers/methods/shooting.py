@@ -1,0 +1,422 @@
+"""Output-error problems: single shooting (mapaccum) and multiple shooting (map + gap constraints)."""
+from __future__ import annotations
+
+from collections import OrderedDict
+
+import casadi as ca
+import numpy as np
+
+from greyfit.schemas.fit import FitOptions
+from greyfit.solvers.data.experiments import ExperimentData, fill_missing
+from greyfit.solvers.dynamics.integration import make_step
+from greyfit.solvers.methods import shooting_structured
+from greyfit.solvers.dynamics.columns import Columns
+from greyfit.solvers.dynamics.compiled import compiled
+from greyfit.solvers.dynamics.function_cache import FunctionCache
+from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.methods.node_initialisation import node_states
+from greyfit.solvers.nlp.problem import (
+    LeastSquaresProblem, output_weights, parameter_constraints, state_scales, theta_bounds,
+)
+from greyfit.solvers.methods.shooting_curvature import GapCurvature
+
+
+# "serial": measured faster than "thread" on 2 cores for per-sample intervals (thread start-up
+# outweighs the tiny per-interval work), and it leaves the other core to a second worker.
+MAP_MODE = "serial"
+
+
+class OutputErrorModel:
+    """Shared pieces of both shooting methods: integrator, weights, masks, x0 handling."""
+
+    def __init__(self, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+                 options: FitOptions):
+        self.cm, self.data, self.layout, self.options = cm, data, layout, options
+        self.step = make_step(cm, options)
+        self.weights = output_weights(cm, data, options)
+        self.xscale = state_scales(cm, data)
+        self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
+        self._reused = isinstance(cm, CompiledModel)   # kept across requests (not a stand-in)
+        self._maps = cm.derive(("maps",), FunctionCache) if self._reused else FunctionCache()
+        self._simulated: "OrderedDict[bytes, tuple]" = OrderedDict()
+        self._sensitivities: tuple[ca.Function, ca.Function] | None = None
+        self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
+        self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
+        self.structured_data: np.ndarray | None = None   # the structured NLP's data vector, built once
+
+    def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
+        """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once (compiled C
+        where the step is an SX expression and a compiler is present)."""
+        if self._sensitivities is None:
+            o = self.options
+            step_sens, out_sens = self.cm.derive(
+                ("sensitivities", o.integrator, o.substeps, o.input_interpolation),
+                lambda: _sensitivity_functions(self.cm, self.step, o))
+            samples = sum(d.n for d in self.data)
+            if step_sens.is_a("SXFunction"):   # CVODES cannot be generated as C
+                step_sens, _ = compiled(step_sens, 2 * samples)
+            out_sens, _ = compiled(out_sens, 2 * samples)
+            self._sensitivities = (step_sens, out_sens)
+        return self._sensitivities
+
+    def simulator(self, n: int) -> ca.Function:
+        o = self.options
+        return self._maps.get(("sim", o.integrator, o.substeps, o.input_interpolation, n),
+                              lambda: self.step.mapaccum("sim", n))
+
+    def output_map(self, n: int) -> ca.Function:
+        return self._maps.get(("out", n), lambda: self.cm.output.map(n))
+
+    def numeric_functions(self) -> tuple[Columns, Columns]:
+        """(step, output) evaluated on numpy columns: compiled C without copies where available."""
+        o = self.options
+        samples = sum(d.n for d in self.data)
+        return self._maps.get(("numeric", o.integrator, o.substeps, o.input_interpolation),
+                              lambda: (Columns(self.step, 4 * samples, self._reused),
+                                       Columns(self.cm.output, 4 * samples, self._reused)))
+
+    def step_inputs(self, d: ExperimentData, i0: int, i1: int):
+        """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked)."""
+        return d.u[:, i0:i1], d.u[:, i0 + 1:i1 + 1], d.t[i0:i1][None, :], np.diff(d.t[i0:i1 + 1])[None, :]
+
+    def trajectory(self, e: int, x0, p):
+        """States at every sample of experiment e from x0 (nx × N)."""
+        d = self.data[e]
+        u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
+        xs = self.simulator(d.n - 1)(x0, u0, u1, ca.repmat(p, 1, d.n - 1), t0, dt)
+        return ca.horzcat(x0, xs)
+
+    def numeric_states(self, e: int, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """`trajectory` for numbers (nx × N); raises RuntimeError where the integrator fails."""
+        d = self.data[e]
+        x0 = np.asarray(x0, dtype=float).reshape(-1, 1)
+        if d.n < 2:
+            return x0
+        u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
+        xs, = self.numeric_functions()[0](x0, u0, u1, np.asarray(p, dtype=float), t0, dt, n=d.n - 1,
+                                          accumulate=True)
+        return np.hstack([x0, xs])
+
+    def numeric_outputs(self, e: int, states: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """`outputs_of` for numbers (ny × N)."""
+        d = self.data[e]
+        return self.numeric_functions()[1](states, d.u, np.asarray(p, dtype=float), d.t[None, :], n=d.n)[0]
+
+    def numeric_trajectory(self, e: int, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
+        """`trajectory` for numbers; NaN (and the reason kept) when the integrator fails.
+
+        CVODES raises when it cannot take a step (a stiff or diverging model); a fit that reaches
+        such a point must end as a result that says so, not as an exception.
+        """
+        try:
+            return self.numeric_states(e, x0, p)
+        except RuntimeError as exc:
+            self.simulation_failures.append(
+                f"the simulation of experiment '{self.data[e].name}' failed ({_first_line(exc)})")
+            return np.full((self.cm.nx, self.data[e].n), np.nan)
+
+    def outputs_of(self, e: int, states, p):
+        """Outputs of experiment e as a graph (symbolic states or θ); `numeric_outputs` for numbers."""
+        d = self.data[e]
+        return self.output_map(d.n)(states, d.u, ca.repmat(p, 1, d.n), d.t[None, :])
+
+    def residual_of(self, e: int, y_model):
+        """Weighted residual at the measured (non-null) samples, column-major order."""
+        d = self.data[e]
+        mask = d.mask.ravel(order="F")
+        wts = np.tile(self.weights, d.n)
+        if mask.all():   # no gather node: large index lists are slow to differentiate in MX
+            return wts * (ca.vec(y_model) - d.y.ravel(order="F"))
+        idx = np.flatnonzero(mask)
+        return wts[idx] * (ca.vec(y_model)[idx.tolist()] - d.y.ravel(order="F")[idx])
+
+    def x0_guess(self, e: int) -> np.ndarray:
+        """Known initial states, else the first measured sample of a directly measured state, else 0."""
+        d, x0 = self.data[e], np.zeros(self.cm.nx)
+        for out, state in self.cm.direct_outputs.items():
+            x0[self.cm.states.index(state)] = fill_missing(d.y[self.cm.outputs.index(out)], d.t)[0]
+        for i, v in d.x0_known.items():
+            x0[i] = v
+        return x0
+
+    def assemble_x0(self, e: int, free_scaled):
+        """Initial state vector from known values and the (scaled) free entries."""
+        d = self.data[e]
+        parts, k = [], 0
+        for i in range(self.cm.nx):
+            if i in d.x0_known:
+                parts.append(d.x0_known[i])
+            else:
+                parts.append(free_scaled[k] * self.xscale[i])
+                k += 1
+        return ca.vertcat(*parts)
+
+    def x0_labels(self) -> list[str]:
+        return [f"x0[{d.name}].{self.cm.states[i]}" for d, free in zip(self.data, self.free_x0)
+                for i in free]
+
+    def single_shooting_residual(self) -> tuple[ca.MX, ca.MX, ca.MX]:
+        """(θ, free x0 (scaled), residual) with every experiment simulated from its initial state."""
+        theta = ca.MX.sym("theta", self.layout.size)
+        x0_free = ca.MX.sym("x0", sum(len(f) for f in self.free_x0))
+        res, k = [], 0
+        for e in range(len(self.data)):
+            n_free = len(self.free_x0[e])
+            x0 = self.assemble_x0(e, x0_free[k:k + n_free])
+            k += n_free
+            p = self.layout.full(e, theta)
+            res.append(self.residual_of(e, self.outputs_of(e, self.trajectory(e, x0, p), p)))
+        return theta, x0_free, ca.vertcat(*res)
+
+    def simulate(self, theta_phys: np.ndarray, x0s: list[np.ndarray]) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Numeric (states, outputs) per experiment for physical θ and full initial states.
+
+        The last few are remembered: a fit simulates the initial guess for its pre-fit check, its
+        nodes and its state-size check, and the solution for its residuals and diagnostics. A
+        remembered failure is reported again, as the simulation would.
+        """
+        theta_phys = np.asarray(theta_phys, dtype=float)
+        x0s = [np.asarray(x0, dtype=float) for x0 in x0s]
+        key = theta_phys.tobytes() + b"".join(x0.tobytes() for x0 in x0s)
+        if key in self._simulated:
+            out, failures = self._simulated[key]
+            self.simulation_failures.extend(failures)
+            return [(xs.copy(), ys.copy()) for xs, ys in out]
+        before = len(self.simulation_failures)
+        out = []
+        theta_s = theta_phys / self.layout.scale
+        for e in range(len(self.data)):
+            p = np.asarray(self.layout.full(e, theta_s), dtype=float)
+            xs = self.numeric_trajectory(e, x0s[e], p)
+            ys = self.numeric_outputs(e, xs, p)
+            out.append((xs, ys))
+        self._simulated[key] = ([(xs.copy(), ys.copy()) for xs, ys in out], self.simulation_failures[before:])
+        while len(self._simulated) > 4:
+            self._simulated.popitem(last=False)
+        return out
+
+
+def _sensitivity_functions(cm: CompiledModel, step: ca.Function, options: FitOptions):
+    sym = ca.MX.sym if options.integrator == "cvodes" and cm.model.discrete is None else ca.SX.sym
+    x, u0, u1 = sym("x", cm.nx), sym("u0", cm.nu), sym("u1", cm.nu)
+    p, t0, dt = sym("p", cm.np), sym("t0"), sym("dt")
+    xn = step(x, u0, u1, p, t0, dt)
+    step_sens = ca.Function("greyfit_step_sens", [x, u0, u1, p, t0, dt],
+                            [xn, ca.jacobian(xn, x), ca.jacobian(xn, p)])
+    xs, us = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu)
+    ps, ts = ca.SX.sym("p", cm.np), ca.SX.sym("t")
+    y = cm.output(xs, us, ps, ts)
+    out_sens = ca.Function("greyfit_out_sens", [xs, us, ps, ts],
+                           [y, ca.jacobian(y, xs), ca.jacobian(y, ps)])
+    return step_sens, out_sens
+
+
+def _first_line(exc: Exception) -> str:
+    text = str(exc).strip().splitlines()
+    return text[0][:200] if text else type(exc).__name__
+
+
+def _x0_reader(oem: OutputErrorModel, offset: int, stride_of):
+    def read(w: np.ndarray) -> list[dict[str, float]]:
+        result = []
+        for e, d in enumerate(oem.data):
+            start = offset + stride_of(e)
+            x0 = {}
+            k = 0
+            for i, s in enumerate(oem.cm.states):
+                if i in d.x0_known:
+                    x0[s] = d.x0_known[i]
+                else:
+                    x0[s] = float(w[start + k] * oem.xscale[i])
+                    k += 1
+            result.append(x0)
+        return result
+    return read
+
+
+def build_single_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
+    nfree = sum(len(f) for f in oem.free_x0)
+    lo, hi = theta_bounds(oem.layout)
+    offsets = np.cumsum([0] + [len(f) for f in oem.free_x0])
+
+    def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
+        x0 = [oem.x0_guess(e)[f] / oem.xscale[f] for e, f in enumerate(oem.free_x0)]
+        return np.concatenate([theta_phys / oem.layout.scale, *x0]) if nfree else theta_phys / oem.layout.scale
+
+    common = dict(lbw=np.concatenate([lo, -np.inf * np.ones(nfree)]), ubw=np.concatenate([hi, np.inf * np.ones(nfree)]),
+                  n_theta=oem.layout.size, initial_guess=initial_guess,
+                  x0_of=_x0_reader(oem, oem.layout.size, lambda e: int(offsets[e])),
+                  extra_labels=oem.x0_labels())
+    if shooting_structured.supports(oem, single=True):
+        n_par = shooting_structured.constraint_count(oem)
+        problem = LeastSquaresProblem(
+            w=ca.MX.sym("w", oem.layout.size + nfree), residual_builder=lambda: None,
+            g=ca.MX.sym("g", n_par), lbg=shooting_structured.constraint_lower(oem),
+            ubg=shooting_structured.constraint_upper(oem), **common)
+        return shooting_structured.attach_solver(oem, problem, single=True)
+    theta, x0_free, r = oem.single_shooting_residual()
+    g, lbg, ubg = parameter_constraints(oem.cm, oem.layout, theta)
+    return LeastSquaresProblem(
+        w=ca.vertcat(theta, x0_free), residual_builder=lambda: r, g=ca.vertcat(*g),
+        lbg=np.concatenate(lbg) if lbg else np.zeros(0), ubg=np.concatenate(ubg) if ubg else np.zeros(0),
+        **common)
+
+
+def _node_indices(n: int, interval: int) -> np.ndarray:
+    idx = list(range(0, n - 1, interval)) + [n - 1]
+    return np.array(idx)
+
+
+def _node_guess(oem: OutputErrorModel, node_sets: list[np.ndarray]):
+    """w0 of multiple shooting: nodes from the data where a state is measured, else from a
+    simulation at this start (solvers/methods/node_initialisation.py)."""
+    def initial_guess(theta_phys: np.ndarray) -> np.ndarray:
+        parts = [theta_phys / oem.layout.scale]
+        for e, states in enumerate(node_states(oem, theta_phys)):
+            parts.append((states[:, node_sets[e]] / oem.xscale[:, None]).ravel(order="F"))
+        return np.concatenate(parts)
+    return initial_guess
+
+
+def _node_bounds(oem: OutputErrorModel, node_sets: list[np.ndarray]) -> tuple[list, list]:
+    """Node bounds (scaled): the known initial states are fixed, the rest free."""
+    lbw_x, ubw_x = [], []
+    for d, nodes in zip(oem.data, node_sets):
+        lo = np.full((oem.cm.nx, nodes.size), -np.inf)
+        hi = np.full((oem.cm.nx, nodes.size), np.inf)
+        for i, v in d.x0_known.items():
+            lo[i, 0] = hi[i, 0] = v / oem.xscale[i]
+        lbw_x.append(lo.ravel(order="F"))
+        ubw_x.append(hi.ravel(order="F"))
+    return lbw_x, ubw_x
+
+
+def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
+    """Nodes every `shooting_interval` samples; continuity gaps as equality constraints."""
+    cm, layout = oem.cm, oem.layout
+    node_sets = [_node_indices(d.n, oem.options.shooting_interval) for d in oem.data]
+    node_offsets = list(layout.size + np.cumsum([0] + [cm.nx * ns.size for ns in node_sets])[:-1])
+    lbw_x, ubw_x = _node_bounds(oem, node_sets)
+    lo, hi = theta_bounds(layout)
+
+    def x0_of(w: np.ndarray) -> list[dict[str, float]]:
+        return [{s: float(w[node_offsets[e] + i] * oem.xscale[i]) for i, s in enumerate(cm.states)}
+                for e in range(len(oem.data))]
+
+    n_gap = sum(cm.nx * (ns.size - 1) for ns in node_sets)
+    if shooting_structured.supports(oem):
+        n_par = shooting_structured.constraint_count(oem)
+        problem = LeastSquaresProblem(
+            w=ca.MX.sym("w", layout.size + sum(cm.nx * ns.size for ns in node_sets)),
+            residual_builder=lambda: None, g=ca.MX.sym("g", n_gap + n_par),
+            lbg=np.concatenate([np.zeros(n_gap), shooting_structured.constraint_lower(oem)]),
+            ubg=np.concatenate([np.zeros(n_gap), shooting_structured.constraint_upper(oem)]),
+            lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
+            n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of,
+            graph_builder=lambda: _multiple_shooting_graph(oem, node_sets, node_offsets, x0_of))
+        return shooting_structured.attach_solver(oem, problem)
+    return _multiple_shooting_graph(oem, node_sets, node_offsets, x0_of)
+
+
+def _multiple_shooting_graph(oem: OutputErrorModel, node_sets, node_offsets, x0_of) -> LeastSquaresProblem:
+    """Multiple shooting as one CasADi graph, with the gaps' curvature for the Hessian."""
+    cm, layout = oem.cm, oem.layout
+    lbw_x, ubw_x = _node_bounds(oem, node_sets)
+    lo, hi = theta_bounds(layout)
+    n_gap = sum(cm.nx * (ns.size - 1) for ns in node_sets)
+    theta = ca.MX.sym("theta", layout.size)
+    w_parts, res, gaps = [theta], [], []
+    curvature = GapCurvature(oem, MAP_MODE)
+    xs = ca.DM(oem.xscale)
+    for e, d in enumerate(oem.data):
+        nodes = node_sets[e]
+        xn_s = ca.MX.sym(f"X{e}", cm.nx, nodes.size)
+        w_parts.append(ca.vec(xn_s))
+        xn = ca.repmat(xs, 1, nodes.size) * xn_s
+        p = layout.full(e, theta)
+        if oem.options.shooting_interval == 1:
+            # a node at every sample: contiguous slices only, outputs on the nodes themselves
+            pred = oem.step.map(d.n - 1, MAP_MODE)(xn[:, :-1], d.u[:, :-1], d.u[:, 1:],
+                                                   ca.repmat(p, 1, d.n - 1), d.t[None, :-1],
+                                                   np.diff(d.t)[None, :])
+            gaps.append((pred - xn[:, 1:]) / xs)
+            curvature.add(e, node_offsets[e], np.arange(d.n - 1), 1, np.arange(d.n - 1))
+            res.append(oem.residual_of(e, oem.outputs_of(e, xn, p)))
+            continue
+        lengths = np.diff(nodes)
+        pieces = []
+        # intervals come in at most two lengths (the last may be shorter): one map per length
+        for length in sorted(set(lengths.tolist()), key=lambda L: np.flatnonzero(lengths == L)[0]):
+            ks = np.flatnonzero(lengths == length)
+            base = oem.simulator(int(length))
+            sim = base.map(int(ks.size), MAP_MODE)
+            cols = np.concatenate([np.arange(nodes[k], nodes[k] + length) for k in ks])
+            pred = sim(xn[:, ks.tolist()], d.u[:, cols], d.u[:, cols + 1], ca.repmat(p, 1, cols.size),
+                       d.t[cols][None, :], (d.t[cols + 1] - d.t[cols])[None, :])
+            pieces.append(pred)
+            ends = [(j + 1) * int(length) - 1 for j in range(ks.size)]
+            gaps.append((pred[:, ends] - xn[:, (ks + 1).tolist()]) / xs)
+            curvature.add(e, node_offsets[e], ks, int(length), cols)
+        states = ca.horzcat(xn[:, 0], *pieces)
+        res.append(oem.residual_of(e, oem.outputs_of(e, states, p)))
+
+    g_par, lbg_par, ubg_par = parameter_constraints(cm, layout, theta)
+    g = ca.vertcat(*[ca.vec(gp) for gp in gaps], *g_par)
+    w = ca.vertcat(*[ca.vec(v) for v in w_parts])
+    return LeastSquaresProblem(
+        w=w, residual_builder=lambda: ca.vertcat(*res), g=g,
+        lbg=np.concatenate([np.zeros(n_gap), *lbg_par]), ubg=np.concatenate([np.zeros(n_gap), *ubg_par]),
+        lbw=np.concatenate([lo, *lbw_x]), ubw=np.concatenate([hi, *ubw_x]),
+        n_theta=layout.size, initial_guess=_node_guess(oem, node_sets), x0_of=x0_of,
+        extra_labels=[], constraint_hessian=curvature.bind(w, theta, g_par))
+
+
+def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+    """(J, r, output index of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled).
+
+    Forward sensitivities S_{k+1} = A_k S_k + B_k are propagated in numpy from per-step Jacobians
+    evaluated by one mapped call: much cheaper than differentiating the whole MX graph, and the
+    same quantity (the constrained multiple-shooting problem reduced to θ and x0). Where the
+    structured formulation applies, the same recursion runs as one compiled pass instead.
+    """
+    if shooting_structured.supports(oem, single=True):
+        return shooting_structured.condensed_jacobian(oem, theta_s, x0s)
+    cm, layout = oem.cm, oem.layout
+    step_sens, out_sens = oem.sensitivity_functions()
+    n_theta = layout.size
+    n_free = sum(len(f) for f in oem.free_x0)
+    blocks, resids, groups, col = [], [], [], n_theta
+    for e, d in enumerate(oem.data):
+        p = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
+        x0 = np.array([x0s[e][s] for s in cm.states])
+        states = oem.numeric_trajectory(e, x0, p)
+        n = d.n
+        u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
+        try:
+            _, a, b = step_sens.map(n - 1)(states[:, :-1], u0, u1, np.repeat(p[:, None], n - 1, 1), t0, dt)
+        except RuntimeError as exc:   # the integrator's sensitivities failed: no Jacobian
+            oem.simulation_failures.append(f"sensitivities of experiment '{d.name}' failed ({_first_line(exc)})")
+            nan = np.full((cm.nx, (n - 1) * cm.nx), np.nan)
+            a, b = nan, np.full((cm.nx, (n - 1) * cm.np), np.nan)
+        a = np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2)
+        b = np.array(b).reshape(cm.nx, n - 1, cm.np).transpose(1, 0, 2) @ layout.matrix[e]
+        y, hx, hp = out_sens.map(n)(states, d.u, np.repeat(p[:, None], n, 1), d.t[None, :])
+        y = np.array(y)
+        hx = np.array(hx).reshape(cm.ny, n, cm.nx).transpose(1, 0, 2)
+        hp = np.array(hp).reshape(cm.ny, n, cm.np).transpose(1, 0, 2) @ layout.matrix[e]
+        sens = np.zeros((n, cm.nx, n_theta + n_free))
+        for k, i in enumerate(oem.free_x0[e]):
+            sens[0, i, col + k] = oem.xscale[i]
+        col += len(oem.free_x0[e])
+        for k in range(n - 1):
+            sens[k + 1] = a[k] @ sens[k]
+            sens[k + 1, :, :n_theta] += b[k]
+        jy = np.einsum("kox,kxc->koc", hx, sens)
+        jy[:, :, :n_theta] += hp
+        mask = d.mask.T                            # (n, ny), sample-major like the residual
+        wts = np.broadcast_to(oem.weights, (n, cm.ny))
+        blocks.append((jy * wts[:, :, None])[mask])
+        resids.append((wts * (y.T - d.y.T))[mask])
+        groups.append(np.broadcast_to(np.arange(cm.ny), (n, cm.ny))[mask])
+    return np.vstack(blocks), np.concatenate(resids), np.concatenate(groups)

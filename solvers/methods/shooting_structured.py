@@ -1,0 +1,576 @@
+"""Multiple shooting with a node at every sample, derivatives assembled from per-sample blocks.
+
+CasADi's automatic Jacobian of the mapped continuity constraints spends most of a fit in the MX
+virtual machine (≈150 ms per evaluation for 1000 samples of an 8-state model). Here every sample
+contributes small blocks — ∂gap/∂x_k, ∂gap/∂θ, and the Gauss-Newton pieces J_kᵀr_k, J_kᵀJ_k of its
+residual — computed by compiled, cached stage Functions; the sparse constraint Jacobian, the
+gradient JᵀR and the Gauss-Newton Hessian JᵀJ are placed from those blocks (only their structural
+nonzeros). Each NLP callback evaluates only what it returns (f and g at trial points need no
+derivatives), and the stage Functions run BLOCK samples per call. Cost and memory grow linearly in
+the record.
+
+Data (inputs, times, measurements, weights, state scales) and the parameter layout enter the NLP
+as parameters, so one Ipopt instance serves every fit of the same model structure and record
+lengths: a worker builds it once and reuses it (`_SOLVERS`).
+"""
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import casadi as ca
+import numpy as np
+
+from greyfit.solvers.dynamics.columns import evaluate
+from greyfit.solvers.dynamics.compiled import compiled, loaded
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
+
+EXPECTED_ITERATIONS = 20
+SOLVER_CACHE_SIZE = 16
+_SOLVERS: "OrderedDict[tuple, tuple]" = OrderedDict()
+
+
+def supports(oem, single: bool = False) -> bool:
+    """Structured path: single shooting, or multiple shooting with a node at every sample; the
+    Gauss-Newton Hessian; an SX step (RK4 or discrete).
+
+    `GREYFIT_STRUCTURED_SHOOTING=0` forces the generic graph (for benchmarks and diagnosis).
+    """
+    opts = oem.options
+    return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0"
+            and (single or opts.shooting_interval == 1) and opts.hessian == "gauss_newton"
+            and (opts.integrator == "rk4" or oem.cm.model.discrete is not None)
+            and all(d.n >= 2 for d in oem.data))
+
+
+STAGES_MULTIPLE = ("step", "gap", "out", "gn")
+STAGES_SINGLE = ("step_acc", "out", "sens_acc", "sgn")
+STAGES_CONDENSED = ("out", "sens_acc", "jrow")
+# samples per call of a compiled stage Function: CasADi's map costs ~0.2 µs per call, more than
+# the whole work of a small model's sample (0.5 s of a 40 000-sample fit of a 2-state model)
+BLOCK = 32
+
+
+class _Stage:
+    """A per-sample Function evaluated BLOCK samples per call (the record padded to whole blocks
+    by repeating its last sample, the padding's outputs dropped)."""
+
+    def __init__(self, single: ca.Function, block: ca.Function):
+        self.single, self.block = single, block
+
+    @staticmethod
+    def _padded(args, count: int, widths: list[int]) -> tuple[list, int]:
+        blocks = -(-count // BLOCK)
+        pad = blocks * BLOCK - count
+        if pad:   # a per-sample input has count·width columns, a shared one its width only
+            args = [ca.horzcat(a, ca.repmat(a[:, -w:], 1, pad)) if a.size2() == count * w else a
+                    for a, w in zip(args, widths)]
+        return args, blocks
+
+    def map(self, count: int, *args) -> list[ca.MX]:
+        f = self.single
+        args, blocks = self._padded(args, count, [f.size2_in(i) for i in range(f.n_in())])
+        outs = self.block.map(blocks, "serial")(*args)
+        outs = outs if isinstance(outs, (list, tuple)) else [outs]
+        return [o[:, :count * f.size2_out(j)] if o.size2() != count * f.size2_out(j) else o
+                for j, o in enumerate(outs)]
+
+    def accum(self, count: int, x0, *args) -> ca.MX:
+        """x_1 … x_count of x_k+1 = f(x_k, args_k) (`mapaccum`)."""
+        f = self.single
+        args, blocks = self._padded(args, count, [f.size2_in(i) for i in range(1, f.n_in())])
+        states = self.block.mapaccum("sim", blocks, [0], [0])(x0, *args)[1]
+        return states[:, :count] if states.size2() != count else states
+
+
+def _blocks(fns: dict[str, ca.Function]) -> dict[str, ca.Function]:
+    """BLOCK samples per call: `name` maps, `name_acc` accumulates a step (final state, all states)."""
+    out = {}
+    for name, fn in fns.items():
+        ins = [ca.MX.sym(fn.name_in(i), fn.size1_in(i), BLOCK * fn.size2_in(i)) for i in range(fn.n_in())]
+        res = fn.map(BLOCK, "serial")(*ins)
+        res = list(res) if isinstance(res, (list, tuple)) else [res]
+        out[name] = ca.Function(f"{fn.name()}_map{BLOCK}", ins, res)
+        if name in ("step", "sens"):
+            ins[0] = ca.MX.sym(fn.name_in(0), fn.sparsity_in(0))
+            states = fn.mapaccum("sim", BLOCK)(*ins)
+            out[f"{name}_acc"] = ca.Function(f"{fn.name()}_acc{BLOCK}", ins, [states[:, -1], states])
+    return out
+
+
+# block Functions whose compilation this process has started (held, so their ids stay theirs)
+_TRIED: dict[int, ca.Function] = {}
+
+
+def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[str, _Stage], bool]:
+    """The named stages (`_build_stages`), their blocks compiled C where it pays (`solvers.compiled`).
+
+    Libraries a structure still needs are first compiled side by side (gcc runs outside the GIL):
+    a first fit of seed 000's seat model waits for the largest, not for the sum.
+    """
+    o = oem.options
+    fns, blocks = oem.cm.derive(("stages", o.integrator, o.substeps, o.input_interpolation, oem.layout.size),
+                                lambda: (lambda f: (f, _blocks(f)))(_build_stages(oem)))
+
+    def build(name: str) -> tuple[ca.Function, bool]:
+        single, block = fns[name.removesuffix("_acc")], blocks[name]
+        ready = loaded(block)   # every fit after the first: a dictionary lookup
+        if ready is not None:
+            return ready, True
+        # `compiled` weighs instructions × evaluations: a block's wrapper counts a handful of calls
+        work = samples * EXPECTED_ITERATIONS * single.n_instructions() / max(block.n_instructions(), 1)
+        return compiled(block, work)
+
+    new = [n for n in names if _TRIED.get(id(blocks[n])) is not blocks[n]]
+    if len(new) > 1:
+        with ThreadPoolExecutor(max_workers=len(new)) as pool:
+            list(pool.map(build, new))
+    if len(_TRIED) > 256:
+        _TRIED.clear()
+    _TRIED.update((id(blocks[n]), blocks[n]) for n in new)
+    built = {name: build(name) for name in names}   # loaded by now: memory lookups
+    stages = {name: _Stage(fns[name.removesuffix("_acc")], fn) for name, (fn, _) in built.items()}
+    return stages, all(is_c for _, is_c in built.values())
+
+
+def _triu_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
+    """(rows, cols) of the upper triangle of an n × n matrix, column by column (CasADi's order)."""
+    cols, rows = np.nonzero(np.tril(np.ones((n, n), dtype=bool)))   # (j, i) with i <= j
+    return rows, cols
+
+
+def _build_stages(oem) -> dict[str, ca.Function]:
+    """Per-sample Functions over scaled states x (x_phys = xs·x) and θ (p = off + M θ).
+
+    Each callback of the NLP gets its own Function, so none computes what it throws away (Ipopt
+    evaluates f and g at every trial point, the derivatives only at accepted ones):
+    step (x_k -> x_k+1, the value of a gap and of a simulation), gap (its Jacobians in x_k and θ),
+    out (weighted residual r_k with ∂r/∂x, ∂r/∂θ), gn (r_k with its Gauss-Newton pieces: the
+    gradient J_kᵀr_k and J_kᵀJ_k of J_k = [∂r/∂x_k, ∂r/∂θ]), sens (x_k and S_k = ∂x_k/∂[θ, x0]
+    -> x_k+1, S_k+1), sgn (the same pieces for single shooting's row J_k = ∂r/∂x S_k + [∂r/∂θ, 0]),
+    jrow (that row itself, for the condensed Jacobian).
+    """
+    cm, nth = oem.cm, oem.layout.size
+    nx, nv = cm.nx, nth + cm.nx
+    sx = ca.SX.sym
+    xk, xk1, xs = sx("xk", nx), sx("xk1", nx), sx("xs", nx)
+    u0, u1, t0, dt = sx("u0", cm.nu), sx("u1", cm.nu), sx("t0"), sx("dt")
+    theta, mat, off = sx("theta", nth), sx("M", cm.np, nth), sx("off", cm.np)
+    y, wt = sx("y", cm.ny), sx("wt", cm.ny)
+    p = off + ca.mtimes(mat, theta)
+    xn = oem.step(xs * xk, u0, u1, p, t0, dt) / xs
+    fns = {}
+    fns["step"] = ca.Function("greyfit_step", [xk, u0, u1, t0, dt, theta, mat, off, xs], [xn])
+    gap = xn - xk1
+    fns["gap"] = ca.Function("greyfit_gap", [xk, xk1, u0, u1, t0, dt, theta, mat, off, xs],
+                             [gap, ca.jacobian(gap, xk), ca.jacobian(gap, theta)])
+    r = wt * (cm.output(xs * xk, u0, p, t0) - y)
+    rx, rt = ca.jacobian(r, xk), ca.jacobian(r, theta)
+    out_in = [xk, u0, t0, theta, mat, off, xs, y, wt]
+    fns["out"] = ca.Function("greyfit_out", out_in, [r, rx, rt])
+    # the symbolic sparsity of these blocks (e.g. no θ in an output) is the NLP's Hessian pattern
+    fns["gn"] = ca.Function("greyfit_gn", out_in, [
+        r, ca.mtimes(rx.T, r), ca.mtimes(rt.T, r), ca.triu(ca.mtimes(rx.T, rx)),
+        ca.mtimes(rt.T, rx), ca.mtimes(rt.T, rt)])
+    sens = sx("S", nx, nv)
+    s_next = ca.mtimes(ca.jacobian(xn, xk), sens) + ca.horzcat(ca.jacobian(xn, theta), ca.SX(nx, nx))
+    z = ca.vertcat(xk, ca.vec(sens))
+    fns["sens"] = ca.Function("greyfit_sens", [z, u0, u1, t0, dt, theta, mat, off, xs],
+                              [ca.vertcat(xn, ca.vec(s_next))])
+    jrow = ca.mtimes(rx, sens) + ca.horzcat(rt, ca.SX(cm.ny, nx))
+    fns["sgn"] = ca.Function("greyfit_sgn", [z, u0, t0, theta, mat, off, xs, y, wt],
+                             [r, ca.mtimes(jrow.T, r), ca.vec(ca.mtimes(jrow.T, jrow))])
+    rx_in, rt_in, s_in = sx("rx", cm.ny, nx), sx("rt", cm.ny, nth), sx("s", nx * nv)
+    jrow_in = ca.mtimes(rx_in, ca.reshape(s_in, nx, nv)) + ca.horzcat(rt_in, ca.SX(cm.ny, nx))
+    fns["jrow"] = ca.Function("greyfit_jrow", [rx_in, rt_in, s_in], [jrow_in.T])
+    return fns
+
+
+class _Blocks:
+    """Named blocks of one parameter vector (the data)."""
+
+    def __init__(self):
+        self.shapes: list[tuple[str, tuple[int, int]]] = []
+        self.size = 0
+
+    def add(self, name: str, rows: int, cols: int) -> int:
+        self.shapes.append((name, (rows, cols)))
+        self.size += rows * cols
+        return self.size - rows * cols
+
+    def views(self, vec: ca.MX) -> dict[str, ca.MX]:
+        out, k = {}, 0
+        for name, (r, c) in self.shapes:
+            out[name] = ca.reshape(vec[k:k + r * c], r, c)
+            k += r * c
+        return out
+
+
+def _stacked(sp: ca.Sparsity, count: int, row0: int, col0: int, row_step: int, col_step: int):
+    """(rows, cols) of the nonzeros of `count` blocks of pattern `sp` stored side by side (a mapped
+    output), in nonzero order: block k covers rows row0 + k·row_step … and columns
+    col0 + k·col_step … (step nx for the nodes of sample k, 0 for the θ every block shares).
+
+    Only the structural nonzeros of the stage Function's output enter the NLP: an output that no
+    θ affects leaves no θ-node entries in the Hessian for MUMPS to arrange and factorise.
+    """
+    r, c = (np.array(v, dtype=int) for v in sp.get_triplet())
+    k = np.repeat(np.arange(count), r.size)
+    return row0 + k * row_step + np.tile(r, count), col0 + k * col_step + np.tile(c, count)
+
+
+def _nonzeros(m: ca.MX) -> ca.MX:
+    """The nonzeros of `m` as a column (a row vector's would come as a row)."""
+    return ca.reshape(m.nz[:], m.nnz(), 1)
+
+
+def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca.MX) -> ca.MX:
+    """MX sparse matrix from triplets (no duplicates); `values` in triplet order."""
+    order = np.lexsort((rows, cols))   # CasADi stores column-major
+    sp = ca.Sparsity.triplet(nrow, ncol, rows[order].tolist(), cols[order].tolist())
+    return ca.MX(sp, values[order.tolist()])
+
+
+@dataclass
+class _Nlp:
+    solver: ca.Function
+
+
+@dataclass
+class _Terms:
+    """The data part of one formulation, each piece for the callback that needs it.
+
+    r: the residual, for f (trial points); r_gn, grad = Jᵀr, hess = triu(JᵀJ): from the Gauss-Newton
+    stage Functions, for grad_f and the Hessian; gaps (value) for g; jac_gap with its own gaps for
+    jac_g.
+    """
+    w: ca.MX
+    r: ca.MX
+    r_gn: ca.MX
+    grad: ca.MX
+    hess: ca.MX
+    gaps: ca.MX
+    gaps_jac: ca.MX
+    jac_gap: ca.MX
+
+
+def _data_blocks(oem) -> tuple[ca.MX, dict[str, ca.MX]]:
+    """The data parameter vector and its named views (layout of `_data_vector`)."""
+    cm, nth = oem.cm, oem.layout.size
+    pb = _Blocks()
+    for e, d in enumerate(oem.data):
+        pb.add(f"U{e}", cm.nu, d.n)
+        pb.add(f"T{e}", 1, d.n)
+        pb.add(f"Y{e}", cm.ny, d.n)
+        pb.add(f"W{e}", cm.ny, d.n)
+        pb.add(f"M{e}", cm.np, nth)
+        pb.add(f"X0{e}", cm.nx, 1)
+    pb.add("off", cm.np, 1)
+    pb.add("xs", cm.nx, 1)
+    pvec = ca.MX.sym("data", pb.size)
+    return pvec, pb.views(pvec)
+
+
+def _multiple_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
+    """Nodes at every sample; the blocks placed in sparse matrices.
+
+    Hessian triu(JᵀJ), J = ∂r/∂[θ, nodes]: r_k depends on node k and θ only, so JᵀJ is a
+    node-node block per sample, a θ-node block per sample and a θθ block summed over samples.
+    """
+    nx, nth = oem.cm.nx, oem.layout.size
+    gap_sp, gn_sp = fns["gap"].single.sparsity_out, fns["gn"].single.sparsity_out
+    nodes = [ca.MX.sym(f"X{e}", nx, d.n) for e, d in enumerate(oem.data)]
+    w = ca.vertcat(theta, *[ca.vec(X) for X in nodes])
+    off, xs = pv["off"], pv["xs"]
+    gaps, gaps_jac, r_parts, r_gn, grad_x = [], [], [], [], []
+    grad_t, h_tt = ca.MX(nth, 1), ca.MX(nth * nth, 1)
+    g_rows, g_cols, g_vals = [], [], []
+    h_rows, h_cols, h_vals = [], [], []
+    row_g = 0
+    col = nth
+    for e, d in enumerate(oem.data):
+        n, m = d.n, d.n - 1
+        X, U, T, Y, W, M = nodes[e], pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
+        DT = T[:, 1:] - T[:, :-1]
+        xn, = fns["step"].map(m, X[:, :-1], U[:, :-1], U[:, 1:], T[:, :-1], DT, theta, M, off, xs)
+        gaps.append(ca.vec(xn - X[:, 1:]))
+        G, GX, GT = fns["gap"].map(m, X[:, :-1], X[:, 1:], U[:, :-1], U[:, 1:], T[:, :-1], DT,
+                                   theta, M, off, xs)
+        gaps_jac.append(ca.vec(G))
+        out_args = (X, U, T, theta, M, off, xs, Y, W)
+        r_parts.append(ca.vec(fns["out"].map(n, *out_args)[0]))
+        R, GXR, GTR, HXX, HTX, HTT = fns["gn"].map(n, *out_args)
+        r_gn.append(ca.vec(R))
+        grad_x.append(ca.vec(GXR))
+        grad_t += ca.sum2(GTR)
+        h_tt += ca.sum2(ca.reshape(HTT, nth * nth, n))
+        # ∂gap_k/∂x_k, ∂gap_k/∂θ, ∂gap_k/∂x_k+1 = −I
+        for rows, cols in (_stacked(gap_sp(1), m, row_g, col, nx, nx),
+                           _stacked(gap_sp(2), m, row_g, 0, nx, 0),
+                           _stacked(ca.Sparsity.diag(nx), m, row_g, col + nx, nx, nx)):
+            g_rows.append(rows)
+            g_cols.append(cols)
+        g_vals += [_nonzeros(GX), _nonzeros(GT), ca.MX(ca.DM(-np.ones(m * nx)))]
+        # node-node upper triangles, then the θ rows of the node columns (θ comes first in w)
+        for rows, cols in (_stacked(gn_sp(3), n, col, col, nx, nx),
+                           _stacked(gn_sp(4), n, 0, col, 0, nx)):
+            h_rows.append(rows)
+            h_cols.append(cols)
+        h_vals += [_nonzeros(HXX), _nonzeros(HTX)]
+        row_g += m * nx
+        col += n * nx
+    t_r, t_c = _triu_pairs(nth)
+    h_rows.append(t_r)
+    h_cols.append(t_c)
+    h_vals.append(ca.densify(h_tt)[(t_c * nth + t_r).tolist()])
+    nw = w.numel()
+    jac_gap = _sparse(row_g, nw, np.concatenate(g_rows), np.concatenate(g_cols), ca.vertcat(*g_vals))
+    hess = _sparse(nw, nw, np.concatenate(h_rows), np.concatenate(h_cols), ca.vertcat(*h_vals))
+    return _Terms(w, ca.vertcat(*r_parts), ca.vertcat(*r_gn), ca.vertcat(grad_t, *grad_x), hess,
+                  ca.vertcat(*gaps), ca.vertcat(*gaps_jac), jac_gap)
+
+
+def _free_x0(oem, e: int, pv, free: list[ca.MX]) -> ca.MX:
+    """Scaled x0 of experiment e: the known entries from the data, the free ones from w."""
+    nx = oem.cm.nx
+    place = np.zeros((nx, len(oem.free_x0[e])))
+    place[oem.free_x0[e], np.arange(len(oem.free_x0[e]))] = 1.0
+    return pv[f"X0{e}"] + ca.mtimes(ca.DM(place), free[e])   # the data block is 0 where x0 is free
+
+
+def _single_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
+    """No gaps: one simulation per experiment for f, one carrying the sensitivities S_k =
+    ∂x_k/∂[θ, x0] (the nodes of multiple shooting condensed away) for the derivatives, whose
+    per-sample rows J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] reduce to J_kᵀr_k and J_kᵀJ_k in C."""
+    nx, nth = oem.cm.nx, oem.layout.size
+    nv = nth + nx
+    free = [ca.MX.sym(f"x0_{e}", len(f)) for e, f in enumerate(oem.free_x0)]
+    w = ca.vertcat(theta, *free)
+    nw = w.numel()
+    off, xs = pv["off"], pv["xs"]
+    seed = np.vstack([np.zeros((nth, nx)), np.eye(nx)]).T.ravel(order="F")   # S_0 = [0 | I]
+    r_parts, r_gn = [], []
+    grad, hess = ca.MX(nw, 1), ca.MX(nw, nw)
+    col = nth
+    for e, d in enumerate(oem.data):
+        U, T, Y, W, M = pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
+        DT = T[:, 1:] - T[:, :-1]
+        x0 = _free_x0(oem, e, pv, free)
+        X = fns["step_acc"].accum(d.n - 1, x0, U[:, :-1], U[:, 1:], T[:, :-1], DT, theta, M, off, xs)
+        X = ca.horzcat(x0, X)
+        r_parts.append(ca.vec(fns["out"].map(d.n, X, U, T, theta, M, off, xs, Y, W)[0]))
+        z0 = ca.vertcat(x0, ca.DM(seed))
+        Z = fns["sens_acc"].accum(d.n - 1, z0, U[:, :-1], U[:, 1:], T[:, :-1], DT, theta, M, off, xs)
+        R, G, H = fns["sgn"].map(d.n, ca.horzcat(z0, Z), U, T, theta, M, off, xs, Y, W)
+        r_gn.append(ca.vec(R))
+        # [θ, x0] of this experiment -> w: θ, and its free x0 entries at their columns
+        place = np.zeros((nw, nv))
+        place[np.arange(nth), np.arange(nth)] = 1.0
+        for j, i in enumerate(oem.free_x0[e]):
+            place[col + j, nth + i] = 1.0
+        col += len(oem.free_x0[e])
+        place = ca.DM(ca.sparsify(ca.DM(place)))
+        grad += ca.mtimes(place, ca.sum2(G))
+        hess += ca.mtimes([place, ca.reshape(ca.sum2(H), nv, nv), place.T])
+    return _Terms(w, ca.vertcat(*r_parts), ca.vertcat(*r_gn), grad, ca.triu(hess),
+                  ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, nw))
+
+
+def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
+    """(w, r, ∂r/∂w) of single shooting at the samples, J_k = ∂r_k/∂x S_k + ∂r_k/∂θ."""
+    nx, nth = oem.cm.nx, oem.layout.size
+    free = [ca.MX.sym(f"x0_{e}", len(f)) for e, f in enumerate(oem.free_x0)]
+    w = ca.vertcat(theta, *free)
+    nw = w.numel()
+    off, xs = pv["off"], pv["xs"]
+    seed = np.vstack([np.zeros((nth, nx)), np.eye(nx)]).T.ravel(order="F")   # S_0 = [0 | I]
+    r_parts, jac_parts, col = [], [], nth
+    for e, d in enumerate(oem.data):
+        U, T, Y, W, M = pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
+        z0 = ca.vertcat(_free_x0(oem, e, pv, free), ca.DM(seed))
+        Z = fns["sens_acc"].accum(d.n - 1, z0, U[:, :-1], U[:, 1:], T[:, :-1], T[:, 1:] - T[:, :-1],
+                                  theta, M, off, xs)
+        Z = ca.horzcat(z0, Z)
+        R, RX, RT = fns["out"].map(d.n, Z[:nx, :], U, T, theta, M, off, xs, Y, W)
+        JT, = fns["jrow"].map(d.n, RX, RT, Z[nx:, :])                    # (nθ + nx) × (ny·n)
+        jac = JT.T
+        cols = [jac[:, :nth]]
+        if free[e].numel():
+            cols += [ca.MX(jac.size1(), col - nth), jac[:, [nth + i for i in oem.free_x0[e]]]]
+            col += free[e].numel()
+        cols.append(ca.MX(jac.size1(), nw - col if free[e].numel() else nw - nth))
+        jac_parts.append(ca.horzcat(*cols))
+        r_parts.append(ca.vec(R))
+    return w, ca.vertcat(*r_parts), ca.vertcat(*jac_parts)
+
+
+def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float) -> _Nlp:
+    """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ."""
+    cm, nth = oem.cm, oem.layout.size
+    w = terms.w
+    nw = w.numel()
+    g_par = []
+    if cm.constraint is not None:
+        for e in range(_constraint_copies(oem)):
+            g_par.append(cm.constraint(pv["off"] + ca.mtimes(pv[f"M{e}"], theta)))
+    g_par = ca.vertcat(*g_par) if g_par else ca.MX(0, 1)
+    jac_par = ca.horzcat(ca.jacobian(g_par, theta), ca.MX(g_par.numel(), nw - nth))
+    f, f_gn = 0.5 * ca.sumsqr(terms.r), 0.5 * ca.sumsqr(terms.r_gn)
+    grad, hess = terms.grad, terms.hess
+    if penalty is not None:
+        pen = penalty(theta)
+        jp = ca.jacobian(pen, theta)
+        f, f_gn = f + 0.5 * ca.sumsqr(pen), f_gn + 0.5 * ca.sumsqr(pen)
+        grad = grad + ca.vertcat(ca.mtimes(jp.T, pen), ca.MX(nw - nth, 1))
+        hess = hess + ca.diagcat(ca.triu(ca.mtimes(jp.T, jp)), ca.MX(nw - nth, nw - nth))
+    g = ca.vertcat(terms.gaps, g_par)
+    sigma, lam_g = ca.MX.sym("sigma"), ca.MX.sym("lam_g", g.numel())
+    names_xp = ["x", "p"]
+    # dense: Ipopt's interface copies the gradient's nonzeros as they come (a θ that no output
+    # depends on leaves structural zeros, and stale memory in their place)
+    grad_f = ca.Function("nlp_grad_f", [w, pvec], [f_gn, ca.densify(grad)], names_xp, ["f", "grad_f_x"])
+    jac_g_fn = ca.Function("nlp_jac_g", [w, pvec], [ca.vertcat(terms.gaps_jac, g_par),
+                                                   ca.vertcat(terms.jac_gap, jac_par)],
+                           names_xp, ["g", "jac_g_x"])
+    hess_fn = ca.Function("nlp_hess_l", [w, pvec, sigma, lam_g], [sigma * hess],
+                          ["x", "p", "lam_f", "lam_g"], ["hess_gamma_x_x"])
+    opts = oem.options
+    solver = ca.nlpsol("greyfit_structured", "ipopt", {"x": w, "p": pvec, "f": f, "g": g}, {
+        "grad_f": grad_f, "jac_g": jac_g_fn, "hess_lag": hess_fn,
+        "ipopt.max_iter": max_iter, "ipopt.max_cpu_time": max_cpu_time, "ipopt.tol": opts.tol,
+        # QAMD ordering copes with the dense θ columns: the automatic choice spent 8 s of 10 in
+        # MUMPS' analysis at 40 000 samples (2 states), QAMD 0.3 s
+        "ipopt.mumps_pivot_order": 6,
+        # MUMPS' work space: Ipopt's default (1000 % over MUMPS' estimate) is allocated and cleared
+        # at every factorisation, ~8000 fresh pages (30 ms of 250) per fit of seed 000's seat model
+        "ipopt.mumps_mem_percent": 100,
+        # the Gauss-Newton Hessian ignores the multipliers: their least-squares estimate at the start
+        # cost a factorisation and changed no step
+        "ipopt.constr_mult_init_max": 0.0,
+        # a refinement of every step whether or not its residual asks for one: a back-solve per
+        # iteration; Ipopt still refines a step whose residual exceeds residual_ratio_max
+        "ipopt.min_refinement_steps": 0,
+        "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+        # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
+        # reverse mode through the compiled blocks ran finite differences for 17 s
+        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True})
+    return _Nlp(solver)
+
+
+def _data_vector(oem) -> np.ndarray:
+    """The NLP's parameter vector: the record, weights, parameter map and scales (fixed for the
+    model of one fit, which asks for it for its solver and for each condensed Jacobian)."""
+    if oem.structured_data is None:
+        oem.structured_data = _assemble_data_vector(oem)
+    return oem.structured_data
+
+
+def _assemble_data_vector(oem) -> np.ndarray:
+    parts = []
+    for e, d in enumerate(oem.data):
+        mask = d.mask
+        x0 = np.zeros(oem.cm.nx)
+        for i, v in d.x0_known.items():
+            x0[i] = v / oem.xscale[i]
+        parts += [d.u.ravel(order="F"), d.t, np.where(mask, d.y, 0.0).ravel(order="F"),
+                  (mask * oem.weights[:, None]).ravel(order="F"), oem.layout.matrix[e].ravel(order="F"), x0]
+    parts += [oem.layout.offset, oem.xscale]
+    return np.concatenate([np.asarray(p, dtype=float).ravel() for p in parts])
+
+
+class StructuredSolver:
+    """`LeastSquaresSolver`'s interface over a cached structured NLP."""
+
+    def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool):
+        self.nlp, self.data, self.problem, self.compiled = nlp, data, problem, compiled_c
+
+    def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None):
+        from greyfit.solvers.nlp.solver import run_ipopt
+        return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
+
+
+def _constraint_copies(oem) -> int:
+    if oem.cm.constraint is None:
+        return 0
+    return 1 if all(ex is None for ex in oem.layout.experiment) else len(oem.data)
+
+
+def constraint_count(oem) -> int:
+    return _constraint_copies(oem) * (oem.cm.constraint_equality.size if oem.cm.constraint is not None else 0)
+
+
+def constraint_lower(oem) -> np.ndarray:
+    return np.zeros(constraint_count(oem))
+
+
+def constraint_upper(oem) -> np.ndarray:
+    if oem.cm.constraint is None:
+        return np.zeros(0)
+    return np.tile(np.where(oem.cm.constraint_equality, 0.0, np.inf), _constraint_copies(oem))
+
+
+def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> LeastSquaresProblem:
+    """Give `problem` (bounds, guesses and readers of single or multiple shooting) the structured
+    solver, made when first asked for (after a time-varying penalty may have been attached)."""
+    samples = sum(d.n for d in oem.data)
+    structure = (single, tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
+    o = oem.options
+
+    def make_solver(max_iter: int | None = None, max_cpu_time: float | None = None):
+        """`max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve)."""
+        iters = o.max_iter if max_iter is None else max_iter
+        cpu = o.max_cpu_time if max_cpu_time is None else max_cpu_time
+        fns, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
+        penalty = problem.penalty
+        # the stage Functions (and the constraint) identify the model structure, the rest shapes
+        # the NLP; the entry holds those objects, so an id is never reused while it is cached
+        owners = (*(st.block for st in fns.values()), oem.cm.constraint)
+        nlp_key = (*map(id, owners), structure, iters, cpu, o.tol)
+        entry = _SOLVERS.get(nlp_key) if penalty is None else None
+        if entry is not None and all(a is b for a, b in zip(entry[0], owners)):
+            _SOLVERS.move_to_end(nlp_key)
+            nlp = entry[1]
+        else:
+            pvec, pv = _data_blocks(oem)
+            theta = ca.MX.sym("theta", oem.layout.size)
+            build = _single_shooting_terms if single else _multiple_shooting_terms
+            terms = build(oem, fns, theta, pv)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu)
+            if penalty is None:
+                _SOLVERS[nlp_key] = (owners, nlp)
+                while len(_SOLVERS) > SOLVER_CACHE_SIZE:
+                    _SOLVERS.popitem(last=False)
+        return StructuredSolver(nlp, _data_vector(oem), problem, is_c)
+
+    problem.solver_factory = make_solver
+    return problem
+
+
+_JACOBIANS: "OrderedDict[tuple, tuple]" = OrderedDict()
+
+
+def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+    """(J, r, output of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled), at
+    the measured samples: `shooting.sensitivity_jacobian` by one compiled pass per experiment."""
+    cm = oem.cm
+    stages, _ = _stage_functions(oem, sum(d.n for d in oem.data), STAGES_CONDENSED)
+    fns = tuple(stages[name].block for name in STAGES_CONDENSED)
+    structure = (tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
+    key = (*map(id, fns), structure)
+    entry = _JACOBIANS.get(key)
+    if entry is None or not all(a is b for a, b in zip(entry[0], fns)):
+        pvec, pv = _data_blocks(oem)
+        theta = ca.MX.sym("theta", oem.layout.size)
+        w, r, jac = _condensed_terms(oem, stages, theta, pv)
+        entry = (fns, ca.Function("condensed_jacobian", [w, pvec], [ca.densify(r), ca.densify(jac)]))
+        _JACOBIANS[key] = entry
+        while len(_JACOBIANS) > SOLVER_CACHE_SIZE:
+            _JACOBIANS.popitem(last=False)
+    free = [np.array([x0s[e][cm.states[i]] / oem.xscale[i] for i in f]) for e, f in enumerate(oem.free_x0)]
+    w0 = np.concatenate([np.asarray(theta_s, dtype=float).ravel(), *free])
+    r, jac = evaluate(entry[1], [w0, _data_vector(oem)])
+    keep = np.concatenate([d.mask.T.ravel() for d in oem.data])     # sample-major, like r
+    groups = np.concatenate([np.broadcast_to(np.arange(cm.ny), (d.n, cm.ny)).ravel() for d in oem.data])
+    return jac[keep], r.ravel()[keep], groups[keep]

@@ -1,0 +1,1 @@
+"""The user's model compiled: whitelist expressions, CasADi functions, parameter layout, constraints."""

@@ -1,0 +1,141 @@
+"""Compile a `schemas.Model` once into CasADi Functions f(x,u,p,t) and h(x,u,p,t)."""
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+
+from greyfit.schemas.model import Model
+from greyfit.solvers.model.constraints import compile_constraints
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.model.expressions import compile_expression, parse, to_casadi
+
+
+@dataclass
+class CompiledModel:
+    """CasADi form of a model; `p` is the full physical parameter vector in declaration order."""
+
+    model: Model
+    states: list[str]
+    inputs: list[str]
+    parameters: list[str]
+    outputs: list[str]
+    output_expressions: dict[str, str]
+    rhs: ca.Function   # (x, u, p, t) -> dx/dt
+    output: ca.Function  # (x, u, p, t) -> y
+    constraint: ca.Function | None  # (p) -> g, with g >= 0 (or g == 0 where marked)
+    constraint_equality: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
+    direct_outputs: dict[str, str] = field(default_factory=dict)  # output name -> state it measures
+    # Functions derived from this model (integrator steps by their options, ∂f/∂x, ...), built once;
+    # init=False: dataclasses.replace gives a changed model a fresh, empty cache
+    derived: dict[tuple, object] = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def derive(self, key: tuple, build):
+        """What `build()` makes from this model (Functions, structure facts), built on first use."""
+        if key not in self.derived:
+            self.derived[key] = build()
+        return self.derived[key]
+
+    @property
+    def nx(self) -> int:
+        return len(self.states)
+
+    @property
+    def nu(self) -> int:
+        return len(self.inputs)
+
+    @property
+    def np(self) -> int:
+        return len(self.parameters)
+
+    @property
+    def ny(self) -> int:
+        return len(self.outputs)
+
+    def equation_parameters(self) -> dict[str, set[str]]:
+        """Which parameters each state equation depends on, definitions expanded."""
+        deps = self.derive(("equation_parameters",), self._equation_parameters)
+        return {s: set(v) for s, v in deps.items()}   # a copy: callers may change theirs
+
+    def _equation_parameters(self) -> dict[str, set[str]]:
+        x, u, p, t = _symbols(self)
+        rows, cols = ca.jacobian(self.rhs(x, u, p, t), p).sparsity().get_triplet()
+        deps: dict[str, set[str]] = {s: set() for s in self.states}
+        for i, j in zip(rows, cols):
+            deps[self.states[i]].add(self.parameters[j])
+        return deps
+
+
+def _symbols(cm: "CompiledModel"):
+    return (ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t"))
+
+
+_COMPILED: "OrderedDict[str, CompiledModel]" = OrderedDict()
+COMPILED_CACHE_SIZE = 64
+
+
+def compile_model(model: Model) -> CompiledModel:
+    """Build rhs/output/constraint Functions; raises ModelDefinitionError naming the field.
+
+    A worker keeps the last models it compiled (keyed by their full JSON): a batch of fits of one
+    model parses it once, and the Functions built from it (steps, compiled C) are found again.
+    """
+    key = model.model_dump_json()
+    if key in _COMPILED:
+        _COMPILED.move_to_end(key)
+        return _COMPILED[key]
+    cm = _compile(model)
+    _COMPILED[key] = cm
+    while len(_COMPILED) > COMPILED_CACHE_SIZE:
+        _COMPILED.popitem(last=False)
+    return cm
+
+
+def _compile(model: Model) -> CompiledModel:
+    x = ca.SX.sym("x", len(model.states))
+    u = ca.SX.sym("u", len(model.inputs))
+    params = [p.name for p in model.parameters]
+    p = ca.SX.sym("p", len(params))
+    t = ca.SX.sym("t")
+    env: dict[str, object] = {"t": t}
+    env.update({n: x[i] for i, n in enumerate(model.states)})
+    env.update({n: u[i] for i, n in enumerate(model.inputs)})
+    env.update({n: p[i] for i, n in enumerate(params)})
+    env.update(model.constants)
+    for name, text in model.definitions.items():
+        env[name] = compile_expression(text, env, f"definitions.{name}")
+
+    dx = ca.vertcat(*[compile_expression(model.equations[s], env, f"equations.{s}")
+                      for s in model.states])
+    outputs = model.measured_outputs()
+    if not outputs:
+        raise ModelDefinitionError("at least one output is needed", "outputs")
+    direct = {}
+    y_list = []
+    for name, text in outputs.items():
+        node = parse(text, f"outputs.{name}")
+        if node[0] == "name" and node[1] in model.states:
+            direct[name] = node[1]
+        y_list.append(to_casadi(node, env, f"outputs.{name}"))
+    y = ca.vertcat(*y_list)
+
+    constraint = None
+    equality = np.zeros(0, dtype=bool)
+    if model.constraints:
+        param_names = {k for k in env if k not in model.states and k not in model.inputs}
+        g, equality = compile_constraints(model.constraints, env, param_names, "constraints",
+                                          forbidden=ca.vertcat(x, u, t))
+        constraint = ca.Function("g", [p], [ca.vertcat(*g)])
+
+    rhs = ca.Function("rhs", [x, u, p, t], [dx], ["x", "u", "p", "t"], ["dx"])
+    out = ca.Function("output", [x, u, p, t], [y], ["x", "u", "p", "t"], ["y"])
+    for fn in (rhs, out):
+        if fn.has_free():
+            raise ModelDefinitionError(f"free symbols {fn.get_free()} in the model", "equations")
+    return CompiledModel(
+        model=model, states=list(model.states), inputs=list(model.inputs), parameters=params,
+        outputs=list(outputs), output_expressions=outputs, rhs=rhs, output=out,
+        constraint=constraint, constraint_equality=equality,
+        direct_outputs=direct)

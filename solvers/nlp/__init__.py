@@ -1,0 +1,1 @@
+"""The least-squares NLP every method builds, and its Ipopt solvers."""

@@ -1,0 +1,1 @@
+"""Simulation of a fitted model and validation against records (MATLAB compare)."""

@@ -177,3 +177,69 @@ class DiscoveryResult(BaseModel):
     budget_exhausted: bool = Field(
         default=False, description="the search stopped because `discovery.time_budget_s` was spent; what was "
                                    "found until then is reported")
+    discrepancy: Optional[Discrepancy] = Field(
+        default=None, description="shape first: the missing term estimated at the declared model's fit without "
+                                  "assuming its form; null where it could not be estimated (see notes)")
+    unexplained: Optional[Unexplained] = Field(
+        default=None, description="set when the final residual stays well above the noise: what is left, with "
+                                  "its learned shape; null when the final model explains the records to the noise")
+
+
+class DiscrepancyEquation(BaseModel):
+    """The missing term of one equation (or output path) as the data show it, without a form assumed."""
+
+    equation: str = Field(description="the state whose equation the disturbance d(t) enters, or 'output y' "
+                                      "for the output path")
+    log_likelihood: float = Field(description="of the output records with d a random walk (higher: the data "
+                                              "prefer this equation for the missing term)")
+    intensity: float = Field(description="the random walk's per-sample variance, in units of the noise variance "
+                                         "and of d's scale (chosen by maximum likelihood: the smoothness penalty)")
+    residual_share: float = Field(description="share of the weighted output residual's sum of squares that d "
+                                              "removes")
+    time: dict[str, list[float]] = Field(description="per experiment, the sample times of `samples`")
+    samples: dict[str, list[float]] = Field(description="per experiment, d(t) in the equation's units "
+                                                        "(state per time unit, or output units)")
+    variable: Optional[str] = Field(default=None, description="the state, input or simple combination a smooth "
+                                                              "function of which explains most of d")
+    variable_samples: dict[str, list[float]] = Field(default_factory=dict,
+                                                     description="per experiment, that variable at `time`")
+    law_samples: dict[str, list[float]] = Field(
+        default_factory=dict, description="per experiment, the smooth function of `variable` (plus terms linear "
+                                          "in the states and inputs, which the declared parameters can take up) "
+                                          "fitted to d, at `time`: the curve to draw over d against `variable`")
+    share_explained: Optional[float] = Field(
+        default=None, description="share of d's variance that smooth function explains (1: d is a function of "
+                                  "`variable`; well below 1: it depends on more, e.g. on its history)")
+    alternatives: dict[str, float] = Field(default_factory=dict,
+                                           description="the next variables with their share explained")
+
+
+class Discrepancy(BaseModel):
+    """Shape first: a disturbance estimated on each equation in turn, the most likely first."""
+
+    equations: list[DiscrepancyEquation] = Field(description="one per state equation and output path, the most "
+                                                             "likely first")
+    noise_level: dict[str, float] = Field(description="measurement-noise standard deviation per output, estimated "
+                                                      "with the most likely disturbance")
+    states: dict[str, dict[str, list[float]]] = Field(
+        default_factory=dict, description="per experiment, the states (measured or not) the most likely "
+                                          "disturbance implies, at its `time`")
+    thinned_to: int = Field(description="series are thinned to at most this many samples per experiment")
+
+
+class Unexplained(BaseModel):
+    """What the final model does not explain: its residual stays well above the noise."""
+
+    outputs: list[str] = Field(description="outputs whose residual stays above the noise")
+    residual_to_noise: dict[str, float] = Field(description="final RMS residual over the estimated noise level")
+    noise_level: dict[str, float]
+    shape_share: float = Field(description="share of the final residual's sum of squares the learned shape holds")
+    equation: str = Field(description="where the learned shape enters (the most likely disturbance)")
+    variable: Optional[str] = None
+    share_explained: Optional[float] = Field(default=None, description="share of the shape a smooth function of "
+                                                                       "`variable` explains")
+    message: str
+    shape: Discrepancy = Field(description="the disturbance learned at the final fit")
+
+
+DiscoveryResult.model_rebuild()   # its shape fields name the classes above

@@ -156,8 +156,10 @@ def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
                                  detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
                                         f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")
-    validation_exps = (c.transform_experiments(request.validation) if c.transform_experiments and request.validation
-                       else request.validation)
+    validation_exps = request.validation
+    for prior in [*state.accepted, c]:   # inputs added by earlier steps (a delayed input), then this one's
+        if prior.transform_experiments and validation_exps:
+            validation_exps = prior.transform_experiments(validation_exps)
     with state.clock.phase("validation"):
         new_validation = validate(request, new_model, new_fit, validation_exps)
     worse = validation_worse(state.validation, new_validation, opts.validation_tolerance)

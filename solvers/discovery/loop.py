@@ -34,7 +34,10 @@ from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, Discovery
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.confirm import LoopState, confirm_candidate, screen_state
+from greyfit.solvers.discovery.ground import solid_ground
+from greyfit.solvers.discovery.leftover import leftover_at
 from greyfit.solvers.discovery.screening import Screening
+from greyfit.solvers.discovery.shape import shape_at
 from greyfit.solvers.discovery.summary import added_inputs, public_scores, summarize, validate
 from greyfit.solvers.errors import ModelDefinitionError
 from greyfit.solvers.model.expressions import compile_expression
@@ -55,12 +58,15 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                          options=request.options)
     with clock.phase("base_fit"):   # always run: the budget bounds the search after it
         base = fit_model(fit_req)
+    fit_req, base, notes = solid_ground(fit_req, base, clock)
+    request = request.model_copy(update={"options": fit_req.options})   # finer substeps, if raised, throughout
     with clock.phase("validation"):
-        base_validation = validate(request, fit_req.model, base, fit_req.experiments)
+        base_validation = validate(request, fit_req.model, base, request.validation)
+    shape, shape_note = shape_at(fit_req, base, clock)
+    notes += [shape_note] if shape_note else []
     state = LoopState(request.model, fit_req, base, base_validation, opts.max_refits, clock=clock)
     before = summarize(base, state.validation)
     screened_first: list[CandidateScore] = []
-    notes: list[str] = []
     why_not = ""
     for round_no in range(opts.max_terms):
         why_not = unusable_fit(state.fit)
@@ -85,7 +91,11 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                               "was confirmed")
     conclusion = ("added " + "; ".join(f"{s.effect} ({s.description})" for s in state.steps) if state.steps
                   else why_not or "no significant missing effect")
-    return DiscoveryResult(conclusion=conclusion, before=before, after=summarize(state.fit, state.validation),
+    unexplained, left_note = leftover_at(state.request, state.fit, base, shape, clock)
+    notes += [left_note] if left_note else []
+    conclusion += f"; {unexplained.message}" if unexplained else ""
+    return DiscoveryResult(unexplained=unexplained, discrepancy=shape.public if shape else None,
+                           conclusion=conclusion, before=before, after=summarize(state.fit, state.validation),
                            steps=state.steps, added_inputs=added_inputs(request, state.request),
                            rejected=state.rejected, screened=screened_first, notes=notes, model=state.model,
                            fit=state.fit, wall_time_s=clock.elapsed(), timings=clock.report(),

@@ -1,0 +1,95 @@
+"""Solid ground first: the loop does not screen from a base fit it has reason to distrust.
+
+Two cases the fit itself flags:
+
+- `integration_step_coarse`: RK4 at the requested substeps is inaccurate (or unstable) on the
+  fitted model's fastest mode. On a coarsely sampled record the fit can even create that mode
+  (a slow lag collapsed below the sample time turns, at one RK4 step, into an artificial mode that
+  mimics a delay), and every screen from it points at the integrator. The fit is repeated from the
+  declared start with the substeps the warning suggests (at least twice as many), until the warning
+  goes or the substeps reach their limit; the finer setting is kept for the whole search.
+- `suspect` with the signs of a local minimum (the residual far above the noise or far from white):
+  a multistart from the declared start and draws inside the bounds, within a share of the time
+  budget; the best is kept when it is better.
+"""
+from __future__ import annotations
+
+from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.errors import FitError
+from greyfit.solvers.fit import fit_model
+
+MAX_SUBSTEPS = 100          # FitOptions.substeps' limit
+REFINE_ROUNDS = 2
+# the residual far above the data's own noise level: a local minimum, or much missing physics (a
+# residual that is merely not white is the usual sign of a missing term, and no reason to restart)
+LOCAL_MINIMUM_CODES = {"fit_below_noise_level"}
+MULTISTART_STARTS = 8
+MULTISTART_BUDGET_SHARE = 0.2   # of what is left of discovery.time_budget_s ...
+MULTISTART_COST_RATIO = 6.0     # ... and at most this many times the base fit's own time
+MULTISTART_MAX_ITER = 100
+
+
+def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[FitRequest, FitResult, list[str]]:
+    """(request, base fit, notes): the base fit refitted with finer steps and/or a multistart when it
+    warns as above; unchanged otherwise. Timed as the base fit."""
+    notes: list[str] = []
+    with clock.phase("base_fit"):
+        fit_req, base = _finer_steps(fit_req, base, notes)
+        if clock.allows():
+            base = _multistart(fit_req, base, clock, notes)
+    return fit_req, base, notes
+
+
+def _coarse(fit: FitResult):
+    return next((w for w in fit.warnings if w.code == "integration_step_coarse"), None)
+
+
+def _finer_steps(fit_req: FitRequest, base: FitResult, notes: list[str]) -> tuple[FitRequest, FitResult]:
+    for _ in range(REFINE_ROUNDS):
+        warning = _coarse(base)
+        substeps = fit_req.options.substeps
+        if warning is None or substeps >= MAX_SUBSTEPS:
+            break
+        need = int(warning.detail.get("suggested_substeps", 2 * substeps))
+        finer = min(MAX_SUBSTEPS, max(need, 2 * substeps))
+        req = fit_req.model_copy(update={"options": fit_req.options.model_copy(update={"substeps": finer})})
+        try:
+            refit = fit_model(req)
+        except (FitError, RuntimeError, ValueError) as exc:
+            notes.append(f"the base fit warned integration_step_coarse; a refit at options.substeps = {finer} "
+                         f"failed ({exc}); screened at {substeps}")
+            break
+        if refit.quality == "failed":
+            notes.append(f"the base fit warned integration_step_coarse; the refit at options.substeps = {finer} "
+                         f"failed ({refit.solver.return_status}); screened at {substeps}")
+            break
+        notes.append(f"the base fit warned integration_step_coarse at options.substeps = {substeps} "
+                     f"({warning.message}); it was refitted from the declared start at substeps = {finer}, "
+                     "which the whole search then uses")
+        fit_req, base = req, refit
+    return fit_req, base
+
+
+def _multistart(fit_req: FitRequest, base: FitResult, clock: Clock, notes: list[str]) -> FitResult:
+    codes = {w.code for w in base.warnings}
+    if base.quality != "suspect" or not codes & LOCAL_MINIMUM_CODES or fit_req.options.multistart > 1:
+        return base
+    cpu = min(fit_req.options.max_cpu_time, max(MULTISTART_BUDGET_SHARE * clock.left(), 1.0),
+              max(MULTISTART_COST_RATIO * base.solver.wall_time_s, 1.0))
+    req = fit_req.model_copy(update={"options": fit_req.options.model_copy(update={
+        "multistart": MULTISTART_STARTS, "max_cpu_time": cpu,
+        "max_iter": min(fit_req.options.max_iter, MULTISTART_MAX_ITER)})})
+    try:
+        best = fit_model(req)
+    except (FitError, RuntimeError, ValueError):
+        return base
+    if best.metrics.cost is None or base.metrics.cost is None or best.quality == "failed" \
+            or not best.metrics.cost < base.metrics.cost * (1 - 1e-6):
+        notes.append(f"the base fit was suspect ({', '.join(sorted(codes & LOCAL_MINIMUM_CODES))}); a multistart "
+                     f"of {best.solver.starts} starts found no better minimum")
+        return base
+    notes.append(f"the base fit was suspect ({', '.join(sorted(codes & LOCAL_MINIMUM_CODES))}), perhaps at a "
+                 f"local minimum: a multistart of {best.solver.starts} starts lowered the cost from "
+                 f"{base.metrics.cost:.4g} to {best.metrics.cost:.4g}; the search starts from that fit")
+    return best

@@ -1,0 +1,131 @@
+"""What the learned disturbance depends on: d̂ against each state, input and simple combination.
+
+For each variable z a smooth function g(z) (a cubic regression spline with knots at quantiles of z)
+is fitted to d̂ together with terms linear in every state and input (those the declared parameters
+can take up when the model is refitted: a damping absorbed a friction, a stiffness a cubic spring).
+The share of d̂'s variance explained ranks the variables; every variable gets the same number of
+basis functions, so the shares are comparable. `shape_agreement` scores a candidate law the same way.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+KNOTS = 6                  # interior knots of the spline
+MAX_PUBLIC_SAMPLES = 1000  # series in the result are thinned to this many samples per experiment
+TOP_ALTERNATIVES = 5
+
+
+@dataclass
+class ShapeEstimate:
+    """One channel's estimate at full resolution, per experiment (the public form is thinned)."""
+
+    equation: str
+    d: list[np.ndarray]                     # d̂ per experiment (n,)
+    time: list[np.ndarray]
+    variables: dict[str, list[np.ndarray]]  # name -> per experiment (n,)
+    linear: list[np.ndarray]                # per experiment (n, k): states and inputs, for the linear terms
+    log_likelihood: float = -np.inf
+    q: float = 0.0
+    residual_share: float = 0.0
+    variable: str | None = None
+    share_explained: float | None = None
+    law: list[np.ndarray] = field(default_factory=list)
+    alternatives: dict[str, float] = field(default_factory=dict)
+
+
+def candidate_variables(state_names, states, input_names, inputs) -> dict[str, list[np.ndarray]]:
+    """States, inputs, products of two of them and differences of a state and an input."""
+    base = {n: [x[i] for x in states] for i, n in enumerate(state_names)}
+    ins = {n: [u[j] for u in inputs] for j, n in enumerate(input_names)}
+    out = {**base, **ins}
+    names = list(out)
+    for i, a in enumerate(names):
+        for b in names[i + 1:]:
+            out[f"{a}*{b}"] = [p * q for p, q in zip(out[a], out[b])]
+    for a in base:
+        for b in ins:
+            out[f"{a}-{b}"] = [p - q for p, q in zip(base[a], ins[b])]
+    return out
+
+
+def spline_basis(z: np.ndarray) -> np.ndarray:
+    """[z, z², z³, (z - κ)³₊ …] on z standardised, knots at quantiles (a natural choice for any law)."""
+    s = np.std(z)
+    zs = (z - np.mean(z)) / (s if s > 0 else 1.0)
+    knots = np.quantile(zs, np.linspace(0, 1, KNOTS + 2)[1:-1])
+    cols = [zs, zs ** 2, zs ** 3] + [np.clip(zs - k, 0, None) ** 3 for k in knots]
+    return np.column_stack(cols)
+
+
+def explained_share(d: np.ndarray, columns: np.ndarray) -> tuple[float, np.ndarray]:
+    """(R² of d on [1, columns], fitted values) by least squares."""
+    a = np.column_stack([np.ones(d.size), columns])
+    a = a / np.maximum(np.abs(a).max(axis=0), 1e-300)
+    # normal equations with a whisper of ridge: a few columns, thousands of rows, many variables to
+    # try (an SVD per variable cost 0.1 s here); the ridge only guards collinear columns
+    gram = a.T @ a
+    gram[np.diag_indices_from(gram)] += 1e-10 * np.trace(gram) / gram.shape[0]
+    coef = np.linalg.solve(gram, a.T @ d)
+    fit = a @ coef
+    sst = float(np.sum((d - d.mean()) ** 2))
+    return (1.0 - float(np.sum((d - fit) ** 2)) / sst if sst > 0 else 0.0), fit
+
+
+def relate(est: ShapeEstimate) -> None:
+    """Fill `variable`, `share_explained`, `law` and `alternatives` of an estimate."""
+    d = np.concatenate(est.d)
+    if d.size < 3 * (KNOTS + 4) or not np.all(np.isfinite(d)) or np.std(d) == 0:
+        return
+    linear = np.concatenate(est.linear)
+    shares: dict[str, tuple[float, np.ndarray]] = {}
+    for name, series in est.variables.items():
+        z = np.concatenate(series)
+        if not np.all(np.isfinite(z)) or np.std(z) == 0:
+            continue
+        shares[name] = explained_share(d, np.column_stack([spline_basis(z), linear]))
+    if not shares:
+        return
+    ranked = sorted(shares, key=lambda k: shares[k][0], reverse=True)
+    best = ranked[0]
+    est.variable, est.share_explained = best, float(max(shares[best][0], 0.0))
+    est.law = np.split(shares[best][1], np.cumsum([x.size for x in est.d])[:-1])
+    est.alternatives = {k: round(float(shares[k][0]), 4) for k in ranked[1:1 + TOP_ALTERNATIVES]}
+
+
+def shape_agreement(estimate: ShapeEstimate, candidate: list[np.ndarray] | np.ndarray) -> float:
+    """How much of the learned shape a candidate law explains, for scoring laws against the shape.
+
+    Parameters
+    ----------
+    estimate : ShapeEstimate
+        One channel's disturbance (`estimate_shape(...).estimates[i]`), at full resolution.
+    candidate : list of arrays, or array
+        The candidate term g(t) (without its coefficient) evaluated at the samples of each
+        experiment, on the same trajectory (`estimate.variables` holds the smoothed states and the
+        inputs to evaluate it on); one array when there is one experiment.
+
+    Returns
+    -------
+    float
+        The share of d̂'s variance explained by β·g plus terms linear in the states and inputs (which
+        the declared parameters take up when refitted), in [0, 1]; compare it with
+        `estimate.share_explained`, what a free smooth function of the best single variable explains:
+        a law far below it does not have the shape of the missing term (it approximates, at best).
+        0 when g is constant or not finite.
+    """
+    g = np.concatenate([np.ravel(c) for c in (candidate if isinstance(candidate, list) else [candidate])])
+    d = np.concatenate(estimate.d)
+    if g.size != d.size or not np.all(np.isfinite(g)) or np.std(g) == 0:
+        return 0.0
+    share, _ = explained_share(d, np.column_stack([g, np.concatenate(estimate.linear)]))
+    return float(min(max(share, 0.0), 1.0))
+
+
+def public_samples(series: list[np.ndarray], stride: int) -> list[list[float]]:
+    return [[float(v) for v in np.asarray(s)[::stride]] for s in series]
+
+
+def thinning(n_max: int) -> int:
+    return max(1, int(np.ceil(n_max / MAX_PUBLIC_SAMPLES)))

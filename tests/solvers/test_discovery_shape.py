@@ -1,0 +1,129 @@
+"""Shape first, say what is left: the missing term estimated without a form assumed, from outputs
+only, on systems simulated with scipy (tests/partial_systems.py, tests/coloured_records.py,
+tests/shape_systems.py) with known truth."""
+import numpy as np
+import pytest
+
+from greyfit.schemas.discovery import DiscoverRequest
+from greyfit.schemas.fit import FitRequest
+from greyfit.solvers.discovery import discover
+from greyfit.solvers.discovery.leftover import what_is_left
+from greyfit.solvers.discovery.shape import estimate_shape
+from greyfit.solvers.discovery.shape_relate import shape_agreement
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.simulation.simulate import validation_metrics
+from tests import coloured_records as cr
+from tests import partial_systems as ps
+from tests import shape_systems as ss
+
+
+def _fit(model, records, **options):
+    req = FitRequest.model_validate({"model": model, "experiments": records, "method": "multiple_shooting",
+                                     "options": options})
+    return req, fit_model(req)
+
+
+def _true_noise(record, level=0.01):
+    y = np.array(next(iter(record["outputs"].values())))
+    return level * np.std(y)   # the records' noise is level × std of the noisy output, to 0.01 %
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_shape_of_a_missing_cubic_spring_is_cubic_in_the_position(seed):
+    # Duffing measured in position, declared linear: d̂ on ẏd is -k3/m y³ plus what the fitted k took
+    record = cr.duffing_record(2000, seed, kind="white", level=0.01)
+    req, fit = _fit(ps.duffing_model(), [record])
+    shape = estimate_shape(req, fit)
+    best = shape.estimates[0]
+    assert best.equation == "yd"
+    assert best.variable == "y" and best.share_explained > 0.9
+    cubic = np.polyfit(best.variables["y"][0], best.d[0], 3)[0]
+    assert cubic == pytest.approx(-ps.DUFFING_TRUTH["k3"] / ps.DUFFING_TRUTH["m"], rel=0.05)
+    assert shape.noise_level["y"] == pytest.approx(_true_noise(record), rel=0.1)
+    # scoring laws against the shape: the cubic has it, a switching force does not
+    y, yd = best.variables["y"][0], best.variables["yd"][0]
+    assert shape_agreement(best, [y ** 3]) > 0.95
+    assert shape_agreement(best, [np.tanh(yd / 0.01)]) < best.share_explained - 0.3
+
+
+def test_shape_of_coulomb_friction_steps_with_the_sign_of_the_speed():
+    record = cr.msd_record(2000, 3, extra_force=lambda x, v: 0.5 * np.tanh(v / 1e-3))
+    req, fit = _fit(cr.msd_position_model(), [record])
+    best = estimate_shape(req, fit).estimates[0]
+    assert best.equation == "v" and best.variable == "v"
+    v, x, d = best.variables["v"][0], best.variables["x"][0], best.d[0]
+    # d̂ = -Fc/m sign(v) + (what c and k took up), Fc = 0.5, m = 2; a random walk cannot jump, so the
+    # switch is blurred where v crosses zero (over ~0.2 std(v)): the level is read away from there
+    away = np.abs(v) > 0.5 * np.std(v)
+    a = np.column_stack([np.sign(v), v, x, np.ones_like(v)])[away]
+    fc_over_m = -np.linalg.lstsq(a, d[away], rcond=None)[0][0]
+    assert fc_over_m == pytest.approx(0.25, rel=0.05)
+    scale = np.std(v)
+    friction = shape_agreement(best, [np.tanh(v / (0.1 * scale))])
+    assert friction > shape_agreement(best, [x ** 3]) + 0.3
+    assert friction > shape_agreement(best, [v * np.abs(v)]) + 0.1
+
+
+@pytest.mark.parametrize("kind", ["white", "ar1"])
+def test_a_complete_model_leaves_nothing_unexplained(kind):
+    record = cr.msd_record(2000, 4, kind=kind, level=0.01, held=False)
+    req, fit = _fit(cr.msd_position_model(), [record])
+    shape = estimate_shape(req, fit)
+    unexplained, note = what_is_left(fit, shape)
+    assert unexplained is None
+    if kind == "white":
+        assert shape.noise_level["x"] == pytest.approx(_true_noise(record), rel=0.1)
+    else:   # AR(1) ρ 0.9: a drift on the output path explains it best, and no state does
+        assert "coloured measurement noise" in note
+
+
+def test_before_validation_is_the_validation_records_and_absent_without_them():
+    est, val = ps.speed_record(1, name="est"), ps.speed_record(51, name="val")
+    body = {"model": ps.speed_model(), "method": "multiple_shooting", "experiments": [est]}
+    alone = discover(DiscoverRequest.model_validate(body))
+    assert alone.before.validation is None and alone.after.validation is None
+    with_val = DiscoverRequest.model_validate({**body, "validation": [val]})
+    res = discover(with_val)
+    base = fit_model(FitRequest.model_validate(body))
+    values = {n: p.value for n, p in base.parameters.items()}
+    want = validation_metrics(with_val.model, values, with_val.validation, with_val.options)
+    assert res.before.validation.rmse["y"] == pytest.approx(want.rmse["y"], rel=1e-6)
+    assert res.before.validation.rmse["y"] != pytest.approx(res.before.rmse["y"], rel=1e-3)
+
+
+@pytest.mark.slow
+def test_hysteresis_is_reported_unexplained_with_its_shape_and_nothing_named():
+    body = {"model": ss.bouc_wen_model(), "method": "multiple_shooting",
+            "experiments": [ss.bouc_wen_record(1)], "validation": [ss.bouc_wen_record(2, name="val")]}
+    res = discover(DiscoverRequest.model_validate(body))
+    assert res.steps == [], res.conclusion
+    left = res.unexplained
+    assert left is not None and left.outputs == ["y"]
+    assert left.residual_to_noise["y"] > 10
+    assert left.noise_level["y"] == pytest.approx(_true_noise(body["experiments"][0]), rel=0.2)
+    # the restoring force's memory enters the equation of v; no function of one variable explains it
+    assert left.equation == "v" and left.shape_share > 0.9
+    assert left.share_explained < 0.8
+    shape = res.discrepancy.equations[0]
+    assert shape.equation == "v" and len(shape.samples["est"]) == len(shape.time["est"]) == 1000
+
+
+@pytest.mark.slow
+def test_delay_on_a_coarsely_sampled_two_lag_process_after_finer_steps():
+    model = ss.delay_model()
+    model["parameters"][2]["value"] = 1.0   # a start from which one RK4 step collapses the second lag
+    body = {"model": model, "method": "multiple_shooting", "options": {"input_interpolation": "zoh"},
+            "experiments": [ss.delay_record(1)], "validation": [ss.delay_record(2, name="val")]}
+    res = discover(DiscoverRequest.model_validate(body))
+    assert any("integration_step_coarse" in n for n in res.notes), res.notes
+    assert res.steps and all(s.effect == "input_delay" for s in res.steps), res.conclusion
+    # the input the final model reads is u shifted by the whole delay (found in one step or two)
+    u = np.array(body["experiments"][0]["inputs"]["u"])
+    read = np.array(res.added_inputs["est"][res.model.inputs[-1]])
+    shifts = [int(np.argmin([np.abs(read[20:] - np.roll(u, s)[20:]).max() for s in range(12)]))]
+    assert shifts == [ss.DELAY["delay_samples"]], res.conclusion
+    p = res.fit.parameters
+    # two lags in series are the same output in either order
+    assert sorted([p["tau1"].value, p["tau2"].value]) == pytest.approx(
+        sorted([ss.DELAY["tau1"], ss.DELAY["tau2"]]), rel=0.05)
+    assert p["K"].value == pytest.approx(ss.DELAY["K"], rel=0.05)

@@ -101,3 +101,34 @@ def rl_continuous_model(R: float = 1.0, L: float = 1.0) -> dict:
             "parameters": [{"name": "R", "value": R, "lower": 0, "unit": "ohm"},
                            {"name": "L", "value": L, "lower": 0, "unit": "H"}],
             "equations": {"i": "(-R*i + u)/L"}}
+
+
+RLC_TRUTH = {"R": 2.0, "L": 0.5, "C": 0.02}
+
+
+def simulate_rlc(u: np.ndarray, noise: float = 1e-4, seed: int = 0, ar: float = 0.0) -> np.ndarray:
+    """Series RLC (L di/dt = u − R i − v_C, C dv_C/dt = i), voltage held between samples, exact ZOH
+    response sampled every 1 ms, plus measurement noise (AR(1) with pole `ar`: coloured when > 0)."""
+    p = RLC_TRUTH
+    a = np.array([[-p["R"] / p["L"], -1 / p["L"]], [1 / p["C"], 0.0]])
+    b = np.array([[1 / p["L"]], [0.0]])
+    ad, bd, *_ = signal.cont2discrete((a, b, np.array([[1.0, 0.0]]), np.zeros((1, 1))), RL_T, "zoh")
+    x, out = np.zeros(2), np.empty(u.size)
+    for k, uk in enumerate(u):
+        out[k] = x[0]
+        x = ad @ x + bd[:, 0] * uk
+    white = np.random.default_rng(seed).standard_normal(u.size)
+    coloured = signal.lfilter([np.sqrt(1 - ar * ar)], [1.0, -ar], white)
+    return out + noise * coloured
+
+
+def rlc_model(guess=(1.0, 1.0, 0.01)) -> dict:
+    """The RLC circuit's Euler difference equation in R, L, C (the model reference adaptive systems
+    chapter, example 7-6): i[k+1] = (2 − TR/L) i + (TR/L − 1 − T²/(LC)) i[k−1] + T/L (u − u[k−1])."""
+    return {"name": "rlc_circuit", "states": ["i", "i_1", "u_1"], "inputs": ["u"], "constants": {"T": RL_T},
+            "parameters": [{"name": "R", "value": guess[0], "lower": 0, "unit": "ohm"},
+                           {"name": "L", "value": guess[1], "lower": 0, "unit": "H"},
+                           {"name": "C", "value": guess[2], "lower": 0, "unit": "F"}],
+            "equations": {"i": "(2 - T*R/L)*i + (T*R/L - 1 - T^2/(L*C))*i_1 + T/L*u - T/L*u_1",
+                          "i_1": "i", "u_1": "u"},
+            "outputs": {"i": "i"}, "discrete": {"sample_time": RL_T}}

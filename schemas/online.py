@@ -217,7 +217,8 @@ class MrasOptions(BaseModel):
 
     kp: float = Field(default=0.0, ge=0, description="proportional adaptation gain (>= 0)")
     ki: float = Field(default=1000.0, gt=0, description="integral adaptation gain [1/s] (> 0), on normalised signals")
-    substeps: int = Field(default=1, ge=1, le=100, description="Euler steps of the adjustable model per sample")
+    substeps: int = Field(default=1, ge=1, le=100, description="integrator steps of the adjustable model per sample "
+                                                                    "(RK4 unless options.integrator is cvodes)")
     trajectory_every: int = Field(default=1, ge=1, le=100_000)
 
 

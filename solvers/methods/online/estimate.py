@@ -77,7 +77,7 @@ def fit_online(request: FitRequest) -> FitResult:
         every = opts.rls.trajectory_every
     else:
         from greyfit.solvers.methods.online.mras import model_reference_adaptive
-        run = model_reference_adaptive(form, data[0], ed, eep.equations, eta0, opts.mras)
+        run = model_reference_adaptive(form, data[0], ed, eep.equations, eta0, opts.mras, opts)
         every = opts.mras.trajectory_every
     d = data[0]
     excitation = excitation_report(phi, run, {u: d.u[k, ed.rows] for k, u in enumerate(cm.inputs)},

@@ -182,7 +182,7 @@ class TimeVarying(BaseModel):
 
 # --- fit side ------------------------------------------------------------------------------------
 class RlsOptions(BaseModel):
-    """Recursive least squares (seed 003, eqs. 7-38/39 and 7-44/45)."""
+    """Recursive least squares (model reference adaptive systems chapter, eqs. 7-38/39 and 7-44/45)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -211,7 +211,7 @@ class RlsOptions(BaseModel):
 
 
 class MrasOptions(BaseModel):
-    """Model-reference adaptive estimator (seed 003, 7.3) with the PI adaptation law (7-29/30)."""
+    """Model-reference adaptive estimator (model reference adaptive systems chapter, 7.3) with the PI adaptation law (7-29/30)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -223,11 +223,11 @@ class MrasOptions(BaseModel):
 
 
 class Prefilter(BaseModel):
-    """The same stable low-pass on both sides of the equation (seed 004; state-variable filter).
+    """The same stable low-pass on both sides of the equation (Robust parameter estimation by noise reduction; state-variable filter).
 
     Continuous-time models: n cascaded first-order filters ω/(s+ω) on states and inputs; the
     derivative of the filtered state comes from the filter itself, ω(F^{n-1}x − F^n x), so no
-    differentiation of noisy data is needed. Discrete-time models: seed 004's
+    differentiation of noisy data is needed. Discrete-time models: the noise-reduction paper's
     H_f = (1−a_f)/(1 − a_f z⁻¹), a_f = exp(−2π f_c Ts), n times, on outputs and inputs.
     The first 5 time constants are dropped (filter start-up).
     """

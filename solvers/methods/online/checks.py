@@ -23,7 +23,7 @@ from greyfit.schemas.online import ExcitationReport
 from greyfit.solvers.checks.quality import FAILED_CODES, SUSPECT_CODES
 from greyfit.solvers.model.parameters import ParameterLayout
 
-OUTSIDE_BOUNDS = "estimate_outside_bounds"
+OUTSIDE_BOUNDS = "estimate_outside_bounds"      # in quality.SUSPECT_CODES
 
 
 def excitation_warnings(excitation: ExcitationReport) -> list[FitWarning]:
@@ -81,11 +81,10 @@ def apply_verdict(result: FitResult, warnings: list[FitWarning]) -> FitResult:
     codes = {w.code for w in warnings}
     if not result.success:
         codes.add("not_converged")
-    suspect = SUSPECT_CODES | {OUTSIDE_BOUNDS}
-    quality = "failed" if codes & FAILED_CODES else "suspect" if codes & suspect else "good"
+    quality = "failed" if codes & FAILED_CODES else "suspect" if codes & SUSPECT_CODES else "good"
     message = result.message
     if quality == "suspect":
-        message += "; but the result is suspect: " + "; ".join(sorted(codes & suspect))
+        message += "; but the result is suspect: " + "; ".join(sorted(codes & SUSPECT_CODES))
     return result.model_copy(update={
         "warnings": list(result.warnings) + warnings, "quality": quality, "success": quality == "good",
         "status": {"good": "success", "suspect": "suspect", "failed": "failed"}[quality], "message": message})

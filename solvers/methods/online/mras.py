@@ -1,4 +1,4 @@
-"""Model-reference adaptive estimator (seed 003, 7.3): the plant is the reference model.
+"""Model-reference adaptive estimator (model reference adaptive systems chapter, 7.3): the plant is the reference model.
 
 For a continuous-time model whose right-hand side is affine in the estimated vector η,
 dx/dt = f₀(x, u) + G(x, u) η, the adjustable (parallel) model
@@ -9,9 +9,9 @@ is driven by the measured input, and η̂ follows the PI adaptation law of eqs. 
 
     η̂ = η̂(0) + Kp·s(t) + Ki·∫ s dτ,      s = Gᵀ(x̂, u) e,
 
-which satisfies Popov's integral inequality (the proof in seed 003, example 7-3) when the error
+which satisfies Popov's integral inequality (the proof in the model reference adaptive systems chapter, example 7-3) when the error
 system's linear block is strictly positive real — true for a stable first-order plant (compensator
-P = 1); for higher orders seed 003 inserts P from the Lyapunov equation, which needs the unknown A:
+P = 1); for higher orders the chapter inserts P from the Lyapunov equation, which needs the unknown A:
 only P = I is implemented, so stability is guaranteed when A + Aᵀ < 0. To make the gains
 dimensionless the law runs on η scaled by its guess, e by the RMS of each state and every
 regressor column by its RMS. The adjustable model and ∫s are integrated together by the fits'

@@ -1,4 +1,4 @@
-"""Recursive least squares (seed 003, 7.4) and the persistent-excitation report.
+"""Recursive least squares (model reference adaptive systems chapter, 7.4) and the persistent-excitation report.
 
 The regression y_k = Φ_k η + e_k comes from equation error's sample Jacobian (one block of rows per
 sample: one row per equation with a free parameter), so continuous-time models with estimated
@@ -161,7 +161,7 @@ def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
 
     Full rank: the smallest eigenvalue of its Gram matrix above 1e-10 of the largest
     (fast sampling makes neighbouring samples nearly collinear, hence the small threshold). A constant has
-    order 1, a sinusoid 2, n sinusoids 2n (seed 003: an n-th order plant needs n frequencies).
+    order 1, a sinusoid 2, n sinusoids 2n (the model reference adaptive systems chapter: an n-th order plant needs n frequencies).
     """
     u = np.asarray(u, dtype=float)
     n_max = min(max_order, u.size // 2)

@@ -14,6 +14,7 @@ from greyfit.solvers.inference.covariance import correlation_from, estimate_cova
 from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
 from greyfit.solvers.checks.diagnostics import residual_analyses
 from greyfit.solvers.methods.equation_error import EquationErrorProblem, build_equation_error
+from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warnings
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
 from greyfit.solvers.checks.fit_checks import (
@@ -180,6 +181,8 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         n_extra = len(x0_free)
         jac, res, groups = sensitivity_jacobian(oem, theta_s, x0s)
     keep = np.array([b is None for b in bounds] + [True] * n_extra)
+    if eep is not None:   # noise in the regressors biases equation error: an instrumental-variable check
+        before = before + equation_error_bias_warnings(eep, cm, data, layout, outcome.w, keep[:layout.size], opts)
 
     ndata = res.size
     nvarys = int(keep.sum())

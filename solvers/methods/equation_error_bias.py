@@ -89,8 +89,8 @@ def instrumental_estimate(eep: EquationErrorProblem, w: np.ndarray, z: np.ndarra
     """
     z = z[:, columns]
     jac_ls, r_ls = eep.problem.evaluate_jacobian(w)
-    if z.shape[0] < MIN_ROWS_PER_PARAMETER * max(int(columns.sum()), 1):
-        return None
+    if z.shape[0] != r_ls.size or z.shape[0] < MIN_ROWS_PER_PARAMETER * max(int(columns.sum()), 1):
+        return None          # extra rows (a regularisation) or too few rows: no check
     theta = np.array(w, dtype=float)
     for _ in range(IV_ITERATIONS):
         jac, r = eep.problem.evaluate_jacobian(theta)

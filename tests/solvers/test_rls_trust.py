@@ -10,7 +10,7 @@ import pytest
 
 from greyfit.schemas import FitRequest
 from greyfit.solvers.fit import fit_model
-from tests.online_systems import RL_T, rl_input, rlc_model, simulate_rlc
+from tests.online_systems import RL_T, rl_experiment, rl_input, rl_model, rlc_model, simulate_rl, simulate_rlc
 
 COEFFICIENTS = ["c_i_i", "c_i_i_1", "c_i_u", "c_i_u_1"]
 T = np.arange(4001) * RL_T
@@ -100,3 +100,35 @@ def test_estimates_without_physical_pre_image_are_marked_per_sample():
         assert marks.shape == values.shape
         np.testing.assert_array_equal(marks, ~(values >= 0))
     assert np.mean(tr.outside_bounds["R"]) > 0.05 and np.mean(tr.outside_bounds["L"]) > 0.05
+
+
+def test_final_estimate_outside_the_declared_bounds_is_suspect():
+    """The RL circuit (L = 0.5 H) with L declared ≤ 0.4: RLS does not enforce bounds; its final L has
+    no pre-image inside them, which is said, per sample and at the end."""
+    t, u, i = simulate_rl(2.0, noise=1e-4)
+    model = rl_model(L=0.3)
+    model["parameters"][1]["upper"] = 0.4
+    res = fit_model(FitRequest.model_validate({"model": model, "experiments": [rl_experiment(t, u, i)],
+                                               "method": "recursive_least_squares",
+                                               "options": {"rls": {"forgetting": 0.98, "trajectory_every": 10}}}))
+    assert res.parameters["L"].value == pytest.approx(0.5, rel=0.02)
+    assert not res.success and res.quality == "suspect"
+    (w,) = [w for w in res.warnings if w.code == "estimate_outside_bounds"]
+    assert w.detail["parameter"] == "L" and w.detail["bound"] == "upper" and w.detail["fraction_of_samples"] > 0.8
+    assert res.trajectory.outside_bounds["L"][-1] and not any(res.trajectory.outside_bounds["R"][100:])
+
+
+def test_dc_input_into_the_first_order_rl_circuit_is_not_success():
+    """Order 1 where the two coefficients need 2 (the chapter: a DC steady state cannot give L)."""
+    t = np.arange(1001) * RL_T
+    u = np.ones(t.size)
+    i = np.zeros(t.size)
+    for k in range(t.size - 1):
+        i[k + 1] = np.exp(-RL_T * 4.0) * i[k] + (1 - np.exp(-RL_T * 4.0)) / 2.0 * u[k]
+    for seed in range(3):
+        noisy = i + 1e-3 * np.random.default_rng(seed).standard_normal(t.size)
+        res = fit_model(FitRequest.model_validate({"model": rl_model(), "experiments": [rl_experiment(t, u, noisy)],
+                                                   "method": "recursive_least_squares",
+                                                   "options": {"rls": {"forgetting": 0.98}}}))
+        assert not res.success and res.trajectory.excitation.required_order == 2
+        assert any(w.code == "poor_excitation" and "order 2" in w.message for w in res.warnings)

@@ -22,8 +22,7 @@ from typing import Any, Optional
 
 from sqlalchemy import (
     Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect,
-    select,
-    text, update,
+    select, text, tuple_, update,
 )
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import DBAPIError
@@ -206,6 +205,10 @@ def _add_queue_order(engine: Engine) -> None:
         QUEUE_INDEX.create(conn)
 
 
+def _chunks(items: list, size: int) -> list[list]:
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
 def _sqlite_file(engine: Engine) -> Optional[str]:
     url = make_url(str(engine.url))
     if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
@@ -361,10 +364,30 @@ class JobStore:
                      .values(status="failed", finished_at=now, error=json.dumps({"type": "WorkerLost",
                                                                                  "detail": detail})))
 
-    def renew(self, owner: str, lease_seconds: float) -> None:
+    def renew(self, owner: str, lease_seconds: float, held: list[tuple[str, int]]) -> int:
+        """Extend the leases of the tasks `owner` holds; give back the ones it owns but does not hold.
+
+        A claim whose COMMIT's answer was lost (the connection dropped after the database committed)
+        leaves tasks owned by this server that its dispatcher never learned of: renewing every row
+        it owns would keep them running, unrun, for ever. They go back to the queue without an
+        attempt counted (they never started). Returns how many were given back."""
+        now = time.time()
         with self.engine.begin() as conn:
-            conn.execute(update(tasks).where(tasks.c.owner == owner, tasks.c.status == "running")
-                         .values(lease_until=time.time() + lease_seconds))
+            owned = conn.execute(select(tasks.c.job_id, tasks.c.idx)
+                                 .where(tasks.c.owner == owner, tasks.c.status == "running")).all()
+            keep = set(held)
+            unknown = [(r.job_id, r.idx) for r in owned if (r.job_id, r.idx) not in keep]
+            known = [(r.job_id, r.idx) for r in owned if (r.job_id, r.idx) in keep]
+            for chunk in _chunks(known, 500):
+                conn.execute(update(tasks).where(tuple_(tasks.c.job_id, tasks.c.idx).in_(chunk),
+                                                 tasks.c.owner == owner, tasks.c.status == "running")
+                             .values(lease_until=now + lease_seconds))
+            for chunk in _chunks(unknown, 500):
+                conn.execute(update(tasks).where(tuple_(tasks.c.job_id, tasks.c.idx).in_(chunk),
+                                                 tasks.c.owner == owner, tasks.c.status == "running")
+                             .values(status="queued", owner=None, lease_until=None,
+                                     attempts=tasks.c.attempts - 1))
+        return len(unknown)
 
     def requeue_expired(self) -> int:
         """Tasks whose server stopped renewing their lease go back to the queue."""

@@ -25,7 +25,7 @@ from sqlalchemy import (
     select, text, tuple_, update,
 )
 from sqlalchemy.engine import Engine, make_url
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import DBAPIError, IntegrityError
 
 metadata = MetaData()
 
@@ -64,6 +64,17 @@ task_requests = Table(
     Column("job_id", String(36), primary_key=True),
     Column("idx", Integer, primary_key=True),
     Column("request", Text, nullable=False),
+)
+
+# Idempotency-Key of a job's creation (the IETF httpapi draft's semantics): the same key and body
+# give the job created the first time; written in the job's own transaction, so a job exists with
+# its key or not at all
+idempotency_keys = Table(
+    "idempotency_keys", metadata,
+    Column("key", String(200), primary_key=True),
+    Column("fingerprint", String(64), nullable=False),
+    Column("job_id", String(36), nullable=False),
+    Column("created_at", Float, nullable=False),
 )
 
 # one row per server: readiness writes it to prove that the store accepts writes
@@ -105,6 +116,10 @@ _FINISH = (update(tasks)
 
 class _Raced(Exception):
     """A claim found a task taken by another server between its select and its update."""
+
+
+class IdempotencyKeyReused(Exception):
+    """An Idempotency-Key sent again with another body: answered 422."""
 
 
 class StoreUnavailable(Exception):
@@ -253,12 +268,45 @@ class JobStore:
                                    f"{str(exc).splitlines()[0][:300]}",
                                    f"the job store does not take writes ({type(exc).__name__})") from exc
 
-    def create_job(self, kind: str, requests: list[dict | str], label: Optional[str]) -> str:
-        """A job of one task per request (a dict, or its JSON text, stored as it is)."""
+    def create_job(self, kind: str, requests: list[dict | str], label: Optional[str],
+                   idempotency: Optional[tuple[str, str]] = None) -> str:
+        """A job of one task per request (a dict, or its JSON text, stored as it is).
+
+        `idempotency`: (key, fingerprint of kind, label and requests). A key already stored with the
+        same fingerprint returns its job, no new one; with another, IdempotencyKeyReused."""
         self.check_file()
+        if idempotency is not None:
+            existing = self._job_of_key(*idempotency)
+            if existing is not None:
+                return existing
+        try:
+            return self._insert_job(kind, requests, label, idempotency)
+        except IntegrityError:
+            if idempotency is None:
+                raise
+            existing = self._job_of_key(*idempotency)   # a concurrent request with the key won the race
+            if existing is None:
+                raise
+            return existing
+
+    def _job_of_key(self, key: str, fingerprint: str) -> Optional[str]:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(idempotency_keys.c.fingerprint, idempotency_keys.c.job_id)
+                               .where(idempotency_keys.c.key == key)).first()
+        if row is None:
+            return None
+        if row.fingerprint != fingerprint:
+            raise IdempotencyKeyReused(key)
+        return row.job_id
+
+    def _insert_job(self, kind: str, requests: list[dict | str], label: Optional[str],
+                    idempotency: Optional[tuple[str, str]]) -> str:
         job_id = str(uuid.uuid4())
         now = time.time()
         with self.engine.begin() as conn:
+            if idempotency is not None:
+                conn.execute(idempotency_keys.insert().values(key=idempotency[0], fingerprint=idempotency[1],
+                                                              job_id=job_id, created_at=now))
             conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
                                               created_at=now, total=len(requests)))
             conn.execute(tasks.insert(), [

@@ -211,7 +211,7 @@ class RlsOptions(BaseModel):
 
 
 class MrasOptions(BaseModel):
-    """Model-reference adaptive estimator (model reference adaptive systems chapter, 7.3) with the PI adaptation law (7-29/30)."""
+    """Model-reference adaptive estimator (model reference adaptive systems chapter, 7.3), PI law (7-29/30)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -223,7 +223,8 @@ class MrasOptions(BaseModel):
 
 
 class Prefilter(BaseModel):
-    """The same stable low-pass on both sides of the equation (Robust parameter estimation by noise reduction; state-variable filter).
+    """The same stable low-pass on both sides of the equation (state-variable filter; Robust parameter
+    estimation by noise reduction).
 
     Continuous-time models: n cascaded first-order filters ω/(s+ω) on states and inputs; the
     derivative of the filtered state comes from the filter itself, ω(F^{n-1}x − F^n x), so no

@@ -7,14 +7,23 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import (
-    CovariancePublic, FitMethod, FitMetrics, FitOptions, FitResult, ParameterEstimate, SolverInfo,
+    CovariancePublic,
+    FitMethod,
+    FitMetrics,
+    FitOptions,
+    FitResult,
+    ParameterEstimate,
+    SolverInfo,
 )
 from greyfit.schemas.frequency import (
-    DataSetResponse, FrequencyFitRequest, FrequencyResponseResult, LinearisedOdeModel, LoopStability,
+    DataSetResponse,
+    FrequencyFitRequest,
+    FrequencyResponseResult,
+    LinearisedOdeModel,
+    LoopStability,
 )
-from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.errors import DataError
-from greyfit.solvers.fit import _at_bound, _message, draw_starts
+from greyfit.solvers.fit import _at_bound, _message
 from greyfit.solvers.frequency.checks import assess_frequency_fit
 from greyfit.solvers.frequency.data import prepare_frequency_data
 from greyfit.solvers.frequency.levy import levy_fit
@@ -23,9 +32,11 @@ from greyfit.solvers.frequency.polynomials import ClosedLoop, compile_transfer_f
 from greyfit.solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
 from greyfit.solvers.frequency.response import numeric_response
 from greyfit.solvers.frequency.stability import poles, routh_first_column
-from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
-from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.statistics import information_criteria
+from greyfit.solvers.methods.multistart import draw_starts
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
 
 FEASIBILITY_TOLERANCE = 1e-7
 

@@ -12,7 +12,12 @@ import pytest
 from greyfit.schemas import FitRequest
 from greyfit.solvers.fit import fit_model
 from tests.online_systems import (
-    FIRST_ORDER, SECOND_ORDER, first_order_model, second_order_model, seed004_experiment, simulate_seed004,
+    FIRST_ORDER,
+    SECOND_ORDER,
+    first_order_model,
+    second_order_model,
+    seed004_experiment,
+    simulate_seed004,
 )
 from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
 

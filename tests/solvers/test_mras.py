@@ -5,7 +5,12 @@ import pytest
 from greyfit.schemas import FitRequest
 from greyfit.solvers.fit import fit_model
 from tests.online_systems import (
-    induction_motor_experiment, induction_motor_model, rl_continuous_model, rl_experiment, rl_model, simulate_induction_motor,
+    induction_motor_experiment,
+    induction_motor_model,
+    rl_continuous_model,
+    rl_experiment,
+    rl_model,
+    simulate_induction_motor,
     simulate_rl,
 )
 

@@ -45,7 +45,8 @@ def test_decreasing_gain_with_default_initialisation_equals_batch_least_squares(
         return
     batch = fit_model(FitRequest.model_validate({
         "model": rlc_model(), "method": "equation_error",
-        "experiments": [{"name": "rlc", "time": T.tolist(), "inputs": {"u": u.tolist()}, "outputs": {"i": i.tolist()}}]}))
+        "experiments": [{"name": "rlc", "time": T.tolist(), "inputs": {"u": u.tolist()},
+                         "outputs": {"i": i.tolist()}}]}))
     for name in ("R", "L", "C"):     # the mapped physical parameters: batch equation error's
         assert res.parameters[name].value == pytest.approx(batch.parameters[name].value, rel=1e-3), name
 
@@ -67,8 +68,8 @@ def _inputs():
 @pytest.mark.parametrize("forgetting", [1.0, 0.98])
 def test_dc_and_single_sine_into_a_second_order_model_are_not_success(forgetting):
     """A second-order plant needs two frequencies (PE order 4). Before: success true with L 100 times
-    off (DC) and negative R, L (one sine). 4 inputs × 3 noise seeds, white and coloured noise (θ(t) kept every 20th sample: mapping every
-    sample back to R, L, C is what costs time)."""
+    off (DC) and negative R, L (one sine). 4 inputs × 3 noise seeds, white and coloured noise (θ(t)
+    kept every 20th sample: mapping every sample back to R, L, C is what costs time)."""
     options = {"gain_law": "decreasing_gain"} if forgetting == 1.0 else {"forgetting": forgetting}
     for name, u, order in _inputs():
         for seed in range(3):

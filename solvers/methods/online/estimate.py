@@ -13,23 +13,29 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import (
-    CovariancePublic, FitMethod, FitMetrics, FitRequest, FitResult, ParameterEstimate, SolverInfo,
+    CovariancePublic,
+    FitMethod,
+    FitMetrics,
+    FitRequest,
+    FitResult,
+    ParameterEstimate,
+    SolverInfo,
 )
 from greyfit.schemas.online import ParameterTrajectory
-from greyfit.solvers.inference.covariance import correlation_from
-from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.checks.diagnostics import residual_analysis
-from greyfit.solvers.model.discrete import check_sample_time, is_discrete
-from greyfit.solvers.methods.equation_error import build_equation_error
-from greyfit.solvers.errors import DataError
-from greyfit.solvers.model.compiler import compile_model
-from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.prefilter import apply_prefilter
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.inference.covariance import correlation_from
+from greyfit.solvers.inference.statistics import information_criteria, student_t_quantile
+from greyfit.solvers.methods.equation_error import build_equation_error
 from greyfit.solvers.methods.online.checks import apply_verdict, bound_warnings, excitation_warnings, outside_bounds
 from greyfit.solvers.methods.online.recursive import OnlineRun, excitation_report, recursive_least_squares
-from greyfit.solvers.model.reparametrize import LinearForm, linear_form, to_physical
 from greyfit.solvers.methods.online.rls_noise import measurement_noise
-from greyfit.solvers.inference.statistics import information_criteria, student_t_quantile
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.discrete import check_sample_time, is_discrete
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.model.reparametrize import LinearForm, linear_form, to_physical
 
 
 def _check_request(request: FitRequest) -> None:

@@ -9,7 +9,8 @@ is driven by the measured input, and η̂ follows the PI adaptation law of eqs. 
 
     η̂ = η̂(0) + Kp·s(t) + Ki·∫ s dτ,      s = Gᵀ(x̂, u) e,
 
-which satisfies Popov's integral inequality (the proof in the model reference adaptive systems chapter, example 7-3) when the error
+which satisfies Popov's integral inequality (the proof in the model reference adaptive systems
+chapter, example 7-3) when the error
 system's linear block is strictly positive real — true for a stable first-order plant (compensator
 P = 1); for higher orders the chapter inserts P from the Lyapunov equation, which needs the unknown A:
 only P = I is implemented, so stability is guaranteed when A + Aᵀ < 0. To make the gains
@@ -32,11 +33,11 @@ import numpy as np
 
 from greyfit.schemas.fit import FitOptions
 from greyfit.schemas.online import MrasOptions
-from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.data.experiments import ExperimentData
-from greyfit.solvers.model.discrete import delay_sources
+from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.methods.online.recursive import OnlineRun
+from greyfit.solvers.model.discrete import delay_sources
 from greyfit.solvers.model.reparametrize import LinearForm
 
 

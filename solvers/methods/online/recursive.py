@@ -161,7 +161,8 @@ def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
 
     Full rank: the smallest eigenvalue of its Gram matrix above 1e-10 of the largest
     (fast sampling makes neighbouring samples nearly collinear, hence the small threshold). A constant has
-    order 1, a sinusoid 2, n sinusoids 2n (the model reference adaptive systems chapter: an n-th order plant needs n frequencies).
+    order 1, a sinusoid 2, n sinusoids 2n (the model reference adaptive systems chapter: an n-th order
+    plant needs n frequencies).
     """
     u = np.asarray(u, dtype=float)
     n_max = min(max_order, u.size // 2)

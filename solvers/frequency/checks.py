@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from greyfit.schemas.fit import FitResult, FitWarning
+from greyfit.schemas.frequency import FrequencyResponseResult
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
 from greyfit.solvers.frequency.data import FrequencySet
 from greyfit.solvers.inference.covariance import CovarianceEstimate
@@ -51,11 +52,11 @@ def log_scatter(omega: np.ndarray, g: np.ndarray) -> float:
     return float(np.median(parts) / 0.6745)
 
 
-def fit_level_warnings(result: FitResult, sets: list[FrequencySet]) -> list[FitWarning]:
+def fit_level_warnings(result: FitResult, response: FrequencyResponseResult,
+                       sets: list[FrequencySet]) -> list[FitWarning]:
     """`fit_below_noise_level` for each data set whose ln(Ĝ/G) is far above the data's scatter."""
-    out = []
-    fitted = {d.name: np.array(d.fitted_real) + 1j * np.array(d.fitted_imag)
-              for d in result.frequency_response.data}
+    out: list[FitWarning] = []
+    fitted = {d.name: np.array(d.fitted_real) + 1j * np.array(d.fitted_imag) for d in response.data}
     for s in sets:
         g_hat = fitted[s.name]
         sigma = log_scatter(s.omega, s.response)
@@ -78,7 +79,7 @@ def fit_level_warnings(result: FitResult, sets: list[FrequencySet]) -> list[FitW
 
 
 def bound_warnings(result: FitResult) -> list[FitWarning]:
-    out = []
+    out: list[FitWarning] = []
     for label, p in result.parameters.items():
         if p.at_bound:
             out.append(FitWarning(
@@ -101,9 +102,9 @@ def assess_frequency_fit(result: FitResult, *, sets: list[FrequencySet], layout:
     jac : data-residual Jacobian in scaled parameters (all columns); `keep`: columns not at a bound.
     stability_enforced : whether an unstable fitted loop is a failure of the fit (routh, penalty).
     """
-    before = fit_level_warnings(result, sets) + bound_warnings(result)
     fr = result.frequency_response
-    if stability_enforced and not fr.stable:
+    before = bound_warnings(result) + ([] if fr is None else fit_level_warnings(result, fr, sets))
+    if fr is not None and stability_enforced and not fr.stable:
         bad = [lp.setting for lp in fr.loops if not lp.stable]
         before.append(FitWarning(code=UNSTABLE, message=f"the fitted closed loop is unstable for {bad}",
                                  detail={"loops": bad}))

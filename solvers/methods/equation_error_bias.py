@@ -49,6 +49,8 @@ def simulated_instruments(eep: EquationErrorProblem, cm, data, layout: Parameter
     instruments that correlate with the regressors and not with the noise in them (the refined
     instrumental variable idea). None when the simulation diverges.
     """
+    if eep.sample is None:
+        return None
     step = make_step(cm, options)
     neq, blocks = len(eep.equations), []
     for e, (d, ed) in enumerate(zip(data, eep.per_experiment)):
@@ -62,7 +64,8 @@ def simulated_instruments(eep: EquationErrorProblem, cm, data, layout: Parameter
         if not np.all(np.isfinite(states)) or np.any(np.abs(states) > DIVERGED * np.maximum(size, 1e-300)):
             return None
         n = ed.rows.size
-        _, jj = eep.sample(states, ed.u[:, ed.rows], d.t[ed.rows][None, :], ed.dx[eep.equations][:, ed.rows],
+        u = d.u if ed.u is None else ed.u        # the inputs the equations saw (kernel-averaged or recorded)
+        _, jj = eep.sample(states, u[:, ed.rows], d.t[ed.rows][None, :], ed.dx[eep.equations][:, ed.rows],
                            p, eep.weights[eep.equations], n=n)
         jp = np.asarray(jj).reshape(neq, n, cm.np).transpose(1, 0, 2).reshape(n * neq, cm.np)
         blocks.append(jp @ layout.matrix[e])

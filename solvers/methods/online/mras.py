@@ -97,7 +97,8 @@ def model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, equations:
     x_scale = np.array([np.sqrt(np.nanmean(xs[i, rows] ** 2)) or 1.0 for i in equations])
     g_scale = _regressor_scale(cm, layout, equations, xs[:, rows], d.u[:, rows], d.t[rows])
     parallel, at_sample = _parallel_model(cm, layout, equations, np.asarray(eta0, float), opts, x_scale, g_scale)
-    step = make_step(parallel, fit_options.model_copy(update={"substeps": opts.substeps}))
+    # a stand-in model: make_step integrates anything with model.discrete, nx, nu, np and rhs
+    step = make_step(parallel, fit_options.model_copy(update={"substeps": opts.substeps}))  # type: ignore[arg-type]
     k = np.arange(first, last)
     params = np.vstack([xs[:, k], xs[:, k + 1], d.t[k][None, :], (d.t[k + 1] - d.t[k])[None, :]])
     start = np.concatenate([xs[equations, first], np.zeros(layout.size)])

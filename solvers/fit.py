@@ -20,6 +20,7 @@ from greyfit.solvers.checks.fit_checks import (
     active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
 )
 from greyfit.solvers.methods.extensions import prepare_batch
+from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
 from greyfit.solvers.methods.node_initialisation import node_warnings
 from greyfit.solvers.nlp.solver import NlpOutcome, solve_linear_least_squares
@@ -109,13 +110,13 @@ def fit_model(request: FitRequest) -> FitResult:
     """
     if request.method in (FitMethod.recursive_least_squares, FitMethod.mras):   # online estimators
         from greyfit.solvers.methods.online.estimate import fit_online
-        return fit_online(request)
+        return attach_model(fit_online(request), request.model)
     prepared, preprocessing = prepare_request(request)
     result = _fit_prepared(prepared)
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
-    return result
+    return attach_model(result, request.model)   # units and the model travel with the result
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:

@@ -114,7 +114,8 @@ def _correlation_rows(result: "FitResult", min_correlation: float) -> list[str]:
 
 
 def _output_rows(result: "FitResult") -> list[str]:
-    rows = [["output", "records", "fit %", "NRMSE", "RMSE", "residual"]]
+    rows = [["data set" if result.frequency_response is not None else "output", "records", "fit %", "NRMSE", "RMSE",
+             "residual"]]
     white = {a.output: a.whiteness.passed for a in result.residual_analysis if a.whiteness.lags}
     for out, rmse in result.metrics.rmse.items():
         fit = result.metrics.fit_percent.get(out)

@@ -83,7 +83,8 @@ def add_output_options(p, what: str, fail_on: bool = True) -> None:
     p.add_argument("--summary", action="store_true",
                    help=f"print a text report of the {what} (parameters, metrics, warnings) instead of the JSON")
     p.add_argument("-o", "--output", metavar="FILE",
-                   help="also write the JSON result to FILE (with --summary: the report on stdout, the JSON there)")
+                   help="write the JSON result to FILE instead of stdout (with --summary: the report on stdout, "
+                        "the JSON in FILE)")
     if fail_on:
         p.add_argument("--fail-on", choices=list(FAIL_ON), default=None,
                        help="exit 3 when the result's quality is failed (failed), or suspect or failed (suspect); "

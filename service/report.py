@@ -282,7 +282,7 @@ def _report_model(result, request):
 
 def _time_domain_figures(plt, report: Report, fit: FitResult, request, model, svg: bool) -> None:
     if fit.frequency_response is not None:
-        report.figures += frequency_figures(plt, fit.frequency_response, _save, _short, svg, report.notes)
+        report.figures += frequency_figures(plt, fit.frequency_response, svg, report.notes)
         return
     time_request = request if isinstance(request, FitRequest) else None
     if time_request is not None and not isinstance(model, Model):

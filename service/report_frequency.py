@@ -61,9 +61,9 @@ def _nyquist_axes(ax, ds: DataSetResponse, short) -> None:
     ax.legend(fontsize=7, frameon=False, loc="best")
 
 
-def frequency_figures(plt, response: FrequencyResponseResult, save, short, svg: bool,
-                      notes: list[str]) -> list:
+def frequency_figures(plt, response: FrequencyResponseResult, svg: bool, notes: list[str]) -> list:
     """[Bode figure, Nyquist figure], one column per data set (at most MAX_LOOPS)."""
+    from greyfit.service.report import _grid_layout, _save as save, _short as short   # (report imports this)
     sets = [d for d in response.data if len(d.omega) > 0]
     if not sets:
         notes.append("frequency response: no data set with frequencies to draw")
@@ -75,13 +75,13 @@ def frequency_figures(plt, response: FrequencyResponseResult, save, short, svg: 
     fig, axes = plt.subplots(2, n, figsize=(4.6 * n, 5.4), squeeze=False, sharex="col")
     for c, ds in enumerate(sets):
         _bode_column(axes[0][c], axes[1][c], ds, short)
-    fig.tight_layout()
+    _grid_layout(fig, 2, n, left=0.9, bottom=0.55, top=0.3, wgap=0.95, hgap=0.25)
     figures = [save(plt, fig, "bode", "Bode magnitude and phase of each data set: measured (circles) and the "
                     "fitted model's closed-loop response (line)", svg)]
     fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.2), squeeze=False)
     for c, ds in enumerate(sets):
         _nyquist_axes(axes[0][c], ds, short)
-    fig.tight_layout()
+    _grid_layout(fig, 1, n, left=0.9, bottom=0.55, top=0.3, wgap=0.95)
     figures.append(save(plt, fig, "nyquist", "Nyquist plot of each data set: measured (circles) and the fitted "
                         "model (line, arrow at the lowest frequency)", svg))
     return figures

@@ -13,7 +13,7 @@ def attach_model(result: FitResult, model) -> FitResult:
         A finished fit (changed in place and returned).
     model : Model, TransferFunctionModel or LinearisedOdeModel
         The model as the request declared it. Per-experiment copies (``k[e1]``) and time-varying
-        samples take the unit of the parameter they copy.
+        samples (``k__3``) take the unit of the parameter they copy.
 
     Returns
     -------
@@ -22,7 +22,8 @@ def attach_model(result: FitResult, model) -> FitResult:
     """
     units = {p.name: p.unit for p in model.parameters if p.unit}
     for label, estimate in result.parameters.items():
-        unit = units.get(label.split("[", 1)[0])
+        base = label.split("[", 1)[0]   # k[e1]: a per-experiment copy of k
+        unit = units.get(base, units.get(base.rsplit("__", 1)[0]))   # k__3: a sample of a time-varying k
         if unit is not None and estimate.unit is None:
             estimate.unit = unit
     result.model = model

@@ -150,3 +150,16 @@ def test_every_option_has_help_text():
         assert sub.description, name
         for action in sub._actions:
             assert action.help, f"greyfit {name} {action.option_strings or action.dest} has no help text"
+
+
+def test_batch_fail_on_exits_3_when_a_result_is_failed(tmp_path):
+    good = json.loads(EXAMPLE.read_text())
+    stopped = json.loads(EXAMPLE.read_text())
+    stop_early(stopped)
+    requests, out = tmp_path / "requests.jsonl", tmp_path / "results.jsonl"
+    requests.write_text(json.dumps(good) + "\n" + json.dumps(stopped) + "\n")
+    proc = run_cli("batch", str(requests), "--out", str(out), "--workers", "1", "--fail-on", "failed")
+    assert proc.returncode == 3, proc.stderr   # without --fail-on: 0 (tests/test_cli_batch.py)
+    assert "1 result(s) are failed or worse (--fail-on failed)" in proc.stderr
+    lines = sorted((json.loads(x) for x in out.read_text().splitlines()), key=lambda r: r["line"])
+    assert [r["result"]["quality"] for r in lines] == ["good", "failed"]

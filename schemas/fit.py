@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_val
 
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.frequency import FrequencyResponseResult, LinearisedOdeModel, TransferFunctionModel
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
 from greyfit.schemas.preprocess import PreprocessingReport
@@ -287,3 +288,6 @@ class FitResult(BaseModel):
 
     def __str__(self) -> str:
         return self.report()
+
+
+JobCreate = job_create("JobCreate", FitRequest, "A batch of fits (POST /v1/jobs).")

@@ -8,6 +8,7 @@ asked of the built problem (`solvers.methods.batch.BatchFit`), never decided her
 from __future__ import annotations
 
 import time
+from typing import Literal
 
 import numpy as np
 
@@ -42,9 +43,9 @@ __all__ = ["fit_model", "draw_starts", "Residuals"]
 BOUND_TOLERANCE = 1e-5
 
 
-def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
+def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[Literal["lower", "upper"] | None]:
     lo, hi = layout.lower / layout.scale, layout.upper / layout.scale
-    flags: list[str | None] = []
+    flags: list[Literal["lower", "upper"] | None] = []
     for i, v in enumerate(theta_s):
         if np.isfinite(lo[i]) and v - lo[i] <= BOUND_TOLERANCE * max(1.0, abs(lo[i])):
             flags.append("lower")
@@ -151,7 +152,7 @@ def _segments(cm, data, channels: Residuals) -> list[list[tuple]]:
 
 
 def _result(request: FitRequest, built: BatchFit, outcome: NlpOutcome, layout: ParameterLayout,
-            theta: np.ndarray, bounds: list[str | None], cov, channels: Residuals, analyses,
+            theta: np.ndarray, bounds: list[Literal["lower", "upper"] | None], cov, channels: Residuals, analyses,
             x0s, cost: float, ndata: int, nvarys: int, n_starts: int, is_c: bool | None,
             started: float) -> FitResult:
     """The `FitResult` of a solved batch fit, before the checks."""

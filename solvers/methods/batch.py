@@ -7,7 +7,7 @@ reported channel, the initial states. What differs between the families lives he
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import Literal, Protocol
+from typing import Callable, Literal, Protocol
 
 import numpy as np
 
@@ -51,6 +51,7 @@ class BatchFit(Protocol):
 
     problem: LeastSquaresProblem
     data: list[ExperimentData]
+    affine_solve: Callable | None       # equation error with a TV penalty: IRLS (batch extensions)
     eep: EquationErrorProblem | None    # set by equation error (checks read its rows)
     oem: OutputErrorModel | None        # set by output error (checks read its simulations)
 
@@ -76,12 +77,12 @@ class BatchFit(Protocol):
 class EquationErrorFit:
     """Residual ẋ_measured − f(x, u, θ) on measured (or smoothed) states and derivatives."""
 
-    oem = None
+    oem: OutputErrorModel | None = None
 
     def __init__(self, eep: EquationErrorProblem, data: list[ExperimentData], cm: CompiledModel,
                  layout: ParameterLayout):
         self.eep, self.problem, self.data, self.cm, self.layout = eep, eep.problem, data, cm, layout
-        self.affine_solve = None   # set by the batch extensions (IRLS for total variation)
+        self.affine_solve: Callable | None = None   # set by the batch extensions (IRLS for TV)
 
     @classmethod
     def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
@@ -135,8 +136,8 @@ class OutputErrorFit:
     """Residual y_simulated − y_measured; single shooting (one simulation per record) or multiple
     shooting (nodes as decision variables, gaps as constraints)."""
 
-    eep = None
-    affine_solve = None
+    eep: EquationErrorProblem | None = None
+    affine_solve: Callable | None = None
 
     def __init__(self, oem: OutputErrorModel, problem: LeastSquaresProblem):
         self.oem, self.problem, self.data = oem, problem, oem.data

@@ -25,7 +25,8 @@ Family = Literal["equation_error", "output_error", "online", "frequency"]
 class BatchMethod(Protocol):
     """A method `fit_model` solves as one least-squares NLP over all records."""
 
-    family: Family
+    @property
+    def family(self) -> Family: ...
 
     def build(self, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
               options: FitOptions) -> BatchFit:
@@ -36,7 +37,8 @@ class BatchMethod(Protocol):
 class OnlineMethod(Protocol):
     """A method that runs over one record sample by sample and returns its own `FitResult`."""
 
-    family: Family
+    @property
+    def family(self) -> Family: ...
 
     def fit(self, request: FitRequest) -> FitResult:
         """Estimate over the request's single experiment."""
@@ -78,7 +80,7 @@ class _Frequency:
     family: Family = "frequency"
 
 
-METHODS: dict[FitMethod, BatchMethod | OnlineMethod | _Frequency] = {
+METHODS: dict[FitMethod, _EquationError | _OutputError | _Online | _Frequency] = {
     FitMethod.equation_error: _EquationError(),
     FitMethod.single_shooting: _OutputError("single"),
     FitMethod.multiple_shooting: _OutputError("multiple"),
@@ -99,12 +101,14 @@ def simulates_outputs(method: FitMethod | str) -> bool:
 
 
 def batch_method(method: FitMethod) -> BatchMethod:
+    """The batch implementation of `method` (TypeError for online and frequency methods)."""
     entry = METHODS[method]
-    if not isinstance(entry, (_EquationError, _OutputError)):
-        raise TypeError(f"{method.value} is not a batch method")
-    return entry
+    if isinstance(entry, (_EquationError, _OutputError)):
+        return entry
+    raise TypeError(f"{method.value} is not a batch method")
 
 
 def online_method(method: FitMethod) -> OnlineMethod | None:
+    """The online implementation of `method`, None for batch and frequency methods."""
     entry = METHODS[method]
     return entry if isinstance(entry, _Online) else None

@@ -24,7 +24,9 @@ def _request_kind(value) -> str:
     union's internals): model kind transfer_function/linearised_ode or `data` → a frequency fit,
     `discovery` → a discover request, else a fit request."""
     if not isinstance(value, dict):
-        return {FrequencyFitRequest: "frequency_fit", DiscoverRequest: "discover"}.get(type(value), "fit")
+        if isinstance(value, FrequencyFitRequest):
+            return "frequency_fit"
+        return "discover" if isinstance(value, DiscoverRequest) else "fit"
     model = value.get("model")
     if (isinstance(model, dict) and model.get("kind") in FREQUENCY_MODEL_KINDS) or "data" in value:
         return "frequency_fit"

@@ -6,7 +6,7 @@ and the JSON always agree. `FitResult.report()`, `DiscoveryResult` and `Simulate
 """
 from __future__ import annotations
 
-from typing import TYPE_CHECKING, Optional
+from typing import TYPE_CHECKING, Any, Optional
 
 if TYPE_CHECKING:
     from greyfit.schemas.discovery import DiscoveryResult
@@ -46,7 +46,7 @@ def _num(value: Optional[float], fmt: str = ".6g") -> str:
     return "-" if value is None else format(value, fmt)
 
 
-def _table(rows: list[list[str]], right: set[int] = frozenset()) -> list[str]:
+def _table(rows: list[list[str]], right: frozenset[int] | set[int] = frozenset()) -> list[str]:
     """Rows of cells as aligned columns (the first row is the header)."""
     widths = [max(len(r[c]) for r in rows) for c in range(len(rows[0]))]
     out = []
@@ -165,7 +165,7 @@ def fit_report(result: "FitResult", *, min_correlation: float = 0.9) -> str:
 
 
 def _discovery_table(result: "DiscoveryResult") -> list[str]:
-    rows_of = [("estimation", result.before, result.after)]
+    rows_of: list[tuple[str, Any, Any]] = [("estimation", result.before, result.after)]   # both have rmse, fit %
     if result.before.validation is not None and result.after.validation is not None:
         rows_of.append(("validation", result.before.validation, result.after.validation))
     rows = [["output", "records", "RMSE before", "RMSE after", "fit % before", "fit % after"]]

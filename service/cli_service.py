@@ -23,6 +23,7 @@ def cmd_serve(args) -> int:
     import gc
 
     import uvicorn
+
     from greyfit.service.app import create_app
     from greyfit.service.settings import Settings
     overrides = {}

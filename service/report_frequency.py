@@ -63,7 +63,9 @@ def _nyquist_axes(ax, ds: DataSetResponse, short) -> None:
 
 def frequency_figures(plt, response: FrequencyResponseResult, svg: bool, notes: list[str]) -> list:
     """[Bode figure, Nyquist figure], one column per data set (at most MAX_LOOPS)."""
-    from greyfit.service.report import _grid_layout, _save as save, _short as short   # (report imports this)
+    from greyfit.service.report import _grid_layout  # (report imports this)
+    from greyfit.service.report import _save as save
+    from greyfit.service.report import _short as short
     sets = [d for d in response.data if len(d.omega) > 0]
     if not sets:
         notes.append("frequency response: no data set with frequencies to draw")

@@ -35,7 +35,8 @@ def verdict_html(fit: FitResult) -> str:
     state = "converged" if converged(fit) else "not converged"
     codes = ", ".join(dict.fromkeys(w.code for w in fit.warnings))
     reasons = f" ({_e(codes)}: see Warnings)" if quality != "good" and codes else ""
-    return (f'<p class="verdict quality-{quality}" data-quality="{quality}" data-converged="{str(converged(fit)).lower()}">'
+    flag = str(converged(fit)).lower()
+    return (f'<p class="verdict quality-{quality}" data-quality="{quality}" data-converged="{flag}">'
             f"<b>{state}</b>, quality <b>{quality}</b>{reasons}<br>"
             f"{_e(fit.message)} ({_e(fit.solver.method.value)}, {fit.solver.return_status}, "
             f"{fit.solver.iterations} iterations)</p>")

@@ -10,9 +10,9 @@ from greyfit.schemas.report import ReportRequest
 from greyfit.service.deps import require_api_key
 from greyfit.service.json_body import StrictJSONRoute
 from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
+from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.routes.sync import run_sync, run_sync_request
 from greyfit.service.settings import Settings
-from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.store import task_requests, tasks
 
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],

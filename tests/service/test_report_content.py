@@ -111,3 +111,25 @@ def test_discrepancy_is_drawn_against_its_variable_where_discovery_returns_it():
     assert discrepancy_figure(plt, SimpleNamespace(discrepancy=None), False, notes) is None
     no_variable = SimpleNamespace(equations=[SimpleNamespace(equation="v", variable=None, variable_samples={})])
     assert discrepancy_figure(plt, SimpleNamespace(discrepancy=no_variable), False, notes) is None
+
+
+def test_compare_keeps_both_lines_visible_at_a_98_percent_fit():
+    """The measured line vanished under the simulated one; now it is a wide light band beneath."""
+    import io
+    pytest.importorskip("matplotlib")
+    import matplotlib.image as mpimg
+    import matplotlib.pyplot as plt
+    from greyfit.service.report import Series, compare_figure
+    t = np.linspace(0, 10, 201)
+    simulated = np.sin(t)
+    measured = simulated + 0.02 * np.random.default_rng(0).standard_normal(t.size)   # about 98 % fit
+    figure = compare_figure(plt, [Series("e1", t, {"x": measured}, {"x": simulated})], "estimation",
+                            units={"x": "m", "t": "s"})
+    rgb = mpimg.imread(io.BytesIO(figure.png))[:, :, :3]
+
+    def pixels(colour, tol):
+        return int((np.abs(rgb - np.array(colour)).max(axis=2) < tol).sum())
+
+    light, blue = pixels((0.72, 0.72, 0.72), 0.03), pixels((0.12, 0.47, 0.71), 0.08)
+    assert blue > 300, blue                # the simulated line is drawn
+    assert light > 2 * blue, (light, blue)  # and the measured one shows on both sides of it

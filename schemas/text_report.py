@@ -202,7 +202,8 @@ def discovery_report(result: "DiscoveryResult") -> str:
                                       for r in result.rejected]
     if result.notes:
         lines += ["[[Notes]]"] + [f"{INDENT}{n}" for n in result.notes]
-    lines += ["[[Final model]]"] + [f"{INDENT}d{s}/dt = {e}" for s, e in result.model.equations.items()]
+    lhs = "{}[k+1]" if result.model.discrete is not None else "d{}/dt"
+    lines += ["[[Final model]]"] + [f"{INDENT}{lhs.format(s)} = {e}" for s, e in result.model.equations.items()]
     return "\n".join(lines) + "\n" + fit_report(result.fit)
 
 

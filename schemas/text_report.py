@@ -194,7 +194,7 @@ def discovery_report(result: "DiscoveryResult") -> str:
              f"{INDENT}wall time:  {result.wall_time_s:.1f} s" + ("  (time budget spent)" if result.budget_exhausted
                                                                 else "")]
     if not result.before.success:
-        lines.append(f"{INDENT}the declared model's fit did not succeed (status: {result.before.status})")
+        lines.append(f"{INDENT}the declared model's fit was {result.before.status} (not good)")
     lines += _discovery_table(result)
     lines += ["[[Added terms]]"] + ([_step_line(s) for s in result.steps] or [f"{INDENT}none"])
     if result.rejected:

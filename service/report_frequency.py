@@ -45,7 +45,7 @@ def _bode_column(ax_mag, ax_phase, ds: DataSetResponse, short) -> None:
     ax_phase.set_xlabel("ω [rad/s]")
     ax_mag.legend(fontsize=7, frameon=False, loc="best")
     for ax in (ax_mag, ax_phase):
-        ax.grid(True, which="both", lw=0.3, color="0.85")
+        ax.grid(True, which="major", lw=0.3, color="0.85")
 
 
 def _nyquist_axes(ax, ds: DataSetResponse, short) -> None:

@@ -85,6 +85,18 @@ def test_frequency_report_over_http_draws_bode_and_nyquist(client, frequency_pai
         assert 'id="fig-compare' not in page   # no time records to compare
 
 
+def test_the_report_of_a_frequency_job_draws_from_its_stored_request(client, frequency_pair):
+    from tests.service.conftest import wait_for_job
+    request, _ = frequency_pair
+    resp = client.post("/v1/frequency-fits/jobs", json={"requests": [request]})
+    assert resp.status_code == 202, resp.text
+    job = wait_for_job(client, resp.json()["id"])
+    assert job["status"] == "succeeded", job
+    page = client.get(f"/v1/jobs/{job['id']}/report")
+    assert page.status_code == 200, page.text   # the stored request is a FrequencyFitRequest
+    assert 'id="fig-bode"' in page.text and 'id="fig-nyquist"' in page.text
+
+
 def test_a_bad_frequency_request_names_its_fields_not_union_internals(frequency_pair):
     from pydantic import ValidationError
     _, result = frequency_pair

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import html
 from datetime import datetime, timezone
-from typing import Optional
+from typing import Any, Optional
 
 from greyfit.schemas.discovery import DiscoveryResult
 from greyfit.schemas.fit import FitResult
@@ -114,12 +114,25 @@ def equations_html(model) -> str:
     return f"<h2>Model: {_e(model.name)}</h2><pre class='equations'>" + "\n".join(_e(x) for x in lines) + "</pre>"
 
 
+def _before_after(result: DiscoveryResult) -> str:
+    pairs: list[tuple[str, Any, Any]] = [("estimation", result.before, result.after)]
+    if result.before.validation is not None and result.after.validation is not None:
+        pairs.append(("validation", result.before.validation, result.after.validation))
+    rows = [[_e(o), label, _n(b.rmse.get(o), ".4g"), _n(a.rmse.get(o), ".4g"), _n(b.fit_percent.get(o), ".2f"),
+             _n(a.fit_percent.get(o), ".2f")] for o in result.before.rmse for label, b, a in pairs]
+    rows.append(["BIC", "", _n(result.before.bic, ".1f"), _n(result.after.bic, ".1f"), "", ""])
+    return _table("before-after", ["output", "records", "RMSE before", "RMSE after", "fit % before", "fit % after"],
+                  rows)
+
+
 def discovery_html(result: DiscoveryResult) -> str:
-    steps = "".join(f"<li>+ {_e(s.effect)} in {_e(s.equation)}: <code>{_e(s.term)}</code> "
+    def where(eq: str) -> str:
+        return eq if eq.startswith("output") else f"d{eq}/dt"
+    steps = "".join(f"<li>+ {_e(s.effect)} in {_e(where(s.equation))}: <code>{_e(s.term)}</code> "
                     f"(BIC −{s.evidence.bic_drop:.0f})</li>" for s in result.steps) or "<li>nothing added</li>"
     rejected = "".join(f"<li>{_e(r.effect)} (<code>{_e(r.term)}</code>): {_e(r.reason)}</li>" for r in result.rejected)
     return (f"<h2>Discovery</h2><p>{_e(result.conclusion)}</p><ul class='steps'>{steps}</ul>"
-            + (f"<p>not kept:</p><ul>{rejected}</ul>" if rejected else ""))
+            + (f"<p>not kept:</p><ul>{rejected}</ul>" if rejected else "") + _before_after(result))
 
 
 def summary_html(fit: FitResult, discovery: Optional[DiscoveryResult], model) -> str:

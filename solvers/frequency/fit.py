@@ -35,6 +35,7 @@ from greyfit.solvers.frequency.stability import poles, routh_first_column
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.methods.multistart import draw_starts
+from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.model.parameters import build_layout
 from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
 
@@ -204,7 +205,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     if cov.matrix is not None:
         covariance = CovariancePublic(names=cov.names, matrix=cov.matrix.tolist())
         correlation = CovariancePublic(names=cov.names, matrix=correlation_from(cov.matrix).tolist())
-    result = FitResult(
+    result = attach_model(FitResult(
         success=outcome.success, status="success" if outcome.success else "failed", message=message, parameters=params,
         covariance=covariance, covariance_note="; ".join(notes) or None, correlation=correlation,
         initial_states={s.name: {} for s in sets},
@@ -213,7 +214,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         solver=SolverInfo(method=FitMethod.frequency_response, iterations=outcome.iterations,
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts),
-        frequency_response=response)
+        frequency_response=response), request.model)
     return assess_frequency_fit(result, sets=sets, layout=layout, theta_s=theta_s, converged=outcome.success,
                                 status=outcome.status, nlp_cost=outcome.cost, covariance=cov, jac=jac, keep=keep,
                                 stability_enforced=opts.stability in ("routh", "penalty"))

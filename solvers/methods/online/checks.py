@@ -78,9 +78,11 @@ def bound_warnings(theta: np.ndarray, layout: ParameterLayout, marks: np.ndarray
 
 def apply_verdict(result: FitResult, warnings: list[FitWarning]) -> FitResult:
     """Attach the warnings and the quality verdict; `success` becomes finite and good."""
+    if not result.success:      # the recursion overflowed: no finite estimate
+        warnings = warnings + [FitWarning(code="not_converged", message="the online estimate is not finite "
+                                          "(the recursion overflowed); check the excitation, the gains and the guess",
+                                          detail={"return_status": result.solver.return_status})]
     codes = {w.code for w in warnings}
-    if not result.success:
-        codes.add("not_converged")
     quality = "failed" if codes & FAILED_CODES else "suspect" if codes & SUSPECT_CODES else "good"
     message = result.message
     if quality == "suspect":

@@ -13,21 +13,11 @@ from typing import Literal
 import numpy as np
 
 from greyfit.schemas.fit import (
-    CovariancePublic,
-    ExperimentTrace,
-    FitMetrics,
-    FitRequest,
-    FitResult,
-    ParameterEstimate,
-    SolverInfo,
+    CovariancePublic, ExperimentTrace, FitMetrics, FitRequest, FitResult, ParameterEstimate, SolverInfo,
 )
 from greyfit.solvers.checks.diagnostics import residual_analyses
 from greyfit.solvers.checks.fit_checks import (
-    active_constraints,
-    fastest_rate_warning,
-    pre_fit_warnings,
-    row_keys,
-    state_peaks,
+    active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
 )
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
 from greyfit.solvers.data.experiments import prepare_experiments

@@ -133,3 +133,11 @@ def test_dc_input_into_the_first_order_rl_circuit_is_not_success():
                                                    "options": {"rls": {"forgetting": 0.98}}}))
         assert not res.success and res.trajectory.excitation.required_order == 2
         assert any(w.code == "poor_excitation" and "order 2" in w.message for w in res.warnings)
+
+
+def test_online_options_cite_the_documents_by_title():
+    from greyfit.schemas.fit import FitResult
+    defs = {**FitRequest.model_json_schema()["$defs"], **FitResult.model_json_schema()["$defs"]}
+    for name in ("RlsOptions", "MrasOptions", "Prefilter", "ExcitationReport", "ParameterTrajectory"):
+        assert "seed 00" not in str(defs[name]), name
+    assert "initialisation" in defs["RlsOptions"]["properties"]

@@ -1,8 +1,9 @@
 """The discovery loop on a generated suite: systems × effects × measured outputs × noise × held inputs.
 
 Each configuration is one system with one undeclared effect (or none), measured in some of its
-outputs, with white or AR(1) (ρ = 0.8) measurement noise of 1 % of the output's spread, the input
-linear or held between samples, a validation record from another seed; every configuration runs over
+outputs, with white or AR(1) measurement noise (ρ = 0.9 on the position, 0.8 on the speed) of 1 % of
+the output's spread, the input linear or held between samples, a validation record from another
+seed; every configuration runs over
 `--seeds` seeds (10 by default: every rate below is over at least 10 runs). Truth is simulated with
 scipy (tests/coloured_records.py, tests/systems.py), independently of greyfit.
 

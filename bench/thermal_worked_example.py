@@ -43,7 +43,8 @@ def show_shape(points: int) -> None:
     best = shape.estimates[0]
     print(f"most likely equation: {best.equation}; variable: {best.variable}; a smooth function of it explains "
           f"{100 * best.share_explained:.1f} % of d (next: {best.alternatives})")
-    print(f"noise level {shape.noise_level['T_meas']:.3f} K (truth {0.005 * np.std(b['experiments'][0]['outputs']['T_meas']):.3f} K)")
+    truth = 0.005 * np.std(b["experiments"][0]["outputs"]["T_meas"])
+    print(f"noise level {shape.noise_level['T_meas']:.3f} K (truth {truth:.3f} K)")
     temp, d, law = best.variables["T"][0], best.d[0], best.law[0]
     order = np.argsort(temp)
     print("\n| T (K) | d (K/s) | smooth law (K/s) |\n|---|---|---|")
@@ -72,7 +73,8 @@ def main() -> None:
     args = ap.parse_args()
     show_shape(args.points)
     show_loop([], "the loop with its library")
-    rad = {"equation": "T", "term": "-(T^4 - Ta^4)/C", "parameter": "s", "value": 0.0}
+    # the loop adds a term inside the numerator of (…)/C, so s keeps its units (W/K⁴)
+    rad = {"equation": "T", "term": "-(T^4 - Ta^4)", "parameter": "s", "value": 0.0}
     show_loop([rad], "with T^4 - Ta^4 as a candidate")
     print(f"  truth s = {ss.THERMAL['s']:.4g}")
 

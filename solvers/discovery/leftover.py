@@ -17,7 +17,7 @@ from greyfit.schemas.discovery import Unexplained
 from greyfit.schemas.fit import FitResult
 from greyfit.solvers.discovery.shape import ShapeResult
 
-UNEXPLAINED_RATIO = 3.0     # final RMS residual over the noise level
+UNEXPLAINED_RATIO = 2.0     # final RMS residual over the noise level (white noise: 1.0 ± 0.05 measured)
 COLOURED_NOISE_SHARE = 0.5  # an output-path shape explained less than this by the states: coloured noise
 
 

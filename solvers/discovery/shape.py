@@ -27,7 +27,12 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.discovery.screening import fitted_values
 from greyfit.solvers.discovery.shape_kalman import Linearised, best_intensity, log_likelihood, smooth
 from greyfit.solvers.discovery.shape_relate import (
-    MAX_PUBLIC_SAMPLES, ShapeEstimate, candidate_variables, public_samples, relate, thinning,
+    MAX_PUBLIC_SAMPLES,
+    ShapeEstimate,
+    candidate_variables,
+    public_samples,
+    relate,
+    thinning,
 )
 from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.errors import FitError
@@ -36,6 +41,7 @@ from greyfit.solvers.methods.shooting import OutputErrorModel
 PRIOR_SCALE = 1e2        # prior std of z_0 in units of (state scale × σ): diffuse against the data
 REFINE_CHANNELS = 2      # the best channels relinearised about their first estimate
 RELATED_CHANNELS = 3     # the best channels related to the states and inputs
+MIN_SAMPLES = 20         # shorter records: no shape (the smoother's prior would dominate)
 
 
 @dataclass
@@ -79,8 +85,9 @@ class ShapeModel:
         x, u, d = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("d", cm.nx)
         p, t = ca.SX.sym("p", cm.np), ca.SX.sym("t")
         rhs = ca.Function("rhs_d", [x, ca.vertcat(u, d), p, t], [cm.rhs(x, u, p, t) + d])
-        step = make_step(SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np, model=cm.model),
-                         request.options)
+        # a stand-in model (make_step reads rhs, nx, nu, np and model), as scoring_outputs builds one
+        stand_in = SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np, model=cm.model)
+        step = make_step(stand_in, request.options)  # type: ignore[arg-type]
         xs, u0, u1, ds = ca.SX.sym("x", cm.nx), ca.SX.sym("u0", cm.nu), ca.SX.sym("u1", cm.nu), ca.SX.sym("d", cm.nx)
         ps, t0, dt = ca.SX.sym("p", cm.np), ca.SX.sym("t0"), ca.SX.sym("dt")
         # d held over the interval whatever the inputs' interpolation: the same d in u0 and u1
@@ -263,8 +270,18 @@ def shape_at(request: FitRequest, fit: FitResult, clock) -> tuple[ShapeResult | 
         return None, "no shape estimated: the model is a difference equation (the shape step needs an ODE)"
     if fit.quality == "failed" or not clock.allows():
         return None, ""
+    if min(len(e.time) for e in request.experiments) < MIN_SAMPLES:
+        return None, f"no shape estimated: a record has fewer than {MIN_SAMPLES} samples"
     with clock.phase("shape"):
         try:
-            return estimate_shape(request, fit), ""
+            shape = estimate_shape(request, fit)
         except (FitError, RuntimeError, ValueError, np.linalg.LinAlgError) as exc:
             return None, f"no shape estimated: {str(exc).splitlines()[0] if str(exc) else type(exc).__name__}"
+    if not _finite(shape):
+        return None, "no shape estimated: the smoother did not stay finite on these records"
+    return shape, ""
+
+
+def _finite(shape: ShapeResult) -> bool:
+    numbers = [e.log_likelihood for e in shape.estimates] + list(shape.noise_level.values())
+    return bool(np.all(np.isfinite(numbers)) and all(np.all(np.isfinite(d)) for e in shape.estimates for d in e.d))

@@ -69,7 +69,9 @@ def _forward_step(nx: int, ny: int) -> ca.Function:
         k = mask[j] * ph / f
         z = z + k * v
         P = P - mask[j] * ca.mtimes(ph, ph.T) / f
-        vs.append(v), fs.append(f), ks.append(k)
+        vs.append(v)
+        fs.append(f)
+        ks.append(k)
     T = ca.blockcat([[ca.reshape(av, nx, nx), b], [ca.DM.zeros(1, nx), ca.DM.ones(1, 1)]])
     z_next = ca.mtimes(T, z) + c
     P_next = ca.mtimes(ca.mtimes(T, P), T.T)

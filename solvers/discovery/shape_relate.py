@@ -84,7 +84,9 @@ def relate(est: ShapeEstimate) -> None:
         z = np.concatenate(series)
         if not np.all(np.isfinite(z)) or np.std(z) == 0:
             continue
-        shares[name] = explained_share(d, np.column_stack([spline_basis(z), linear]))
+        share, fit = explained_share(d, np.column_stack([spline_basis(z), linear]))
+        if np.isfinite(share) and np.all(np.isfinite(fit)):
+            shares[name] = (share, fit)
     if not shares:
         return
     ranked = sorted(shares, key=lambda k: shares[k][0], reverse=True)

@@ -5,21 +5,27 @@ Two cases the fit itself flags:
 - `integration_step_coarse`: RK4 at the requested substeps is inaccurate (or unstable) on the
   fitted model's fastest mode. On a coarsely sampled record the fit can even create that mode
   (a slow lag collapsed below the sample time turns, at one RK4 step, into an artificial mode that
-  mimics a delay), and every screen from it points at the integrator. The fit is repeated from the
-  declared start with the substeps the warning suggests (at least twice as many), until the warning
-  goes or the substeps reach their limit; the finer setting is kept for the whole search.
-- `suspect` with the signs of a local minimum (the residual far above the noise or far from white):
-  a multistart from the declared start and draws inside the bounds, within a share of the time
-  budget; the best is kept when it is better.
+  mimics a delay), and every screen from it points at the integrator. The fit is repeated with the
+  substeps the warning suggests (at least twice as many), until the warning
+  goes or the substeps reach their limit; the finer setting is kept for the whole search. The refit
+  starts from the declared values when |λ|h was beyond RK4's stability limit (the mode may be the
+  integrator's artefact), else from the base fit's estimates (only its accuracy was in doubt).
+- `suspect` with the sign of a local minimum (`fit_below_noise_level`: the residual far above the
+  data's own noise level): a multistart from the declared start and draws inside the bounds, within
+  a share of the time budget and a multiple of the base fit's time; the best is kept when better.
 """
 from __future__ import annotations
 
+import numpy as np
+
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.discovery.confirm import with_estimates
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
 
 MAX_SUBSTEPS = 100          # FitOptions.substeps' limit
+RK4_STABILITY_LIMIT = 2.78  # |λ|h where RK4 stops being stable on a real mode
 REFINE_ROUNDS = 2
 # the residual far above the data's own noise level: a local minimum, or much missing physics (a
 # residual that is merely not white is the usual sign of a missing term, and no reason to restart)
@@ -53,7 +59,13 @@ def _finer_steps(fit_req: FitRequest, base: FitResult, notes: list[str]) -> tupl
             break
         need = int(warning.detail.get("suggested_substeps", 2 * substeps))
         finer = min(MAX_SUBSTEPS, max(need, 2 * substeps))
-        req = fit_req.model_copy(update={"options": fit_req.options.model_copy(update={"substeps": finer})})
+        # beyond RK4's stability limit the fitted mode may be the integrator's own artefact: start
+        # again from the declared values; inside it the fit is only inaccurate: start from it
+        unstable = float(warning.detail.get("max_rate", np.inf)) * float(warning.detail.get("step", 0)) \
+            >= RK4_STABILITY_LIMIT
+        model = fit_req.model if unstable else with_estimates(fit_req.model, base)
+        req = fit_req.model_copy(update={"model": model,
+                                         "options": fit_req.options.model_copy(update={"substeps": finer})})
         try:
             refit = fit_model(req)
         except (FitError, RuntimeError, ValueError) as exc:
@@ -64,10 +76,11 @@ def _finer_steps(fit_req: FitRequest, base: FitResult, notes: list[str]) -> tupl
             notes.append(f"the base fit warned integration_step_coarse; the refit at options.substeps = {finer} "
                          f"failed ({refit.solver.return_status}); screened at {substeps}")
             break
+        start = "the declared start" if unstable else "its estimates"
         notes.append(f"the base fit warned integration_step_coarse at options.substeps = {substeps} "
-                     f"({warning.message}); it was refitted from the declared start at substeps = {finer}, "
+                     f"({warning.message}); it was refitted from {start} at substeps = {finer}, "
                      "which the whole search then uses")
-        fit_req, base = req, refit
+        fit_req, base = req.model_copy(update={"model": fit_req.model}), refit
     return fit_req, base
 
 

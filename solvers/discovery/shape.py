@@ -41,6 +41,7 @@ from greyfit.solvers.methods.shooting import OutputErrorModel
 PRIOR_SCALE = 1e2        # prior std of z_0 in units of (state scale × σ): diffuse against the data
 REFINE_CHANNELS = 2      # the best channels relinearised about their first estimate
 RELATED_CHANNELS = 3     # the best channels related to the states and inputs
+MAX_DIRECT_PATHS = 3     # up to this many outputs, every output path is a channel
 MIN_SAMPLES = 20         # shorter records: no shape (the smoother's prior would dominate)
 
 
@@ -155,8 +156,13 @@ def disturbance_scale(sm: ShapeModel, ch: Channel) -> float:
 
 
 def channels(sm: ShapeModel) -> list[Channel]:
-    out = [Channel(name=s, index=i, on_output=False) for i, s in enumerate(sm.cm.states)]
-    return out + [Channel(name=f"output {o}", index=j, on_output=True) for j, o in enumerate(sm.cm.outputs)]
+    """Every state equation, and the output paths: all of them with a few outputs; with many, only
+    outputs that are not a state measured directly (that state's equation stands in for it, and each
+    channel costs a smoother whose work grows with outputs × states²)."""
+    cm = sm.cm
+    out = [Channel(name=s, index=i, on_output=False) for i, s in enumerate(cm.states)]
+    paths = [j for j, o in enumerate(cm.outputs) if cm.ny <= MAX_DIRECT_PATHS or o not in cm.direct_outputs]
+    return out + [Channel(name=f"output {cm.outputs[j]}", index=j, on_output=True) for j in paths]
 
 
 @dataclass

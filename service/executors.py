@@ -67,6 +67,7 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         if not todo:
             continue
         key, kind, request = todo.popleft()
+        conn.send((key, {"status": "started"}))   # the acknowledged start: the attempt is charged now
         used = resource.getrusage(resource.RUSAGE_SELF)
         spent = used.ru_utime + used.ru_stime
         soft = int(spent + cpu_seconds) + 1
@@ -92,19 +93,38 @@ def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
             "detail": f"the worker process died ({how}): killed or crashed, not a fault of this request"}
 
 
+def _cpu_seconds_of(pid: int) -> Optional[float]:
+    """A process's CPU time (user + system) from /proc, or None where there is no /proc."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS   # utime, stime (fields 14, 15)
+
+
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+STALL_CHECK_SECONDS = 1.0   # how often a busy worker's CPU clock is read
+
+
 @dataclass
 class _Slot:
     process: Any
     conn: Any
     keys: list = field(default_factory=list)   # the task it runs, then at most one queued behind
-    started: float = 0.0                        # when the task it runs started (about)
+    started: float = 0.0                        # when the task it runs started (about; exact once acknowledged)
+    cpu: Optional[float] = None                 # the worker's CPU time when last read ...
+    progressed: float = 0.0                     # ... and when it last had moved
+    checked: float = 0.0
 
 
 class LocalWorkerPool:
     """A fixed number of worker processes; a task that overruns or crashes costs only its worker."""
 
-    def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
+    def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float,
+                 stall_seconds: Optional[float] = 60.0):
         self.ctx = mp.get_context("spawn")
+        self.stall_seconds = stall_seconds
         for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
             os.environ.setdefault(name, value)
         self.cpu_seconds = cpu_seconds
@@ -162,7 +182,8 @@ class LocalWorkerPool:
         slot = self._idle() or next((s for s in self.slots if not s.keys), None) or \
             next(s for s in self.slots if len(s.keys) == 1)
         if not slot.keys:
-            slot.started = time.monotonic()
+            slot.started = slot.progressed = time.monotonic()
+            slot.cpu = None
         slot.keys.append(key)
         slot.conn.send((key, kind, request))
 
@@ -187,9 +208,11 @@ class LocalWorkerPool:
             try:
                 while slot.keys and slot.conn.poll():
                     key, outcome = slot.conn.recv()
-                    if key == slot.keys[0]:
-                        slot.started = time.monotonic()   # the next one starts now
-                    if key in slot.keys:
+                    if outcome["status"] == "started":
+                        slot.started = slot.progressed = time.monotonic()   # its wall clock starts now
+                    elif key == slot.keys[0]:
+                        slot.started = slot.progressed = time.monotonic()   # the next one starts now
+                    if key in slot.keys and outcome["status"] != "started":
                         slot.keys.remove(key)
                     done.append((key, outcome))
             except (OSError, EOFError):
@@ -200,6 +223,12 @@ class LocalWorkerPool:
                 done.append((slot.keys[0], {"status": "failed", "error": _death_reason(slot.process.exitcode,
                                                                                       self.cpu_seconds)}))
                 self._replace(i)
+            elif self._stalled(slot):
+                done.append((slot.keys[0], {"status": "failed", "error": {
+                    "type": "WorkerLost", "field": None, "retry": True,
+                    "detail": f"the worker process used no CPU for {self.stall_seconds:g} s mid-task (stopped or "
+                              "hung): replaced, not a fault of this request"}}))
+                self._replace(i)
             elif time.monotonic() - slot.started > self.wall_seconds:
                 done.append((slot.keys[0], {"status": "failed", "error": {
                     "type": "Timeout", "field": None,
@@ -208,6 +237,19 @@ class LocalWorkerPool:
         done += self._returned
         self._returned = []
         return done
+
+    def _stalled(self, slot: _Slot) -> bool:
+        """Whether a busy worker's CPU clock has stood still for `stall_seconds` (read once a second)."""
+        now = time.monotonic()
+        if self.stall_seconds is None or now - slot.checked < STALL_CHECK_SECONDS:
+            return False
+        slot.checked = now
+        cpu = _cpu_seconds_of(slot.process.pid)
+        if cpu is None:
+            return False
+        if slot.cpu is None or cpu > slot.cpu:
+            slot.cpu, slot.progressed = cpu, now
+        return now - slot.progressed > self.stall_seconds
 
     def cancel(self, key: str) -> bool:
         """Stop a task: a running one ends its worker (another takes its place), a queued one is
@@ -251,6 +293,7 @@ class DaskExecutor:
         self.cpu_seconds, self.wall_seconds = cpu_seconds, wall_seconds
         self._capacity = capacity
         self.futures: dict[str, tuple[Any, float]] = {}
+        self._started: list[str] = []   # reported as started at submit (the scheduler does not tell us)
 
     def capacity(self) -> int:
         if self._capacity:
@@ -268,9 +311,11 @@ class DaskExecutor:
         fut = self.client.submit(run_task, kind, request, self.cpu_seconds, pure=False,
                                  key=f"greyfit-{key}-{time.time_ns()}")
         self.futures[key] = (fut, time.monotonic())
+        self._started.append(key)
 
     def poll(self) -> list[tuple[str, Outcome]]:
-        done = []
+        done: list[tuple[str, Outcome]] = [(key, {"status": "started"}) for key in self._started]
+        self._started = []
         for key, (fut, started) in list(self.futures.items()):
             if fut.done():
                 del self.futures[key]
@@ -316,4 +361,5 @@ def make_executor(settings):
         if not settings.dask_scheduler:
             raise ValueError("GREYFIT_EXECUTOR=dask needs GREYFIT_DASK_SCHEDULER (e.g. tcp://host:8786)")
         return DaskExecutor(settings.dask_scheduler, settings.task_cpu_seconds, settings.task_wall_seconds)
-    return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)
+    return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds,
+                           settings.worker_stall_seconds)

@@ -55,6 +55,9 @@ class Settings(BaseSettings):
                                      "progress under synchronous load (at most workers - 1; with one "
                                      "worker, jobs and synchronous fits alternate)")
     retry_after_seconds: int = Field(default=2, ge=1, description="the Retry-After of 503 and 429 answers")
+    worker_stall_seconds: float = Field(
+        default=60.0, gt=0, description="a local worker whose CPU time stands still this long mid-task "
+                                        "(stopped, hung) is lost: replaced and its task retried")
 
     def resolved_database_url(self) -> str:
         if self.database_url:

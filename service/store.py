@@ -4,8 +4,9 @@ A task is claimed by a conditional UPDATE (status = 'queued'; on PostgreSQL the 
 selected `FOR UPDATE SKIP LOCKED`, so concurrent replicas pass each other instead of colliding),
 so two dispatchers never run the same task; a running task holds a lease that its dispatcher
 renews, and tasks whose lease has expired (their server died) are re-queued — a job accepted is
-never lost. `attempts` counts the claims that ended in a lost worker or server; a graceful
-shutdown hands its tasks back without counting one.
+never lost. `attempts` counts the starts a worker acknowledged (`mark_started`), not the claims: a
+server that dies between a claim and a start costs the task nothing; a graceful shutdown hands its
+tasks back without counting one.
 
 Request texts live in their own table: a task row is written on every claim, lease renewal and
 outcome, and a database rewrites the whole row (SQLite does, PostgreSQL copies it), request
@@ -21,7 +22,8 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 from sqlalchemy import (
-    Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect,
+    Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, case, create_engine, event, func,
+    inspect,
     select, text, tuple_, update,
 )
 from sqlalchemy.engine import Engine, make_url
@@ -100,7 +102,14 @@ _START = (update(tasks)
           .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx.in_(bindparam("b_idxs", expanding=True)),
                  tasks.c.status == "queued")
           .values(status="running", owner=bindparam("b_owner"), lease_until=bindparam("b_lease"),
-                  started_at=bindparam("b_at"), attempts=tasks.c.attempts + 1))
+                  started_at=None))
+# a worker acknowledged the start: the attempt is charged now, once per claim (started_at IS NULL)
+_STARTED = (update(tasks)
+            .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx == bindparam("b_idx"),
+                   tasks.c.status == "running", tasks.c.owner == bindparam("b_owner"), tasks.c.started_at.is_(None))
+            .values(started_at=bindparam("b_at"), attempts=tasks.c.attempts + 1))
+# a task handed back: the attempt of its claim is given back if it had been charged (started)
+_UNCHARGED = tasks.c.attempts - case((tasks.c.started_at.is_(None), 0), else_=1)
 _JOB = select(jobs).where(jobs.c.id == bindparam("b_id"))
 _JOB_TASKS = (select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at, tasks.c.finished_at,
                      tasks.c.error)
@@ -362,7 +371,9 @@ class JobStore:
         return claimed[0] if claimed else None
 
     def claim_many(self, owner: str, lease_seconds: float, max_attempts: int, limit: int) -> list[TaskRow]:
-        """Take up to `limit` of the oldest queued tasks in one transaction (a claim counts as a start)."""
+        """Take up to `limit` of the oldest queued tasks in one transaction.
+
+        A claim charges no attempt: `mark_started` does, when a worker acknowledges the start."""
         for _ in range(5):
             try:
                 with self.engine.begin() as conn:
@@ -388,7 +399,7 @@ class JobStore:
             if row.attempts >= max_attempts:
                 self._fail_queued(conn, row.job_id, row.idx, now, (
                     f"the task was started {row.attempts} times and each time its worker or server was lost "
-                    "(crash or kill); not retried again"))
+                    "(crash, kill or hang); not retried again"))
             else:
                 by_job.setdefault(row.job_id, []).append(row)
         claimed = []
@@ -400,7 +411,7 @@ class JobStore:
             if not group:
                 continue
             res = conn.execute(_START, {"b_job": job_id, "b_idxs": [r.idx for r in group], "b_owner": owner,
-                                        "b_lease": now + lease_seconds, "b_at": now})
+                                        "b_lease": now + lease_seconds})
             if res.rowcount != len(group):   # another server took one meanwhile: roll back, look again
                 raise _Raced()
             claimed += [TaskRow(job_id, r.idx, r.kind, texts[r.idx]) for r in group]
@@ -418,7 +429,7 @@ class JobStore:
         A claim whose COMMIT's answer was lost (the connection dropped after the database committed)
         leaves tasks owned by this server that its dispatcher never learned of: renewing every row
         it owns would keep them running, unrun, for ever. They go back to the queue without an
-        attempt counted (they never started). Returns how many were given back."""
+        attempt counted (they never started: no start was acknowledged). Returns how many were given back."""
         now = time.time()
         with self.engine.begin() as conn:
             owned = conn.execute(select(tasks.c.job_id, tasks.c.idx)
@@ -434,15 +445,27 @@ class JobStore:
                 conn.execute(update(tasks).where(tuple_(tasks.c.job_id, tasks.c.idx).in_(chunk),
                                                  tasks.c.owner == owner, tasks.c.status == "running")
                              .values(status="queued", owner=None, lease_until=None,
-                                     attempts=tasks.c.attempts - 1))
+                                     attempts=_UNCHARGED, started_at=None))
         return len(unknown)
 
+    def mark_started(self, owner: str, started: list[tuple[str, int, float]], conn=None) -> None:
+        """Charge an attempt to each (job_id, idx, at) whose worker acknowledged the start, once per claim."""
+        if not started:
+            return
+        params = [{"b_job": j, "b_idx": i, "b_owner": owner, "b_at": at} for j, i, at in started]
+        if conn is not None:
+            conn.execute(_STARTED, params)
+            return
+        with self.engine.begin() as own:
+            own.execute(_STARTED, params)
+
     def requeue_expired(self) -> int:
-        """Tasks whose server stopped renewing their lease go back to the queue."""
+        """Tasks whose server stopped renewing their lease go back to the queue (a started one
+        keeps its attempt; one only claimed had none charged)."""
         with self.engine.begin() as conn:
             res = conn.execute(update(tasks).where(tasks.c.status == "running",
                                                    tasks.c.lease_until < time.time())
-                               .values(status="queued", owner=None, lease_until=None))
+                               .values(status="queued", owner=None, lease_until=None, started_at=None))
         return res.rowcount
 
     def requeue_owned(self, owner: str) -> int:
@@ -450,7 +473,7 @@ class JobStore:
         with self.engine.begin() as conn:
             res = conn.execute(update(tasks).where(tasks.c.status == "running", tasks.c.owner == owner)
                                .values(status="queued", owner=None, lease_until=None,
-                                       attempts=tasks.c.attempts - 1))
+                                       attempts=_UNCHARGED, started_at=None))
         return res.rowcount
 
     def release(self, job_id: str, idx: int, owner: str, max_attempts: int, error: dict) -> str:
@@ -467,7 +490,7 @@ class JobStore:
             mine = (tasks.c.job_id == job_id, tasks.c.idx == idx, tasks.c.status == "running", tasks.c.owner == owner)
             if attempts < max_attempts:
                 conn.execute(update(tasks).where(*mine).values(status="queued", owner=None, lease_until=None,
-                                                              error=json.dumps(error)))
+                                                              started_at=None, error=json.dumps(error)))
                 return "queued"
             final = {**error, "detail": f"the task's worker was lost {attempts} times; not retried again "
                                         f"(last: {error.get('detail')})"}
@@ -480,11 +503,15 @@ class JobStore:
         """Record a task's outcome once; False if the task is no longer ours (e.g. re-queued)."""
         return self.finish_many(owner, [(job_id, idx, status, result_json, error)]) == 1
 
-    def finish_many(self, owner: str, outcomes: list[tuple[str, int, str, Optional[str], Optional[dict]]]) -> int:
+    def finish_many(self, owner: str, outcomes: list[tuple[str, int, str, Optional[str], Optional[dict]]],
+                    started: Optional[list[tuple[str, int, float]]] = None) -> int:
         """`finish` for several (job_id, idx, status, result_json, error) in one statement; how many
-        were still ours."""
+        were still ours. `started`: starts to charge first (`mark_started`), in the same transaction."""
         now = time.time()
         with self.engine.begin() as conn:
+            self.mark_started(owner, started or [], conn)
+            if not outcomes:
+                return 0
             res = conn.execute(_FINISH, [
                 {"b_job": job_id, "b_idx": idx, "b_owner": owner, "b_status": status, "b_at": now,
                  "b_result": result_json, "b_error": json.dumps(error) if error is not None else None}

@@ -160,6 +160,9 @@ def make_engine(url: str) -> Engine:
             # FULL: a job answered 202 survives a power loss (NORMAL may lose the last commits then)
             cur.execute("PRAGMA synchronous=FULL")
             cur.close()
+            _refuse_read_only(dbapi_conn)
+
+        event.listen(engine, "handle_error", _drop_read_only_connection)
     else:
         engine = create_engine(url, pool_pre_ping=True)
     metadata.create_all(engine)
@@ -167,6 +170,31 @@ def make_engine(url: str) -> Engine:
     _add_queue_order(engine)
     _compress_texts_with_lz4(engine)
     return engine
+
+
+# SQLite opens a file it cannot write (write-protected, immutable, a read-only mount) read-only
+# instead of failing, and a pooled connection stays so for life: every later write fails although
+# the file is writable again. A connection proves it can write when it is made, and one that
+# meets a read-only error is dropped from the pool.
+_WRITE_CHECK = "_greyfit_write_check"
+
+
+def _refuse_read_only(dbapi_conn) -> None:
+    """Fail the connection unless it can take a write: a write statement that changes nothing
+    still needs a writable database (`attempt to write a readonly database` otherwise)."""
+    cur = dbapi_conn.cursor()
+    try:
+        cur.execute(f"CREATE TABLE IF NOT EXISTS {_WRITE_CHECK} (x INTEGER)")
+        cur.execute(f"DELETE FROM {_WRITE_CHECK} WHERE 0")
+        dbapi_conn.commit()
+    finally:
+        cur.close()
+
+
+def _drop_read_only_connection(context) -> None:
+    """A read-only error invalidates the connection (and the pool), like a lost connection."""
+    if "readonly database" in str(context.original_exception):
+        context.is_disconnect = True
 
 
 LZ4_COLUMNS = (("task_requests", "request"), ("tasks", "result"), ("tasks", "error"))

@@ -288,10 +288,10 @@ class Dispatcher:
         return True
 
     def _collect(self) -> None:
-        for key, outcome in self.executor.poll():
-            if outcome["status"] == "started":
-                self._add_start(key)
-                continue
+        outcomes = self.executor.poll()
+        for key in self.executor.started():   # before the outcomes: a start is charged before its release
+            self._add_start(key)
+        for key, outcome in outcomes:
             item = self.running.pop(key, None)
             if item is None:
                 continue

@@ -1,7 +1,8 @@
 """Where fits run: persistent local worker processes (default) or a Dask cluster (scale-out).
 
 Both expose the same small interface to the dispatcher: `capacity()`, `free()`, `queue_room()`,
-`submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `cancel(key)`, `shutdown()`.
+`submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `started() -> [key]`, `cancel(key)`,
+`shutdown()`.
 
 A failed outcome whose error carries `retry: True` lost its worker to something outside the task
 (a crash, a kill, a lost Dask worker): the dispatcher runs the task again. A task that hit its CPU
@@ -132,6 +133,7 @@ class LocalWorkerPool:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._returned: list[tuple[str, Outcome]] = []   # tasks given back by a replaced worker
+        self._started: list[str] = []                    # starts acknowledged, not yet taken (started())
         self.slots = [self._spawn() for _ in range(workers)]
 
     def wait(self, timeout: float) -> None:
@@ -210,9 +212,11 @@ class LocalWorkerPool:
                     key, outcome = slot.conn.recv()
                     if outcome["status"] == "started":
                         slot.started = slot.progressed = time.monotonic()   # its wall clock starts now
-                    elif key == slot.keys[0]:
+                        self._started.append(key)
+                        continue
+                    if key == slot.keys[0]:
                         slot.started = slot.progressed = time.monotonic()   # the next one starts now
-                    if key in slot.keys and outcome["status"] != "started":
+                    if key in slot.keys:
                         slot.keys.remove(key)
                     done.append((key, outcome))
             except (OSError, EOFError):
@@ -237,6 +241,11 @@ class LocalWorkerPool:
         done += self._returned
         self._returned = []
         return done
+
+    def started(self) -> list[str]:
+        """The keys whose worker acknowledged the start since the last call (read by poll())."""
+        keys, self._started = self._started, []
+        return keys
 
     def _stalled(self, slot: _Slot) -> bool:
         """Whether a busy worker's CPU clock has stood still for `stall_seconds` (read once a second)."""
@@ -313,9 +322,13 @@ class DaskExecutor:
         self.futures[key] = (fut, time.monotonic())
         self._started.append(key)
 
+    def started(self) -> list[str]:
+        """The keys submitted since the last call: the scheduler does not say when a worker starts one."""
+        keys, self._started = self._started, []
+        return keys
+
     def poll(self) -> list[tuple[str, Outcome]]:
-        done: list[tuple[str, Outcome]] = [(key, {"status": "started"}) for key in self._started]
-        self._started = []
+        done: list[tuple[str, Outcome]] = []
         for key, (fut, started) in list(self.futures.items()):
             if fut.done():
                 del self.futures[key]

@@ -252,3 +252,18 @@ def test_a_stopped_worker_is_a_lost_worker_retried_not_a_timeout(tmp_path):
     assert job["status"] == "succeeded", job
     assert job["tasks"][0]["attempts"] == 2           # the stopped start counted, the retry succeeded
     assert "Timeout" not in str(job["tasks"][0]["error"])
+
+
+def test_a_synchronous_fit_whose_worker_dies_is_503_with_retry_after(tmp_path):
+    """Defect: the 503 of a lost worker had no Retry-After, which every 503 is documented to carry."""
+    with TestClient(create_app(make_settings(tmp_path, workers=1, retry_after_seconds=3))) as c:
+        executor = c.app.state.dispatcher.executor
+        with cf.ThreadPoolExecutor(1) as pool:
+            answer = pool.submit(c.post, "/v1/fits", json=slow_request())
+            slot = wait_until(lambda: next((s for s in executor.slots if s.keys), None), what="the fit on a worker")
+            wait_until(lambda: not executor._started and slot.started, what="the fit's start")
+            time.sleep(0.1)                                # mid-fit: the fit takes about a second
+            os.kill(slot.process.pid, signal.SIGKILL)
+            resp = answer.result(timeout=120)
+    assert_problem(resp, 503, "worker", "retry")
+    assert resp.headers["retry-after"] == "3"

@@ -1,7 +1,6 @@
 """`greyfit` command line: fit, discover, batch, serve, simulate, report."""
 from __future__ import annotations
 
-import argparse
 import json
 import sys
 from pathlib import Path
@@ -10,37 +9,37 @@ from pydantic import ValidationError
 
 
 def _read_json(path: str) -> dict:
+    from greyfit.service.json_parsing import loads_strict   # a key twice is an error, as over HTTP
     text = sys.stdin.read() if path == "-" else Path(path).read_text()
-    return json.loads(text)
+    return loads_strict(text)
 
 
 def _validation_message(exc: ValidationError) -> str:
-    lines = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"])
-        lines.append(f"{loc}: {err['msg']}")
-    return "\n".join(lines)
+    from greyfit.service.error_text import error_lines   # experiments[0].time, as over HTTP
+    return error_lines(exc)
 
 
 def cmd_fit(args) -> int:
     from greyfit.schemas import FitRequest
+    from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.fit import fit_model
     body = _read_json(args.request)
     if isinstance(body, dict) and isinstance(body.get("model"), dict) and \
             body["model"].get("kind") in ("transfer_function", "linearised_ode"):   # a frequency-response fit
         from greyfit.schemas.frequency import FrequencyFitRequest
         from greyfit.solvers.frequency import fit_frequency_response
-        result = fit_frequency_response(FrequencyFitRequest.model_validate(body))
+        result = fit_frequency_response(validate_strict(FrequencyFitRequest, body))
     else:
-        result = fit_model(FitRequest.model_validate(body))
+        result = fit_model(validate_strict(FitRequest, body))
     print(result.model_dump_json(indent=2 if args.pretty else None))
     return 0
 
 
 def cmd_discover(args) -> int:
     from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.discovery import discover
-    request = DiscoverRequest.model_validate(_read_json(args.request))
+    request = validate_strict(DiscoverRequest, _read_json(args.request))
     result = discover(request)
     print(result.model_dump_json(indent=2 if args.pretty else None))
     if args.summary:
@@ -78,7 +77,8 @@ def format_discovery(result) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="greyfit", description=__doc__)
+    from greyfit.service.cli_suggest import SuggestingArgumentParser   # "did you mean" for options
+    parser = SuggestingArgumentParser(prog="greyfit", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     p_fit = sub.add_parser("fit", help="fit one request (JSON file or - for stdin); result JSON on stdout")
     p_fit.add_argument("request")

@@ -29,20 +29,19 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.jobs import JobPublic, JobsPublic, JobStatus, TaskError, TaskStatus
 from greyfit.schemas.simulate import SimulateRequest, SimulateResult
+from greyfit.service.task_kinds import JOB_KINDS, KINDS
 
 FINISHED = ("succeeded", "failed", "cancelled")
-JOB_KINDS = {"fit": (FitRequest, "/v1/jobs"), "discover": (DiscoverRequest, "/v1/discover/jobs"),
-             "frequency_fit": (FrequencyFitRequest, "/v1/frequency-fits/jobs")}
 RETRY_STATUSES = (429, 503)
 # a 503 or 429 without Retry-After (a proxy's): wait this long, doubling each time
 FALLBACK_WAIT = 1.0
 
-R = TypeVar("R", FitResult, DiscoveryResult)
+R = TypeVar("R", bound=BaseModel)
 
 
 class JobOutcome(BaseModel, Generic[R]):
-    """One request of a job: its result (FitResult or DiscoveryResult, by the job's kind) once it
-    succeeded, its error once it failed."""
+    """One request of a job: its result (the result schema of the job's kind: FitResult,
+    DiscoveryResult, ...) once it succeeded, its error once it failed."""
 
     index: int
     status: TaskStatus
@@ -56,9 +55,6 @@ class JobOutcomes(BaseModel, Generic[R]):
     id: str
     status: JobStatus
     results: list[JobOutcome[R]]
-
-
-RESULT_TYPES: dict[str, type] = {"fit": FitResult, "discover": DiscoveryResult, "frequency_fit": FitResult}
 
 
 class GreyfitError(Exception):
@@ -165,7 +161,9 @@ class Client:
                    label: Optional[str] = None, kind: str = "fit") -> JobPublic:
         """A batch job of fits (kind 'fit'), discoveries ('discover') or frequency-response fits
         ('frequency_fit'); returns at once."""
-        schema, path = JOB_KINDS[kind]
+        if kind not in JOB_KINDS:
+            raise ValueError(f"kind must be one of {list(JOB_KINDS)}")
+        schema, path = KINDS[kind].request_schema(), KINDS[kind].jobs_path
         body = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
         if label is not None:
             body["label"] = label
@@ -205,7 +203,7 @@ class Client:
         'fit' and 'frequency_fit') or a DiscoveryResult ('discover'). Without `kind`, the job's is
         asked for first."""
         kind = kind or self.job(job_id).kind
-        outcomes = JobOutcomes[RESULT_TYPES[kind]]  # type: ignore[index]
+        outcomes = JobOutcomes[KINDS[kind].result_schema()]  # type: ignore[misc]
         return outcomes.model_validate(self._json("GET", f"/v1/jobs/{job_id}/results"))
 
     def report(self, result: Union[FitResult, DiscoveryResult, dict],

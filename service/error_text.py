@@ -8,7 +8,6 @@ imports it without the web stack.
 from __future__ import annotations
 
 import difflib
-import importlib
 import re
 import types
 from typing import Annotated, Any, Iterable, Optional, Union, get_args, get_origin
@@ -178,15 +177,19 @@ def describe(errors: Iterable[dict], model: Optional[type[BaseModel]] = None) ->
     return [{"loc": location(e.get("loc", ()), model), "msg": message(e, model)} for e in errors]
 
 
-# the request models a command-line tool validates, by the title pydantic gives their errors
-_REQUEST_MODELS = {"FitRequest": "greyfit.schemas.fit", "DiscoverRequest": "greyfit.schemas.discovery",
-                   "FrequencyFitRequest": "greyfit.schemas.frequency", "SimulateRequest": "greyfit.schemas.simulate",
-                   "ReportRequest": "greyfit.schemas.report", "JobCreate": "greyfit.schemas.jobs"}
+def request_model(title: str) -> Optional[type[BaseModel]]:
+    """The request schema (or job body schema) of a task kind whose name is `title`: pydantic names
+    a ValidationError after its model, and the task kinds' table knows them all."""
+    from greyfit.service.task_kinds import KINDS
+    for kind in KINDS.values():
+        if kind.request.rpartition(":")[2] == title:
+            return kind.request_schema()
+        if kind.job_body is not None and kind.job_body.rpartition(":")[2] == title:
+            return kind.job_schema()
+    return None
 
 
 def error_lines(exc: ValidationError) -> str:
     """A ValidationError as the HTTP answer words it, one `location: message` a line (for the CLI)."""
-    module = _REQUEST_MODELS.get(exc.title)
-    model = getattr(importlib.import_module(module), exc.title) if module else None
     errors = exc.errors(include_url=False, include_input=False, include_context=False)
-    return "\n".join(f"{e['loc']}: {e['msg']}" for e in describe(errors, model))
+    return "\n".join(f"{e['loc']}: {e['msg']}" for e in describe(errors, request_model(exc.title)))

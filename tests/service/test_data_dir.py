@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from greyfit.service.store import DataDirNotWritable, check_data_dir
-from tests.service.test_real_server import free_port
+from tests.servers import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -19,8 +19,7 @@ import pytest
 from greyfit.client import Client, GreyfitError
 from greyfit.schemas import FitResult
 from tests.frequency_systems import NAMES, TRUTH, frequency_data, seed001_model
-from tests.service.conftest import msd_request, slow_request
-from tests.service.test_real_server import free_port, start_server, stop_server
+from tests.servers import free_port, msd_request, slow_request, start_server, stop_server
 
 RATE_PER_MINUTE = 60      # the real server's limit: 1 request a second, bursts of 60
 

@@ -9,13 +9,13 @@ from pydantic import ValidationError
 
 
 def _read_json(path: str) -> dict:
-    from greyfit.service.json_parsing import loads_strict   # a key twice is an error, as over HTTP
+    from greyfit.service.json_parsing import loads_strict  # a key twice is an error, as over HTTP
     text = sys.stdin.read() if path == "-" else Path(path).read_text()
     return loads_strict(text)
 
 
 def _validation_message(exc: ValidationError) -> str:
-    from greyfit.service.error_text import error_lines   # experiments[0].time, as over HTTP
+    from greyfit.service.error_text import error_lines  # experiments[0].time, as over HTTP
     return error_lines(exc)
 
 
@@ -77,7 +77,7 @@ def format_discovery(result) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    from greyfit.service.cli_suggest import SuggestingArgumentParser   # "did you mean" for options
+    from greyfit.service.cli_suggest import SuggestingArgumentParser  # "did you mean" for options
     parser = SuggestingArgumentParser(prog="greyfit", description=__doc__)
     sub = parser.add_subparsers(dest="command", required=True)
     p_fit = sub.add_parser("fit", help="fit one request (JSON file or - for stdin); result JSON on stdout")

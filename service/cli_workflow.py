@@ -6,7 +6,7 @@ from pathlib import Path
 
 
 def _read(path: str) -> dict:
-    from greyfit.service.json_parsing import loads_strict   # a key twice is an error, as over HTTP
+    from greyfit.service.json_parsing import loads_strict  # a key twice is an error, as over HTTP
     return loads_strict(sys.stdin.read() if path == "-" else Path(path).read_text())
 
 

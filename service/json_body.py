@@ -34,8 +34,14 @@ from fastapi.params import Form
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
 
-from greyfit.service.json_parsing import (exit_with_parent, has_duplicate_keys, loads_strict, parse_and_validate,
-                                         validate_json, warm_up)
+from greyfit.service.json_parsing import (
+    exit_with_parent,
+    has_duplicate_keys,
+    loads_strict,
+    parse_and_validate,
+    validate_json,
+    warm_up,
+)
 
 LARGE_BODY_BYTES = 1 << 20
 

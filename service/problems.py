@@ -135,7 +135,8 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Overloaded)
     async def _overloaded(request: Request, exc: Overloaded):
-        return retry_later(503, "Unavailable", exc.detail, "unavailable", request.app.state.settings.retry_after_seconds)
+        return retry_later(503, "Unavailable", exc.detail, "unavailable",
+                           request.app.state.settings.retry_after_seconds)
 
     # a store that cannot be written is the server's state, not the request's fault: 503, retry
     # (read-only is InternalError on PostgreSQL, OperationalError on SQLite; unreachable is either)

@@ -171,7 +171,8 @@ def test_every_line_the_server_wrote_is_json_with_the_ids(server):
 
 
 def test_the_servers_own_429_is_waited_out(server):
-    """(Last in this module: it spends the rate limit.) Past the rate limit the server answers 429 + Retry-After; the client waits and gets its answer."""
+    """Past the rate limit the server answers 429 + Retry-After; the client waits and gets its
+    answer. (Last in this module: it spends the rate limit.)"""
     base = server[0]
     statuses = []
     for _ in range(RATE_PER_MINUTE + 5):    # spend the burst (raw urllib: no retries)

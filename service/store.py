@@ -138,9 +138,10 @@ def check_data_dir(data_dir: Path, database_file: Optional[Path] = None) -> None
                 pass
     except OSError as exc:
         reason = exc.strerror or type(exc).__name__
-        place = exc.filename or data_dir
-        raise DataDirNotWritable(f"the data directory {data_dir.resolve()} is not writable by {who} ({reason}: "
-                                 f"{place}): {fix}") from None
+        # the probe's own name says nothing: name the folder, or the database file that refused
+        place = f" on {exc.filename}" if exc.filename and ".greyfit-write-check-" not in str(exc.filename) else ""
+        raise DataDirNotWritable(f"the data directory {data_dir.resolve()} is not writable by {who} "
+                                 f"({reason}{place}): {fix}") from None
 
 
 @dataclass

@@ -20,6 +20,7 @@ import json
 import time
 import urllib.error
 import urllib.request
+import uuid
 from typing import Any, Generic, Optional, Sequence, TypeVar, Union
 
 from pydantic import BaseModel
@@ -91,13 +92,14 @@ class Client:
         self.last_retries: list[tuple[int, float]] = []   # (status, seconds waited) of the last call
 
     # --- plumbing --------------------------------------------------------------------------------
-    def _request(self, method: str, path: str, body: Any = None) -> tuple[int, bytes]:
+    def _request(self, method: str, path: str, body: Any = None,
+                 headers: Optional[dict[str, str]] = None) -> tuple[int, bytes]:
         """One call, retried on 429/503 as the server's Retry-After says, within the bounds."""
         self.last_retries = []
         waited = 0.0
         while True:
             try:
-                return self._send(method, path, body)
+                return self._send(method, path, body, headers)
             except GreyfitError as exc:
                 wait = self._retry_wait(exc, len(self.last_retries), waited)
                 if wait is None:
@@ -114,9 +116,10 @@ class Client:
         wait = exc.retry_after if exc.retry_after is not None else FALLBACK_WAIT * 2 ** retries
         return wait if waited + wait <= self.max_retry_wait else None
 
-    def _send(self, method: str, path: str, body: Any = None) -> tuple[int, bytes]:
+    def _send(self, method: str, path: str, body: Any = None,
+              extra_headers: Optional[dict[str, str]] = None) -> tuple[int, bytes]:
         data = None
-        headers = {"accept": "application/json"}
+        headers = {"accept": "application/json", **(extra_headers or {})}
         if body is not None:
             data = (body.model_dump_json() if isinstance(body, BaseModel) else json.dumps(body)).encode()
             headers["content-type"] = "application/json"
@@ -135,8 +138,8 @@ class Client:
             raise GreyfitError(exc.code, problem if isinstance(problem, dict) else {"detail": problem},
                                _retry_after(exc.headers.get("Retry-After"))) from None
 
-    def _json(self, method: str, path: str, body: Any = None) -> Any:
-        return json.loads(self._request(method, path, body)[1])
+    def _json(self, method: str, path: str, body: Any = None, headers: Optional[dict[str, str]] = None) -> Any:
+        return json.loads(self._request(method, path, body, headers)[1])
 
     @staticmethod
     def _as(model: type[BaseModel], value: Union[BaseModel, dict]) -> BaseModel:
@@ -158,16 +161,22 @@ class Client:
             self._json("POST", "/v1/simulate", self._as(SimulateRequest, request)))
 
     def submit_job(self, requests: Sequence[Union[FitRequest, DiscoverRequest, FrequencyFitRequest, dict]],
-                   label: Optional[str] = None, kind: str = "fit") -> JobPublic:
+                   label: Optional[str] = None, kind: str = "fit",
+                   idempotency_key: Optional[str] = None) -> JobPublic:
         """A batch job of fits (kind 'fit'), discoveries ('discover') or frequency-response fits
-        ('frequency_fit'); returns at once."""
+        ('frequency_fit'); returns at once.
+
+        Sent with an Idempotency-Key (a new random one unless given), the same on every retry: a
+        503 answered after the job was stored (a proxy's, a lost answer) and retried gives that job,
+        not a second one."""
         if kind not in JOB_KINDS:
             raise ValueError(f"kind must be one of {list(JOB_KINDS)}")
         schema, path = KINDS[kind].request_schema(), KINDS[kind].jobs_path
         body = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
         if label is not None:
             body["label"] = label
-        return JobPublic.model_validate(self._json("POST", path, body))
+        key = idempotency_key or uuid.uuid4().hex
+        return JobPublic.model_validate(self._json("POST", path, body, {"Idempotency-Key": key}))
 
     def frequency_fit(self, request: Union[FrequencyFitRequest, dict]) -> FitResult:
         """One synchronous frequency-response fit (POST /v1/frequency-fits)."""

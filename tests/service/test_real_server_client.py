@@ -37,10 +37,12 @@ def server(tmp_path_factory):
 
 
 class Refusing(ThreadingHTTPServer):
-    """Answers the first `refusals` requests 503 + Retry-After itself; passes the rest on."""
+    """Answers the first `refusals` requests 503 + Retry-After itself (after passing them on when
+    `lose_answers`, as a gateway whose upstream answered too late); passes the rest on."""
 
-    def __init__(self, upstream: str, refusals: int, retry_after: str):
+    def __init__(self, upstream: str, refusals: int, retry_after: str, lose_answers: bool = False):
         self.upstream, self.refusals, self.retry_after = upstream, refusals, retry_after
+        self.lose_answers = lose_answers
         self.seen: list[str] = []
         self.lock = threading.Lock()
         super().__init__(("127.0.0.1", 0), RefusingHandler)
@@ -58,19 +60,25 @@ class RefusingHandler(BaseHTTPRequestHandler):
         with self.server.lock:
             self.server.seen.append(f"{self.command} {self.path}")
             refuse = len(self.server.seen) <= self.server.refusals
+        if refuse and self.server.lose_answers:
+            self._forward(body)          # the upstream does the work; its answer is lost here
         if refuse:
             problem = json.dumps({"type": "about:blank", "title": "Unavailable", "status": 503,
                                   "detail": "at capacity; retry"}).encode()
             return self._send(503, problem, {"content-type": "application/problem+json",
                                              "retry-after": self.server.retry_after})
-        headers = {k: v for k, v in self.headers.items() if k.lower() in ("content-type", "authorization")}
+        self._send(*self._forward(body))
+
+    def _forward(self, body: bytes) -> tuple[int, bytes, dict]:
+        passed = ("content-type", "authorization", "idempotency-key")
+        headers = {k: v for k, v in self.headers.items() if k.lower() in passed}
         request = urllib.request.Request(self.server.upstream + self.path, data=body or None,
                                          headers=headers, method=self.command)
         try:
             with urllib.request.urlopen(request, timeout=120) as resp:
-                self._send(resp.status, resp.read(), dict(resp.headers))
+                return resp.status, resp.read(), dict(resp.headers)
         except urllib.error.HTTPError as exc:
-            self._send(exc.code, exc.read(), dict(exc.headers))
+            return exc.code, exc.read(), dict(exc.headers)
 
     def _send(self, status: int, body: bytes, headers: dict) -> None:
         self.send_response(status)
@@ -91,8 +99,8 @@ class RefusingHandler(BaseHTTPRequestHandler):
 def refusing(server):
     proxies = []
 
-    def make(refusals: int, retry_after: str = "1") -> Refusing:
-        proxy = Refusing(server[0], refusals, retry_after)
+    def make(refusals: int, retry_after: str = "1", lose_answers: bool = False) -> Refusing:
+        proxy = Refusing(server[0], refusals, retry_after, lose_answers)
         threading.Thread(target=proxy.serve_forever, daemon=True).start()
         proxies.append(proxy)
         return proxy
@@ -128,6 +136,17 @@ def test_retries_are_bounded_in_number_and_in_total_wait(refusing):
     with pytest.raises(GreyfitError):
         Client(never.url, max_retries=0).list_jobs()
     assert len(never.seen) == 1
+
+
+def test_a_job_whose_answer_was_lost_is_not_submitted_twice(server, refusing):
+    """The first POST reaches the server (the job is stored) but the client gets a 503: the retry,
+    with the same Idempotency-Key, gets that job back."""
+    proxy = refusing(refusals=1, retry_after="1", lose_answers=True)
+    client = Client(proxy.url, max_retries=2, max_retry_wait=10)
+    job = client.submit_job([msd_request(14)], label="lost answer")
+    assert len(proxy.seen) == 2 and client.last_retries == [(503, 1.0)]
+    stored = [j for j in Client(server[0]).list_jobs(limit=50).data if j.label == "lost answer"]
+    assert [j.id for j in stored] == [job.id]
 
 
 def test_frequency_fit_list_cancel_and_typed_results(server):

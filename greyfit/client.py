@@ -172,11 +172,11 @@ class Client:
         if kind not in JOB_KINDS:
             raise ValueError(f"kind must be one of {list(JOB_KINDS)}")
         schema, path = KINDS[kind].request_schema(), KINDS[kind].jobs_path
-        body = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
+        body: dict[str, Any] = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
         if label is not None:
             body["label"] = label
         key = idempotency_key or uuid.uuid4().hex
-        return JobPublic.model_validate(self._json("POST", path, body, {"Idempotency-Key": key}))
+        return JobPublic.model_validate(self._json("POST", str(path), body, {"Idempotency-Key": key}))
 
     def frequency_fit(self, request: Union[FrequencyFitRequest, dict]) -> FitResult:
         """One synchronous frequency-response fit (POST /v1/frequency-fits)."""
@@ -212,7 +212,8 @@ class Client:
         'fit' and 'frequency_fit') or a DiscoveryResult ('discover'). Without `kind`, the job's is
         asked for first."""
         kind = kind or self.job(job_id).kind
-        outcomes = JobOutcomes[KINDS[kind].result_schema()]  # type: ignore[misc]
+        # the result schema is known at run time only (the task kinds' table)
+        outcomes = JobOutcomes[KINDS[kind].result_schema()]  # type: ignore[misc,valid-type]
         return outcomes.model_validate(self._json("GET", f"/v1/jobs/{job_id}/results"))
 
     def report(self, result: Union[FitResult, DiscoveryResult, dict],

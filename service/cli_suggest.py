@@ -23,7 +23,7 @@ class SuggestingArgumentParser(argparse.ArgumentParser):
     """argparse.ArgumentParser whose errors about unknown options and invalid choices suggest the
     closest known one. Subcommands' parsers are of this class too (add_subparsers makes them so)."""
 
-    def parse_args(self, args=None, namespace=None):  # type: ignore[override]
+    def parse_args(self, args=None, namespace=None):
         known, extras = self.parse_known_args(args, namespace)
         if extras:
             parser = self._subcommand_parser(known) or self
@@ -32,7 +32,7 @@ class SuggestingArgumentParser(argparse.ArgumentParser):
             parser.error(f"unrecognized arguments: {' '.join(extras)}{hints}")
         return known
 
-    def error(self, message: str):  # type: ignore[override]
+    def error(self, message: str):
         match = _INVALID_CHOICE.search(message)
         if match:
             message += did_you_mean(match.group(1), re.findall(r"'([^']*)'", match.group(2)))

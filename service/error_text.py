@@ -10,7 +10,7 @@ from __future__ import annotations
 import difflib
 import re
 import types
-from typing import Annotated, Any, Iterable, Optional, Union, get_args, get_origin
+from typing import Annotated, Any, Iterable, Mapping, Optional, Union, get_args, get_origin
 
 from pydantic import BaseModel, Discriminator, Tag, ValidationError
 
@@ -74,7 +74,7 @@ def _member_label(types_here: list[Any], part: Any) -> Optional[str]:
     return None
 
 
-def message(error: dict, model: Optional[type[BaseModel]] = None) -> str:
+def message(error: Mapping[str, Any], model: Optional[type[BaseModel]] = None) -> str:
     """The error's message without pydantic's prefixes, with the fix where one is known."""
     msg = error.get("msg", "invalid")
     for prefix in _PREFIXES:
@@ -171,7 +171,7 @@ def _step(tp: Any, part: Any) -> list[Any]:
     return out
 
 
-def describe(errors: Iterable[dict], model: Optional[type[BaseModel]] = None) -> list[dict]:
+def describe(errors: Iterable[Mapping[str, Any]], model: Optional[type[BaseModel]] = None) -> list[dict]:
     """[{"loc": "experiments[0].time[3]", "msg": ...}] for pydantic's errors (or FastAPI's, whose
     locations start with "body")."""
     return [{"loc": location(e.get("loc", ()), model), "msg": message(e, model)} for e in errors]

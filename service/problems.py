@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import logging
-from typing import Optional
+from typing import Any, Optional, Sequence
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -105,7 +105,7 @@ def store_error_detail(exc: Exception) -> str:
 
 
 def install_handlers(app: FastAPI) -> None:
-    def invalid_request(errors: list[dict], body, model: Optional[type[BaseModel]] = None) -> JSONResponse:
+    def invalid_request(errors: Sequence[Any], body, model: Optional[type[BaseModel]] = None) -> JSONResponse:
         errors = validation_errors(errors, body, model)
         detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
         return problem(422, "Invalid request", detail, "validation-error", errors=errors)

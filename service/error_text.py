@@ -37,10 +37,12 @@ def member_name(label: str) -> str:
 def location(loc: Iterable[Any], model: Optional[type[BaseModel]] = None) -> str:
     """`experiments[0].outputs.x` for pydantic's ('body', 'experiments', 0, 'outputs', 'x').
 
-    A union member appears by its name in angle brackets (`result<FitResult>.parameters`,
-    `model<transfer_function>.numerator`), so that two members' errors about one place can be told
-    apart without pydantic's validator labels. With the body's `model` the members are recognised
-    by its types; without, by the brackets of pydantic's labels."""
+    A member of a plain union appears by its name in angle brackets (`result<FitResult>.parameters`),
+    so that two members' errors about one place can be told apart without pydantic's validator
+    labels; the tag of a discriminated union is left out (`model.numerator`, not
+    `model.transfer_function.numerator`): the body chose the member, whose errors alone are reported.
+    With the body's `model` the members are recognised by its types; without, by the brackets of
+    pydantic's labels."""
     parts = list(loc)
     if parts and parts[0] == "body":
         parts = parts[1:]
@@ -53,6 +55,8 @@ def location(loc: Iterable[Any], model: Optional[type[BaseModel]] = None) -> str
             types_here = [t for tp in types_here for t in _step(tp, p)]
         if label is None and ("[" in text or "(" in text):
             label = member_name(text)
+        if label == "":               # a discriminated union's tag: the body chose it, so it says nothing
+            continue
         if label is not None:
             out += f"<{label}>"
         elif isinstance(p, int) or text.isdigit():
@@ -63,11 +67,12 @@ def location(loc: Iterable[Any], model: Optional[type[BaseModel]] = None) -> str
 
 
 def _member_label(types_here: list[Any], part: Any) -> Optional[str]:
-    """The member's name when `part` selects a member of a union found here, else None."""
+    """The member's name when `part` selects a member of a union found here ("" for the tag of a
+    discriminated union), else None."""
     text = str(part)
     for tp in types_here:
         if text in _tags(tp):
-            return text
+            return ""
         members = _members(tp)
         if len(members) > 1 and any(getattr(m, "__name__", None) == member_name(text) for m in members):
             return member_name(text)

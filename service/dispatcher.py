@@ -101,7 +101,7 @@ class Dispatcher:
             try:
                 self.executor.submit(key, kind, request)
             except OSError:   # the worker has just died: the next poll fails the fit (WorkerLost, 503)
-                log.warning("synchronous fit %s: its worker was gone", key)
+                log.warning("synchronous fit %s: its worker was gone", key, extra={"task_id": key})
         finally:
             self._lock.release()
         return True   # no wake-up: the dispatcher waits on idle workers too (LocalWorkerPool.wait)
@@ -308,7 +308,7 @@ class Dispatcher:
             error = outcome.get("error") or {}
             if error.get("type") == "InternalError":
                 log.error("task %s (%s) failed with an internal error: %s\n%s", key, kind,
-                          error.get("detail"), error.get("trace", ""))
+                          error.get("detail"), error.get("trace", ""), extra={"task_id": key})
             if item[0] == "sync":
                 if not item[1].done():
                     item[1].set_result(outcome)
@@ -361,7 +361,8 @@ class Dispatcher:
         for job_id, idx, outcome in retried:
             status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, outcome["error"])
             if status == "queued":
-                log.warning("task %s:%s re-queued: %s", job_id, idx, outcome["error"].get("detail"))
+                log.warning("task %s:%s re-queued: %s", job_id, idx, outcome["error"].get("detail"),
+                            extra={"task_id": f"{job_id}:{idx}"})
             self.pending.remove((job_id, idx, outcome))
         self._pending_since = time.monotonic()
 

@@ -23,9 +23,24 @@ from pathlib import Path
 from typing import Any, Optional
 
 from sqlalchemy import (
-    Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, case, create_engine, event, func,
+    Column,
+    Float,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    bindparam,
+    case,
+    create_engine,
+    event,
+    func,
     inspect,
-    select, text, tuple_, update,
+    select,
+    text,
+    tuple_,
+    update,
 )
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError

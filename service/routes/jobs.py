@@ -99,7 +99,8 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
 
 
 @router.get("", response_model=JobsPublic)
-def list_jobs(request: Request, offset: int = Query(0, ge=0, le=MAX_OFFSET), limit: int = Query(20, ge=1, le=200)) -> Response:
+def list_jobs(request: Request, offset: int = Query(0, ge=0, le=MAX_OFFSET),
+              limit: int = Query(20, ge=1, le=200)) -> Response:
     """Jobs, newest first, with paging: each job's status and progress, not its tasks (GET /v1/jobs/{id})."""
     entries, count = request.app.state.store.list_jobs(offset, limit)
     return as_json(JobsPublic(data=[job_summary(e) for e in entries], count=count))

@@ -22,7 +22,6 @@ from greyfit.solvers.checks.fit_checks import (
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
 from greyfit.solvers.methods.node_initialisation import node_warnings
-from greyfit.solvers.nlp.solver import NlpOutcome, solve_linear_least_squares
 from greyfit.solvers.model.parameters import ParameterLayout, build_layout
 from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.inference.profile import check_profile_names, run_profiles
@@ -30,7 +29,9 @@ from greyfit.solvers.methods.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
-from greyfit.solvers.methods.shooting_curvature import make_solver
+from greyfit.solvers.methods.multistart import (   # noqa: F401  (draw_starts: frequency/fit.py)
+    MULTISTART_CPU_STATUS, draw_starts, multistart_agreement, solve_starts,
+)
 from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.simulation.validate import validate_fit
 
@@ -44,48 +45,6 @@ class Residuals:
     channels: list[str]
     per_experiment: list[tuple[np.ndarray, np.ndarray]]  # (measured, residual), each (nch, N)
     states: list[np.ndarray] | None = None   # simulated states per experiment (output error)
-
-
-def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
-    """The user's guess first, then n-1 draws inside the bounds (log-uniform over decades)."""
-    starts = [layout.initial.copy()]
-    rng = np.random.default_rng(seed)
-    for _ in range(n - 1):
-        theta = np.empty(layout.size)
-        for i in range(layout.size):
-            lo, hi, v = layout.lower[i], layout.upper[i], layout.initial[i]
-            lo = lo if np.isfinite(lo) else v - 0.5 * layout.scale[i]
-            hi = hi if np.isfinite(hi) else v + 0.5 * layout.scale[i]
-            if lo > 0 and hi / lo > 10:
-                theta[i] = np.exp(rng.uniform(np.log(lo), np.log(hi)))
-            else:
-                theta[i] = rng.uniform(lo, hi)
-        starts.append(theta)
-    return starts
-
-
-def _solve(problem, options, starts, linear: bool, cpu0: float | None = None) -> tuple[NlpOutcome, int, bool | None]:
-    """(best outcome, starts used, whether compiled C evaluated the model); `cpu0`: the process
-    time the fit began at (its preparation counts against max_cpu_time too)."""
-    if linear:
-        outcome = solve_linear_least_squares(problem, options)
-        if outcome is not None:
-            return outcome, 1, None
-    solver = make_solver(problem, options)   # multiple shooting: with its gaps' curvature
-    best, used = None, 0
-    cpu0 = time.process_time() if cpu0 is None else cpu0
-    solving = time.process_time()
-    for theta0 in starts:
-        now = time.process_time()
-        # max_cpu_time bounds the whole fit, not each start: another start is begun only if one
-        # more, at the cost of those so far, still ends inside it
-        if best is not None and now - cpu0 + (now - solving) / used > options.max_cpu_time:
-            break
-        out = solver.solve(problem.initial_guess(theta0))
-        used += 1
-        if best is None or (out.success, -out.cost) > (best.success, -best.cost):
-            best = out
-    return best, used, getattr(solver, "compiled", None)
 
 
 def _at_bound(layout: ParameterLayout, theta_s: np.ndarray) -> list[str | None]:
@@ -149,12 +108,14 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     before = pre_fit_warnings(cm, data, layout, opts, problem, eep, oem)
     if eep is not None:
         affine = ext.solve_affine(problem, layout, eep.linear)
-        outcome, n_starts, is_c = ((*affine, None) if affine
-                                   else _solve(problem, opts, starts, eep.linear and problem.penalty is None, cpu0))
+        run = (solve_starts(problem, opts, starts, eep.linear and problem.penalty is None, cpu0)
+               if not affine else None)
+        outcome, n_starts, is_c = (*affine, None) if affine else (run.best, run.used, run.compiled)
         if outcome.status == "Linear_Least_Squares":   # the per-sample Jacobian was all that ran
             is_c = eep.sample.compiled
     else:
-        outcome, n_starts, is_c = _solve(problem, opts, starts, False, cpu0)
+        run = solve_starts(problem, opts, starts, False, cpu0)
+        outcome, n_starts, is_c = run.best, run.used, run.compiled
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
         outcome.w, outcome.success = problem.initial_guess(layout.initial), False
 
@@ -201,6 +162,8 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     cov = estimate_covariance(jac, res, labels, values, scale, keep, layout.size, opts.confidence_level,
                               groups=groups, sample_keys=sample_keys, experiment_keys=experiment_keys,
                               robust=robust)
+    agree = multistart_agreement(run, layout, ndata, nvarys, opts.confidence_level) if run else None
+    before = before + (agree.warnings if agree else [])   # multiple_optima counts against `good`
 
     params: dict[str, ParameterEstimate] = {}
     for i, label in enumerate(layout.labels):
@@ -237,11 +200,13 @@ def _fit_prepared(request: FitRequest) -> FitResult:
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts,
                           derivative_filter=eep.derivative_filter if eep else None,
-                          linear_in_parameters=eep.linear if eep else None, compiled=is_c),
+                          linear_in_parameters=eep.linear if eep else None, compiled=is_c,
+                          starts_at_best=agree.starts_at_best if agree else None),
         residual_analysis=analyses, traces=traces,
         covariance_classical=None if cov.classical is None else CovariancePublic(
             names=cov.names, matrix=cov.classical.tolist()),
-        active_constraints=active_constraints(cm, layout, theta_s))
+        active_constraints=active_constraints(cm, layout, theta_s),
+        alternative_optima=agree.optima if agree and agree.optima else None)
     result.profile = run_profiles(problem, opts, outcome, layout, ndata, nvarys, cov)
     result = ext.finish(result, layout, theta, cov)
     # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
@@ -281,6 +246,9 @@ def _message(status: str) -> str:
         "Linear_Least_Squares": "solved in closed form (residual affine in the parameters, no active bound)",
         "Maximum_Iterations_Exceeded": "Ipopt stopped at max_iter; raise options.max_iter or improve the guess",
         "Maximum_CpuTime_Exceeded": "Ipopt stopped at max_cpu_time; raise options.max_cpu_time",
+        MULTISTART_CPU_STATUS: "max_cpu_time ran out before every start ran; the best start so far is "
+                               "reported, not the multistart's answer; raise options.max_cpu_time or "
+                               "lower options.multistart",
         "Infeasible_Problem_Detected": "the bounds and constraints cannot all hold",
     }.get(status, f"Ipopt returned {status}")
 

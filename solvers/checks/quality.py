@@ -15,7 +15,8 @@ from greyfit.solvers.inference.covariance import CovarianceEstimate, combination
 
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
-                 "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation"}
+                 "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation",
+                 "multiple_optima"}   # multiple_optima: solvers/methods/multistart.py
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "input_faster_than_sampling", "integration_step_coarse", "initial_simulation_diverged",
               "robust_covariance", "poor_excitation_at_start"}

@@ -1,0 +1,176 @@
+"""Multistart: the starts, their solves, and how far they agree (issue #22).
+
+Why: a fit from several starts used to return its best and say only how many starts ran. Where
+several distinct parameter vectors explain the data equally well (A→B→C kinetics with only C
+measured: k1 and k2 swap; a coarsely sampled step: several ωn), the one returned is an accident of
+the starts, and a `good` verdict on it is wrong.
+
+What: every start runs to its own end under iteration limits only, so the set of optima does not
+depend on machine load. `options.max_cpu_time` is a safety net: when it runs out before every start
+ran, the fit ends not converged with status MULTISTART_CPU_STATUS, the best start so far reported.
+After the fit `multistart_agreement` counts the starts that reached the best cost and lists the
+distinct converged optima whose cost is statistically indistinguishable from it; more than one is
+the `multiple_optima` warning, which makes the result `suspect`.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from greyfit.schemas.fit import AlternativeOptimum, FitOptions, FitWarning
+from greyfit.solvers.inference.statistics import student_t_quantile
+from greyfit.solvers.methods.shooting_curvature import make_solver
+from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.nlp.solver import NlpOutcome, solve_linear_least_squares
+
+MULTISTART_CPU_STATUS = "Multistart_CpuTime_Exceeded"
+SAME_COST = 1e-6           # relative cost difference of starts that "reached the best cost"
+DISTINCT_RELATIVE = 1e-2   # optima differing by more than this in some parameter are distinct
+MAX_ALTERNATIVES = 10      # optima listed at most (the best first)
+
+
+@dataclass
+class MultistartRun:
+    """The best outcome, every start's outcome in order, and what the solver ran as."""
+
+    best: NlpOutcome
+    outcomes: list[NlpOutcome] = field(default_factory=list)
+    planned: int = 1
+    compiled: bool | None = None
+
+    @property
+    def used(self) -> int:
+        return max(len(self.outcomes), 1)
+
+
+@dataclass
+class Agreement:
+    starts_at_best: int
+    optima: list[AlternativeOptimum]
+    warnings: list[FitWarning]
+
+
+def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
+    """The user's guess first, then n-1 draws inside the bounds (log-uniform over decades)."""
+    starts = [layout.initial.copy()]
+    rng = np.random.default_rng(seed)
+    for _ in range(n - 1):
+        theta = np.empty(layout.size)
+        for i in range(layout.size):
+            lo, hi, v = layout.lower[i], layout.upper[i], layout.initial[i]
+            lo = lo if np.isfinite(lo) else v - 0.5 * layout.scale[i]
+            hi = hi if np.isfinite(hi) else v + 0.5 * layout.scale[i]
+            if lo > 0 and hi / lo > 10:
+                theta[i] = np.exp(rng.uniform(np.log(lo), np.log(hi)))
+            else:
+                theta[i] = rng.uniform(lo, hi)
+        starts.append(theta)
+    return starts
+
+
+def _better(a: NlpOutcome, b: NlpOutcome | None) -> bool:
+    return b is None or (a.success, -a.cost) > (b.success, -b.cost)
+
+
+def solve_starts(problem, options: FitOptions, starts: list[np.ndarray], linear: bool,
+                 cpu0: float | None = None) -> MultistartRun:
+    """Solve from every start (the closed form instead where `linear` and it applies).
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+    options : FitOptions
+    starts : physical parameter vectors, the user's guess first (`draw_starts`)
+    linear : try `solve_linear_least_squares` first (equation error, affine residual)
+    cpu0 : the process time the fit began at; its preparation counts against max_cpu_time too
+
+    Returns
+    -------
+    MultistartRun
+        Its `best` is not converged, with status MULTISTART_CPU_STATUS, when max_cpu_time would
+        run out before the next start ended (judged by the mean CPU time of the starts so far).
+    """
+    if linear:
+        outcome = solve_linear_least_squares(problem, options)
+        if outcome is not None:
+            return MultistartRun(outcome, [outcome], 1, None)
+    solver = make_solver(problem, options)   # multiple shooting: with its gaps' curvature
+    run = MultistartRun(None, [], len(starts), getattr(solver, "compiled", None))   # type: ignore[arg-type]
+    cpu0 = time.process_time() if cpu0 is None else cpu0
+    solving = time.process_time()
+    for theta0 in starts:
+        now = time.process_time()
+        if run.outcomes and now - cpu0 + (now - solving) / len(run.outcomes) > options.max_cpu_time:
+            # the safety net: a cut multistart is not the answer a quiet machine gives
+            run.best = replace(run.best, status=MULTISTART_CPU_STATUS, success=False)
+            return run
+        out = solver.solve(problem.initial_guess(theta0))
+        run.outcomes.append(out)
+        if _better(out, run.best):
+            run.best = out
+    return run
+
+
+def multistart_agreement(run: MultistartRun, layout: ParameterLayout, ndata: int, nvarys: int,
+                         level: float) -> Agreement | None:
+    """Starts at the best cost and the distinct optima indistinguishable from it (None: one start).
+
+    Parameters
+    ----------
+    run : the multistart's outcomes
+    layout : maps each outcome's scaled θ (its first entries) to named physical values
+    ndata, nvarys : residuals and free parameters of the fit (σ² = 2 cost / (ndata − nvarys))
+    level : the confidence level; an optimum is indistinguishable when its cost exceeds the best
+        by less than ½ t²(ν) σ², the threshold of the profile intervals (`inference/profile.py`)
+
+    Returns
+    -------
+    Agreement or None
+        `optima` holds the best first; only converged starts count as optima. More than one
+        optimum gives a `multiple_optima` warning.
+    """
+    if len(run.outcomes) < 2 or not np.isfinite(run.best.cost):
+        return None
+    best = run.best.cost
+    at_best = sum(1 for o in run.outcomes if np.isfinite(o.cost)
+                  and o.cost - best <= SAME_COST * max(abs(best), 1e-300))
+    dof = ndata - nvarys
+    if not run.best.success or dof <= 0:
+        return Agreement(at_best, [], [])
+    t = student_t_quantile(0.5 + level / 2, dof)
+    delta = 0.5 * t * t * (2.0 * best / dof)
+    groups: list[tuple[np.ndarray, NlpOutcome, int]] = []
+    candidates = sorted((o for o in run.outcomes if o.success and np.isfinite(o.cost)
+                         and o.cost - best <= delta), key=lambda o: o.cost)
+    for o in candidates:
+        theta = layout.physical(o.w[:layout.size])
+        for k, (ref, first, count) in enumerate(groups):
+            if not _distinct(theta, ref, layout.scale):
+                groups[k] = (ref, first, count + 1)
+                break
+        else:
+            groups.append((theta, o, 1))
+    optima = [AlternativeOptimum(parameters={lab: float(v) for lab, v in zip(layout.labels, theta)},
+                                 cost=float(o.cost), starts=count)
+              for theta, o, count in groups[:MAX_ALTERNATIVES]]
+    return Agreement(at_best, optima, _optima_warning(optima, delta) if len(optima) > 1 else [])
+
+
+def _distinct(a: np.ndarray, b: np.ndarray, scale: np.ndarray) -> bool:
+    floor = 1e-9 * np.abs(scale)
+    return bool(np.any(np.abs(a - b) > DISTINCT_RELATIVE * np.maximum(np.maximum(np.abs(a), np.abs(b)), floor)))
+
+
+def _optima_warning(optima: list[AlternativeOptimum], delta: float) -> list[FitWarning]:
+    def show(o: AlternativeOptimum) -> str:
+        return ", ".join(f"{k} = {v:.4g}" for k, v in o.parameters.items())
+    return [FitWarning(
+        code="multiple_optima",
+        message=f"{len(optima)} distinct optima explain the data equally well (costs within "
+                f"{delta:.3g} of the best, the profile-interval threshold): "
+                + "; ".join(f"[{show(o)}]" for o in optima)
+                + "; the one returned is an accident of the starts: add data that tells them "
+                  "apart, bounds or constraints that exclude all but one",
+        detail={"optima": [o.model_dump() for o in optima], "cost_threshold": delta})]

@@ -20,7 +20,7 @@ from greyfit.solvers.checks.fit_checks import (
     active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
 )
 from greyfit.solvers.methods.extensions import prepare_batch
-from greyfit.solvers.model.compiler import CompiledModel, compile_model
+from greyfit.solvers.model.compiler import CompiledModel, compile_model, guard_notes
 from greyfit.solvers.methods.node_initialisation import node_warnings
 from greyfit.solvers.model.parameters import ParameterLayout, build_layout
 from greyfit.solvers.data.preprocess import prepare_request
@@ -30,7 +30,7 @@ from greyfit.solvers.methods.shooting import (
 )
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
 from greyfit.solvers.methods.multistart import (   # noqa: F401  (draw_starts: frequency/fit.py)
-    MULTISTART_CPU_STATUS, draw_starts, multistart_agreement, solve_starts,
+    MULTISTART_CPU_STATUS, draw_starts, exact_form, multistart_agreement, multistart_warnings, solve_starts,
 )
 from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.simulation.validate import validate_fit
@@ -105,7 +105,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         build = build_single_shooting if request.method == FitMethod.single_shooting else build_multiple_shooting
         problem = build(oem)
         ext.attach(problem, layout)
-    before = pre_fit_warnings(cm, data, layout, opts, problem, eep, oem)
+    before = pre_fit_warnings(cm, data, layout, opts, problem, eep, oem) + guard_notes(cm)
     if eep is not None:
         affine = ext.solve_affine(problem, layout, eep.linear)
         run = (solve_starts(problem, opts, starts, eep.linear and problem.penalty is None, cpu0)
@@ -114,7 +114,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
         if outcome.status == "Linear_Least_Squares":   # the per-sample Jacobian was all that ran
             is_c = eep.sample.compiled
     else:
-        run = solve_starts(problem, opts, starts, False, cpu0)
+        run = solve_starts(problem, opts, starts, False, cpu0, exact_form(build, oem, problem))
         outcome, n_starts, is_c = run.best, run.used, run.compiled
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
         outcome.w, outcome.success = problem.initial_guess(layout.initial), False
@@ -163,7 +163,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
                               groups=groups, sample_keys=sample_keys, experiment_keys=experiment_keys,
                               robust=robust)
     agree = multistart_agreement(run, layout, ndata, nvarys, opts.confidence_level) if run else None
-    before = before + (agree.warnings if agree else [])   # multiple_optima counts against `good`
+    before = before + (multistart_warnings(run, agree) if run else [])   # multiple_optima: not `good`
 
     params: dict[str, ParameterEstimate] = {}
     for i, label in enumerate(layout.labels):

@@ -19,7 +19,9 @@ SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "pa
                  "multiple_optima"}   # multiple_optima: solvers/methods/multistart.py
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "input_faster_than_sampling", "integration_step_coarse", "initial_simulation_diverged",
-              "robust_covariance", "poor_excitation_at_start"}
+              "robust_covariance", "poor_excitation_at_start",
+              "singular_derivative_guarded",     # solvers/model/compiler.py
+              "polished_with_exact_hessian"}     # solvers/methods/multistart.py
 
 NOISE_FLOOR_RATIO = 5.0      # rmse this many times the data's own noise estimate ...
 NOISE_FLOOR_POINTS = 20.0    # ... and the fit % this many points below what that noise allows

@@ -21,11 +21,13 @@ import numpy as np
 
 from greyfit.schemas.fit import AlternativeOptimum, FitOptions, FitWarning
 from greyfit.solvers.inference.statistics import student_t_quantile
+from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.methods.shooting_curvature import make_solver
 from greyfit.solvers.model.parameters import ParameterLayout
-from greyfit.solvers.nlp.solver import NlpOutcome, solve_linear_least_squares
+from greyfit.solvers.nlp.solver import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 
 MULTISTART_CPU_STATUS = "Multistart_CpuTime_Exceeded"
+CPU_STATUSES = {MULTISTART_CPU_STATUS, "Maximum_CpuTime_Exceeded"}
 SAME_COST = 1e-6           # relative cost difference of starts that "reached the best cost"
 DISTINCT_RELATIVE = 1e-2   # optima differing by more than this in some parameter are distinct
 MAX_ALTERNATIVES = 10      # optima listed at most (the best first)
@@ -39,6 +41,7 @@ class MultistartRun:
     outcomes: list[NlpOutcome] = field(default_factory=list)
     planned: int = 1
     compiled: bool | None = None
+    polished: bool = False   # the best is `polish_with_exact_hessian`'s
 
     @property
     def used(self) -> int:
@@ -70,12 +73,62 @@ def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
     return starts
 
 
+def _rank(o: NlpOutcome) -> tuple[bool, float]:
+    """Converged first, then the lower cost; a non-finite cost ranks last."""
+    return o.success, -o.cost if np.isfinite(o.cost) else -np.inf
+
+
 def _better(a: NlpOutcome, b: NlpOutcome | None) -> bool:
-    return b is None or (a.success, -a.cost) > (b.success, -b.cost)
+    return b is None or _rank(a) > _rank(b)
+
+
+def exact_form(build, oem, problem):
+    """() -> `problem` built by `build` (single or multiple shooting) with the exact Hessian: the
+    structured form has no CasADi graph to take second derivatives of."""
+    def make():
+        exact = OutputErrorModel(oem.cm, oem.data, oem.layout, oem.options.model_copy(update={"hessian": "exact"}))
+        rebuilt = build(exact)
+        rebuilt.penalty = problem.penalty
+        return rebuilt
+    return make
+
+
+def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, exact=None) -> None:
+    """When no Gauss-Newton start converged: Ipopt with the exact Hessian from the best iterate.
+
+    Why: on a flat valley Gauss-Newton crawls without meeting the tolerance (a linear two-tank
+    model on a cascaded-tanks-like record, whose optimum has a double pole: 2000 iterations and
+    still not converged; the exact Hessian from the same start in 11). Bounded by max_iter like
+    every other solve; kept only if it ranks better (`_rank`), and then `run.polished` says so.
+    `exact`: () -> the problem in a form with a graph (`exact_form`); else `problem.graph()`.
+    """
+    best = run.best
+    if best.success or options.hessian != "gauss_newton" or best.status in CPU_STATUSES \
+            or not np.all(np.isfinite(best.w)):
+        return
+    graph = exact() if exact is not None else problem.graph()
+    out = LeastSquaresSolver(graph, options.model_copy(update={"hessian": "exact"})).solve(best.w)
+    if out.status in CPU_STATUSES:   # the safety net: not an answer a quiet machine would give
+        run.best = replace(best, status=out.status, success=False)
+    elif _better(out, best):
+        run.best = replace(out, iterations=out.iterations + best.iterations)
+        run.polished = True
+
+
+def multistart_warnings(run: MultistartRun, agreement: "Agreement | None") -> list[FitWarning]:
+    """`multiple_optima` (suspect) and `polished_with_exact_hessian` (info) where they apply."""
+    out = list(agreement.warnings) if agreement is not None else []
+    if run.polished:
+        out.append(FitWarning(
+            code="polished_with_exact_hessian",
+            message="Gauss-Newton did not converge (a flat valley, where its Hessian JᵀJ leaves out "
+                    "the curvature); Ipopt with the exact Hessian went on from its best iterate and "
+                    "converged", detail={"return_status": run.best.status}))
+    return out
 
 
 def solve_starts(problem, options: FitOptions, starts: list[np.ndarray], linear: bool,
-                 cpu0: float | None = None) -> MultistartRun:
+                 cpu0: float | None = None, exact=None) -> MultistartRun:
     """Solve from every start (the closed form instead where `linear` and it applies).
 
     Parameters
@@ -85,12 +138,15 @@ def solve_starts(problem, options: FitOptions, starts: list[np.ndarray], linear:
     starts : physical parameter vectors, the user's guess first (`draw_starts`)
     linear : try `solve_linear_least_squares` first (equation error, affine residual)
     cpu0 : the process time the fit began at; its preparation counts against max_cpu_time too
+    exact : for the polish, () -> the problem with a graph (`exact_form`), where it has none
 
     Returns
     -------
     MultistartRun
-        Its `best` is not converged, with status MULTISTART_CPU_STATUS, when max_cpu_time would
-        run out before the next start ended (judged by the mean CPU time of the starts so far).
+        Where no Gauss-Newton start converged, its best is polished with the exact Hessian
+        (`polish_with_exact_hessian`). Its `best` is not converged, with status
+        MULTISTART_CPU_STATUS, when max_cpu_time would run out before the next start ended
+        (judged by the mean CPU time of the starts so far).
     """
     if linear:
         outcome = solve_linear_least_squares(problem, options)
@@ -110,6 +166,7 @@ def solve_starts(problem, options: FitOptions, starts: list[np.ndarray], linear:
         run.outcomes.append(out)
         if _better(out, run.best):
             run.best = out
+    polish_with_exact_hessian(problem, options, run, exact)
     return run
 
 

@@ -195,8 +195,11 @@ class HybridShootingSolver:
        start at 5x a1 settled in a local minimum that Gauss-Newton passes).
     2. Not converged: from that iterate, Gauss-Newton plus the curvature for up to
        CURVATURE_ITERATIONS (misfitting models: the tanks' optimum, which Gauss-Newton circles
-       with growing steps, in 5 more iterations).
-    3. That fails too (a nearly non-smooth model, whose exact curvature is huge and indefinite):
+       with growing steps, in 5 more iterations); and the same from the start w0, because step 1
+       may have walked into a degenerate region (a linear model on a cascaded-tanks-like record:
+       Gauss-Newton took a, b, d -> 0 and the curvature converged there at 3.4x the optimum's
+       cost, which the curvature from w0 reaches in 13 iterations).
+    3. Neither converges (a nearly non-smooth model, whose exact curvature is huge and indefinite):
        `plain_gauss_newton_solver` from the same start w0 with the full max_iter, i.e. exactly the
        run a plain Gauss-Newton fit makes (its first GN_ITERATIONS iterations are step 1's again).
 
@@ -238,9 +241,12 @@ class HybridShootingSolver:
         if runs[0].success or self.options.max_iter <= GN_ITERATIONS:
             return runs[0]
         w1 = runs[0].w if np.all(np.isfinite(runs[0].w)) else w0
-        later = [("curvature", self._curvature_solver, w1), ("plain_gauss_newton", self._plain_solver, w0)]
+        later = [("curvature", self._curvature_solver, w1), ("curvature_from_start", self._curvature_solver, w0),
+                 ("plain_gauss_newton", self._plain_solver, w0)]
         for name, make, start in later:
-            if _out_of_time(runs, cpu0, self.options.max_cpu_time) or runs[-1].success:
+            if _out_of_time(runs, cpu0, self.options.max_cpu_time):
+                break
+            if name == "plain_gauss_newton" and any(o.success for o in runs):
                 break
             runs.append(make().solve(start, lbw, ubw))
             self.phases.append(name)

@@ -100,7 +100,8 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     solver = make_solver(problem, options)
     assert isinstance(solver, HybridShootingSolver)
     both = solver.solve(w0)
-    assert solver.phases == ["gauss_newton", "curvature", "plain_gauss_newton"]
+    assert solver.phases == ["gauss_newton", "curvature", "curvature_from_start",
+                                             "plain_gauss_newton"]
     assert not any(o.success for o in solver.outcomes)
     assert both.status == "Maximum_Iterations_Exceeded" and not both.success
     assert both.cost == min(o.cost for o in solver.outcomes)
@@ -130,7 +131,8 @@ def test_hybrid_solver_gives_the_same_answer_on_a_loaded_machine():
         for p in burners:
             p.kill()
             p.wait()
-    assert loaded_solver.phases == ["gauss_newton", "curvature", "plain_gauss_newton"]
+    assert loaded_solver.phases == ["gauss_newton", "curvature", "curvature_from_start",
+                                             "plain_gauss_newton"]
     assert loaded.status == quiet.status and loaded.iterations == quiet.iterations
     assert loaded.cost == quiet.cost and np.array_equal(loaded.w, quiet.w)
 

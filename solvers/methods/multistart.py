@@ -31,6 +31,7 @@ CPU_STATUSES = {MULTISTART_CPU_STATUS, "Maximum_CpuTime_Exceeded"}
 SAME_COST = 1e-6           # relative cost difference of starts that "reached the best cost"
 DISTINCT_RELATIVE = 1e-2   # optima differing by more than this in some parameter are distinct
 MAX_ALTERNATIVES = 10      # optima listed at most (the best first)
+POLISH_MAX_RESIDUALS = 20_000   # beyond, no exact-Hessian polish of an unconverged fit
 
 
 @dataclass
@@ -99,18 +100,22 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
     Why: on a flat valley Gauss-Newton crawls without meeting the tolerance (a linear two-tank
     model on a cascaded-tanks-like record, whose optimum has a double pole: 2000 iterations and
     still not converged; the exact Hessian from the same start in 11). Bounded by max_iter like
-    every other solve; kept only if it ranks better (`_rank`), and then `run.polished` says so.
+    every other solve; kept only if it converges, and then `run.polished` says so. Not tried
+    with CVODES (second-order sensitivities) nor beyond POLISH_MAX_RESIDUALS residuals (the
+    exact Hessian of a long graph takes long to build).
     `exact`: () -> the problem in a form with a graph (`exact_form`); else `problem.graph()`.
     """
     best = run.best
-    if best.success or options.hessian != "gauss_newton" or best.status in CPU_STATUSES \
-            or not np.all(np.isfinite(best.w)):
+    if best.success or options.hessian != "gauss_newton" or options.integrator != "rk4" \
+            or best.status in CPU_STATUSES or not np.all(np.isfinite(best.w)):
         return
     graph = exact() if exact is not None else problem.graph()
+    if graph is None or graph.residual.numel() > POLISH_MAX_RESIDUALS:
+        return
     out = LeastSquaresSolver(graph, options.model_copy(update={"hessian": "exact"})).solve(best.w)
     if out.status in CPU_STATUSES:   # the safety net: not an answer a quiet machine would give
         run.best = replace(best, status=out.status, success=False)
-    elif _better(out, best):
+    elif out.success:
         run.best = replace(out, iterations=out.iterations + best.iterations)
         run.polished = True
 

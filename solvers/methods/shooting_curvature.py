@@ -201,7 +201,7 @@ class HybridShootingSolver:
        cost, which the curvature from w0 reaches in 13 iterations).
     3. Neither converges (a nearly non-smooth model, whose exact curvature is huge and indefinite):
        `plain_gauss_newton_solver` from the same start w0 with the full max_iter, i.e. exactly the
-       run a plain Gauss-Newton fit makes (its first GN_ITERATIONS iterations are step 1's again).
+       run a plain Gauss-Newton fit makes (its first iterations repeat step 1).
 
     The result is the best of the runs: converged first, then the lower cost. So by construction
     it is converged, or its cost is at most that of plain Gauss-Newton from w0.

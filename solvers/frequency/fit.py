@@ -1,6 +1,7 @@
 """`fit_frequency_response`: Levy/SK start, Ipopt fit with stability constraints, covariance, report."""
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import casadi as ca
@@ -15,6 +16,7 @@ from greyfit.schemas.frequency import (
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.fit import _at_bound, _message, draw_starts
+from greyfit.solvers.methods.multistart import MULTISTART_CPU_STATUS
 from greyfit.solvers.frequency.data import prepare_frequency_data
 from greyfit.solvers.frequency.levy import levy_fit
 from greyfit.solvers.frequency.linearise import compile_linearised_model
@@ -58,6 +60,8 @@ def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: F
     used = 0
     for theta0 in starts:
         if best is not None and time.process_time() - cpu0 > options.max_cpu_time:
+            # the safety net cuts the multistart off, and says so: not the answer of all starts
+            best = dataclasses.replace(best, status=MULTISTART_CPU_STATUS, success=False)
             break
         out = solver.solve(fp.problem.initial_guess(theta0))
         used += 1

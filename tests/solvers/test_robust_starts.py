@@ -118,6 +118,7 @@ def scipy_optimum(record: dict, start: np.ndarray) -> np.ndarray:
                          gtol=1e-14, max_nfev=20000).x
 
 
+@pytest.mark.slow
 @pytest.mark.parametrize("method", ["single_shooting", "multiple_shooting"])
 @pytest.mark.parametrize("seed", [0, 1])
 def test_linear_model_from_a_rough_guess_reaches_its_optimum(seed, method):

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.frequency import FrequencyResponseResult
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
 from greyfit.schemas.preprocess import PreprocessingReport
@@ -277,3 +278,6 @@ class FitResult(BaseModel):
         default=None, description="multistart: the distinct converged optima (best first) whose cost "
         "exceeds the best by less than the profile-interval threshold ½ t²(ν) σ²; more than one makes "
         "the result suspect (warning multiple_optima); null for a single start")
+
+
+JobCreate = job_create("JobCreate", FitRequest, "A batch of fits (POST /v1/jobs).")

@@ -24,6 +24,7 @@ from greyfit.solvers.inference.statistics import student_t_quantile
 from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.methods.shooting_curvature import make_solver
 from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
 from greyfit.solvers.nlp.solver import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares
 
 MULTISTART_CPU_STATUS = "Multistart_CpuTime_Exceeded"
@@ -57,7 +58,18 @@ class Agreement:
 
 
 def draw_starts(layout: ParameterLayout, n: int, seed: int) -> list[np.ndarray]:
-    """The user's guess first, then n-1 draws inside the bounds (log-uniform over decades)."""
+    """The user's guess first, then n-1 draws inside the bounds (log-uniform over decades).
+
+    Parameters
+    ----------
+    layout : the parameter layout (bounds, initial values, scales).
+    n : number of starts, the guess included.
+    seed : seed of the random draws (the same seed gives the same starts).
+
+    Returns
+    -------
+    list of physical parameter vectors.
+    """
     starts = [layout.initial.copy()]
     rng = np.random.default_rng(seed)
     for _ in range(n - 1):
@@ -120,10 +132,10 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
         run.polished = True
 
 
-def multistart_warnings(run: MultistartRun, agreement: "Agreement | None") -> list[FitWarning]:
+def multistart_warnings(run: MultistartRun | None, agreement: "Agreement | None") -> list[FitWarning]:
     """`multiple_optima` (suspect) and `polished_with_exact_hessian` (info) where they apply."""
     out = list(agreement.warnings) if agreement is not None else []
-    if run.polished:
+    if run is not None and run.polished:
         out.append(FitWarning(
             code="polished_with_exact_hessian",
             message="Gauss-Newton did not converge (a flat valley, where its Hessian JᵀJ leaves out "
@@ -132,14 +144,14 @@ def multistart_warnings(run: MultistartRun, agreement: "Agreement | None") -> li
     return out
 
 
-def solve_starts(problem, options: FitOptions, starts: list[np.ndarray], linear: bool,
-                 cpu0: float | None = None, exact=None) -> MultistartRun:
+def solve_from_starts(problem: LeastSquaresProblem, options: FitOptions, starts: list[np.ndarray],
+                      linear: bool, cpu0: float | None = None, exact=None) -> MultistartRun:
     """Solve from every start (the closed form instead where `linear` and it applies).
 
     Parameters
     ----------
-    problem : LeastSquaresProblem
-    options : FitOptions
+    problem : the method's least-squares NLP
+    options : the request's options
     starts : physical parameter vectors, the user's guess first (`draw_starts`)
     linear : try `solve_linear_least_squares` first (equation error, affine residual)
     cpu0 : the process time the fit began at; its preparation counts against max_cpu_time too
@@ -158,30 +170,34 @@ def solve_starts(problem, options: FitOptions, starts: list[np.ndarray], linear:
         if outcome is not None:
             return MultistartRun(outcome, [outcome], 1, None)
     solver = make_solver(problem, options)   # multiple shooting: with its gaps' curvature
-    run = MultistartRun(None, [], len(starts), getattr(solver, "compiled", None))   # type: ignore[arg-type]
+    outcomes: list[NlpOutcome] = []
+    best: NlpOutcome | None = None
     cpu0 = time.process_time() if cpu0 is None else cpu0
     solving = time.process_time()
     for theta0 in starts:
         now = time.process_time()
-        if run.outcomes and now - cpu0 + (now - solving) / len(run.outcomes) > options.max_cpu_time:
+        if best is not None and now - cpu0 + (now - solving) / len(outcomes) > options.max_cpu_time:
             # the safety net: a cut multistart is not the answer a quiet machine gives
-            run.best = replace(run.best, status=MULTISTART_CPU_STATUS, success=False)
-            return run
+            best = replace(best, status=MULTISTART_CPU_STATUS, success=False)
+            return MultistartRun(best, outcomes, len(starts), solver.compiled)
         out = solver.solve(problem.initial_guess(theta0))
-        run.outcomes.append(out)
-        if _better(out, run.best):
-            run.best = out
+        outcomes.append(out)
+        if _better(out, best):
+            best = out
+    if best is None:
+        raise ValueError("no start to solve from")   # starts always hold the user's guess
+    run = MultistartRun(best, outcomes, len(starts), solver.compiled)
     polish_with_exact_hessian(problem, options, run, exact)
     return run
 
 
-def multistart_agreement(run: MultistartRun, layout: ParameterLayout, ndata: int, nvarys: int,
+def multistart_agreement(run: MultistartRun | None, layout: ParameterLayout, ndata: int, nvarys: int,
                          level: float) -> Agreement | None:
     """Starts at the best cost and the distinct optima indistinguishable from it (None: one start).
 
     Parameters
     ----------
-    run : the multistart's outcomes
+    run : the multistart's outcomes (None: the fit was solved otherwise, e.g. IRLS)
     layout : maps each outcome's scaled θ (its first entries) to named physical values
     ndata, nvarys : residuals and free parameters of the fit (σ² = 2 cost / (ndata − nvarys))
     level : the confidence level; an optimum is indistinguishable when its cost exceeds the best
@@ -193,7 +209,7 @@ def multistart_agreement(run: MultistartRun, layout: ParameterLayout, ndata: int
         `optima` holds the best first; only converged starts count as optima. More than one
         optimum gives a `multiple_optima` warning.
     """
-    if len(run.outcomes) < 2 or not np.isfinite(run.best.cost):
+    if run is None or len(run.outcomes) < 2 or not np.isfinite(run.best.cost):
         return None
     best = run.best.cost
     at_best = sum(1 for o in run.outcomes if np.isfinite(o.cost)

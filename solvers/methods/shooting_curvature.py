@@ -28,8 +28,9 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import FitOptions
-from greyfit.solvers.nlp.solver import LeastSquaresSolver, NlpOutcome
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
+from greyfit.solvers.nlp.protocol import Solver
+from greyfit.solvers.nlp.solver import LeastSquaresSolver, NlpOutcome
 
 # Ipopt regularises an indefinite Hessian by adding δI, δ up to this; beyond it the iteration
 # fails (restoration) instead of trying ~20 factorisations per iteration: the exact curvature of
@@ -147,7 +148,7 @@ class GapCurvature:
         return total
 
 
-def make_solver(problem: LeastSquaresProblem, options: FitOptions):
+def make_solver(problem: LeastSquaresProblem, options: FitOptions) -> Solver:
     """The solver `fit_model` uses: the hybrid for multiple shooting, the structured form where the
     problem has one (solvers/methods/shooting_structured.py), else plain Gauss-Newton."""
     shooting = problem.constraint_hessian is not None or problem.graph_builder is not None
@@ -157,7 +158,7 @@ def make_solver(problem: LeastSquaresProblem, options: FitOptions):
 
 
 def plain_gauss_newton_solver(problem: LeastSquaresProblem, options: FitOptions,
-                              max_iter: int | None = None):
+                              max_iter: int | None = None) -> Solver:
     """What "plain Gauss-Newton" means for multiple shooting: JᵀJ without the gaps' curvature, in
     the structured form where the problem has one (the solver every Gauss-Newton fit used before
     the hybrid), else over the CasADi graph; the request's max_iter unless given.
@@ -172,7 +173,7 @@ def plain_gauss_newton_solver(problem: LeastSquaresProblem, options: FitOptions,
     return LeastSquaresSolver(problem, options, curvature=False, ipopt=extra)
 
 
-def make_warm_solver(problem: LeastSquaresProblem, options: FitOptions):
+def make_warm_solver(problem: LeastSquaresProblem, options: FitOptions) -> Solver:
     """For re-optimisations that start next to an optimum (profile points): multiple shooting goes
     straight to the curvature phase, where Gauss-Newton would first circle a misfitting optimum and
     could wander into a degenerate region (an iteration there took 30 s)."""
@@ -214,10 +215,11 @@ class HybridShootingSolver:
 
     def __init__(self, problem: LeastSquaresProblem, options: FitOptions):
         self.problem, self.options = problem, options
-        self.short = plain_gauss_newton_solver(problem, options, max_iter=min(GN_ITERATIONS, options.max_iter))
-        self.compiled = getattr(self.short, "compiled", False)
+        self.short: Solver = plain_gauss_newton_solver(problem, options,
+                                                       max_iter=min(GN_ITERATIONS, options.max_iter))
+        self.compiled = self.short.compiled
         self.curved: LeastSquaresSolver | None = None
-        self.plain = None
+        self.plain: Solver | None = None
         self.phases: list[str] = []   # what the last solve did, for tests and notes
         self.outcomes: list[NlpOutcome] = []   # each phase's outcome in the last solve
 
@@ -229,7 +231,7 @@ class HybridShootingSolver:
                        "max_iter": min(CURVATURE_ITERATIONS, self.options.max_iter)})
         return self.curved
 
-    def _plain_solver(self):
+    def _plain_solver(self) -> Solver:
         if self.plain is None:
             self.plain = plain_gauss_newton_solver(self.problem, self.options)
         return self.plain

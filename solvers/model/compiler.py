@@ -9,8 +9,8 @@ import numpy as np
 
 from greyfit.schemas.fit import FitWarning
 from greyfit.schemas.model import Model
-from greyfit.solvers.model.constraints import compile_constraints
 from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.model.constraints import compile_constraints
 from greyfit.solvers.model.expressions import GUARD_EPSILON, compile_expression, parse, to_casadi
 
 

@@ -9,9 +9,9 @@ import tests.partial_systems as ps
 from greyfit.schemas.fit import FitRequest
 from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
-from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting
 
 
 def _problem(body):
@@ -94,7 +94,9 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     its phases, and its last phase is the very plain Gauss-Newton run (same solver, same start,
     full max_iter), so it is never worse than a plain fit, on any machine."""
     from greyfit.solvers.methods.shooting_curvature import (
-        HybridShootingSolver, make_solver, plain_gauss_newton_solver,
+        HybridShootingSolver,
+        make_solver,
+        plain_gauss_newton_solver,
     )
     problem, options, w0 = _tanh_problem()
     solver = make_solver(problem, options)

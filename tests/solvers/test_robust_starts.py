@@ -3,6 +3,8 @@ starts at 0 (Invalid_Number_Detected: the derivative of sqrt at 0), and a linear
 cascaded-tanks-like record from a rough guess (Gauss-Newton crawling in a flat valley until
 max_iter). Truth from scipy simulations; the linear model's optimum is checked against scipy's own
 least squares on an exact (ZOH) discretisation."""
+import functools
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -104,9 +106,13 @@ def linear_model() -> dict:
             "equations": {"h1": "b*u - a*h1", "h2": "a*h1 - d*h2"}, "outputs": {"y": "h2"}}
 
 
-def scipy_optimum(record: dict, start: np.ndarray) -> np.ndarray:
-    """(a, b, d, h1(0), h2(0)) of the same linear model by scipy: exact ZOH discretisation."""
+@functools.lru_cache(maxsize=None)
+def scipy_optimum(seed: int) -> np.ndarray:
+    """(a, b, d, h1(0), h2(0)) of the same linear model by scipy's least squares, from the same
+    rough guess (levels at the first measurement), on an exact (ZOH) discretisation."""
+    record = cascaded_record(seed)
     u, y = np.array(record["inputs"]["u"]), np.array(record["outputs"]["y"])
+    start = np.array([0.05, 0.01, 0.01, y[0], y[0]])
 
     def residual(q):
         a, b, d, x10, x20 = q
@@ -115,7 +121,7 @@ def scipy_optimum(record: dict, start: np.ndarray) -> np.ndarray:
         _, ys, _ = dlsim(sys[:4] + (DT,), u[:, None], x0=[x10, x20])
         return ys.ravel() - y
     return least_squares(residual, start, x_scale=np.abs(start) + 1e-3, xtol=1e-14, ftol=1e-14,
-                         gtol=1e-14, max_nfev=20000).x
+                         gtol=1e-14, max_nfev=3000).x
 
 
 @pytest.mark.slow
@@ -134,7 +140,6 @@ def test_linear_model_from_a_rough_guess_reaches_its_optimum(seed, method):
     if method == "single_shooting":
         assert "polished_with_exact_hessian" in {w.code for w in r.warnings}
     got = np.array([r.parameters[k].value for k in "abd"] + [r.initial_states["est"][s] for s in ("h1", "h2")])
-    ref = scipy_optimum(record, got * np.array([1.3, 0.8, 0.9, 1.1, 1.0]))
-    assert got == pytest.approx(ref, rel=1e-5)
+    assert got == pytest.approx(scipy_optimum(seed), rel=1e-4)
     # a linear law on sqrt outflows does not fit down to the noise: reported, not `good`
     assert r.quality == "suspect" and "fit_below_noise_level" in {w.code for w in r.warnings}

@@ -8,13 +8,16 @@ from pydantic import BaseModel, ConfigDict, Field
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Expression, Model, Name
 
-Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "saturation",
-                 "parameter_step", "parameter_drift", "state_dependent", "input_delay",
-                 "output_offset", "output_gain", "output_abs", "output_saturation"]
-ALL_EFFECTS: tuple[str, ...] = ("coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
-                                "saturation", "parameter_step", "parameter_drift", "state_dependent",
-                                "input_delay", "output_offset", "output_gain", "output_abs",
-                                "output_saturation")
+# the families of solvers/discovery/families, in the registry's order (schemas do not import
+# solvers: tests/solvers/test_discovery_families.py checks the two agree)
+ALL_EFFECTS: tuple[str, ...] = ("coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "radiation",
+                                "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
+                                "output_saturation", "power_law", "parameter_law", "parameter_step",
+                                "parameter_drift", "state_dependent", "input_delay")
+Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "radiation",
+                 "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
+                 "output_saturation", "power_law", "parameter_law", "parameter_step",
+                 "parameter_drift", "state_dependent", "input_delay"]
 
 
 class CustomCandidate(BaseModel):

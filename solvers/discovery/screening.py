@@ -9,8 +9,7 @@ import numpy as np
 from greyfit.schemas.discovery import DiscoveryOptions
 from greyfit.schemas.fit import FitMethod, FitRequest, FitResult
 from greyfit.solvers.data.experiments import prepare_experiments
-from greyfit.solvers.discovery.effects import Candidate, library
-from greyfit.solvers.discovery.output_effects import output_effects
+from greyfit.solvers.discovery.effects import Candidate, OutputFit, library
 from greyfit.solvers.discovery.scoring import RegressionScorer, Score
 from greyfit.solvers.discovery.scoring_equations import EquationScorer, build_trace
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
@@ -104,10 +103,10 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         out.output_scorer = scorer
         sim_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=False)
         cands, notes = library(request.model, sim_trace, effects, opts.candidates, opts.coulomb_epsilon,
-                               lambda equations: scorer, opts.significance, opts.min_explained)
-        out_cands, out_notes = output_effects(request.model, cm.outputs, scorer.y, data, effects)
-        out.notes += [n for n in notes + out_notes if n not in out.notes]
-        cands = [c for c in cands + out_cands if keep(c)]
+                               lambda equations: scorer, opts.significance, opts.min_explained,
+                               OutputFit(list(cm.outputs), scorer.y, data))
+        out.notes += [n for n in notes if n not in out.notes]
+        cands = [c for c in cands if keep(c)]
         columns = scorer.stack_many([(c.equations, c.outputs) for c in cands])
         for c, g in zip(cands, columns):
             out.tries += c.tries

@@ -33,9 +33,10 @@ import numpy as np
 from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.discovery.budget import Clock
-from greyfit.solvers.discovery.confirm import LoopState, confirm_candidate, screen_state
+from greyfit.solvers.discovery.confirm import LoopState, screen_state
+from greyfit.solvers.discovery.discriminate import discriminate
 from greyfit.solvers.discovery.screening import Screening
-from greyfit.solvers.discovery.summary import added_inputs, public_scores, summarize, validate
+from greyfit.solvers.discovery.summary import added_inputs, public_scores, steps_conclusion, summarize, validate
 from greyfit.solvers.errors import ModelDefinitionError
 from greyfit.solvers.model.expressions import compile_expression
 from greyfit.solvers.fit import fit_model
@@ -83,13 +84,13 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                      f"after {clock.elapsed():.1f} s; what was found until then is reported")
         why_not = why_not or (f"search stopped by the time budget ({opts.time_budget_s:g} s) before an effect "
                               "was confirmed")
-    conclusion = ("added " + "; ".join(f"{s.effect} ({s.description})" for s in state.steps) if state.steps
-                  else why_not or "no significant missing effect")
+    conclusion = steps_conclusion(state.steps) if state.steps else why_not or "no significant missing effect"
     return DiscoveryResult(conclusion=conclusion, before=before, after=summarize(state.fit, state.validation),
                            steps=state.steps, added_inputs=added_inputs(request, state.request),
                            rejected=state.rejected, screened=screened_first, notes=notes, model=state.model,
                            fit=state.fit, wall_time_s=clock.elapsed(), timings=clock.report(),
-                           budget_exhausted=clock.exhausted)
+                           budget_exhausted=clock.exhausted,
+                           ambiguous=any(s.verdict == "ambiguous" for s in state.steps))
 
 
 def check_user_candidates(request: DiscoverRequest) -> None:
@@ -162,31 +163,13 @@ def _where_scored(screening: Screening) -> str:
 # --- confirming refits ----------------------------------------------------------------------------
 
 def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening) -> bool:
-    """Refit significant candidates best first until one is confirmed or the budget is spent.
-
-    A smoothed switch (a width family) is refitted once, at its widest significant width, and its
-    width refined after (`confirm.refine_width`); other families with variants (input delays)
-    refit their two best."""
-    tried_now: set[str] = set()
+    """Refit significant candidates best first, each beside its contenders (`discriminate`), until one
+    is added or the budget is spent."""
     for sc in [s for s in screening.scored if s.significant]:
-        fam = sc.candidate.family
-        if fam in tried_now or fam in state.tried:
+        if sc.candidate.family in state.tried:
             continue
         if state.refits_left <= 0 or not state.clock.allows():
             return False
-        tried_now.add(fam)
-        siblings = [s for s in screening.scored if s.significant and s.candidate.family == fam
-                    and s.scored_on == sc.scored_on]
-        if sc.candidate.width > 0:
-            variants = [max(siblings, key=lambda s: s.candidate.width)]
-        elif sc.candidate.refit_variants:
-            variants = siblings[:2]
-        else:
-            variants = [sc]
-        verdict = confirm_candidate(request, state, variants, screening)
-        if verdict is None:
-            state.tried.add(fam)
+        if discriminate(request, state, screening, sc):
             return True
-        state.rejected.append(verdict)
-        state.tried.add(fam)
     return False

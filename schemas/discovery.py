@@ -1,7 +1,7 @@
 """Discovery: fit, trace the residual to a missing physical effect, add it, refit, report."""
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal, Optional, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -10,14 +10,11 @@ from greyfit.schemas.model import Expression, Model, Name
 
 # the families of solvers/discovery/families, in the registry's order (schemas do not import
 # solvers: tests/solvers/test_discovery_families.py checks the two agree)
-ALL_EFFECTS: tuple[str, ...] = ("coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "radiation",
-                                "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
-                                "output_saturation", "power_law", "parameter_law", "parameter_step",
-                                "parameter_drift", "state_dependent", "input_delay")
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "radiation",
                  "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
                  "output_saturation", "power_law", "parameter_law", "parameter_step",
                  "parameter_drift", "state_dependent", "input_delay"]
+ALL_EFFECTS: tuple[Effect, ...] = get_args(Effect)
 
 
 class CustomCandidate(BaseModel):

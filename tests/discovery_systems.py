@@ -31,7 +31,7 @@ def simulate_held(rhs, t: np.ndarray, x0, u: np.ndarray) -> np.ndarray:
     change = np.flatnonzero(np.any(np.diff(u, axis=0) != 0, axis=1)) + 1
     edges = np.unique(np.concatenate([[0], change, [t.size - 1]]))
     for a, b in zip(edges[:-1], edges[1:]):
-        sol = solve_ivp(lambda tt, s: rhs(tt, s, u[a]), (t[a], t[b]), x[:, a], t_eval=t[a:b + 1],
+        sol = solve_ivp(lambda tt, s, ua=u[a]: rhs(tt, s, ua), (t[a], t[b]), x[:, a], t_eval=t[a:b + 1],
                         method="DOP853", rtol=1e-10, atol=1e-10)
         x[:, a:b + 1] = sol.y
     return x

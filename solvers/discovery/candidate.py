@@ -47,6 +47,9 @@ class Candidate:
     width: float = 0.0         # the ε of a smoothed switch tanh(v/ε): its variants differ only in it
     modifies: str = ""         # the declared parameter a time- or state-varying law changes (parsimony checks)
     variables: tuple[str, ...] = ()   # the states and inputs the term is a function of (what would separate it)
+    # a member of a series that approximates many laws (a power, a smooth p(x)), not a law named for a
+    # mechanism: refitted beside the named laws within the margin, never instead of them
+    approximating: bool = False
 
     def __post_init__(self):
         self.key = self.key or f"{self.family}|{self.term}"

@@ -170,7 +170,8 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     if (bic_drop < opts.min_bic_drop or (lr_p is not None and lr_p >= level)
             or (t_value is not None and t_value < opts.min_t_value)):
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
-        lr_text = "" if lr_p is None else f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
+        lr_text = "" if lr_p is None else \
+            f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
                                  detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
                                         f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")

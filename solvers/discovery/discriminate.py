@@ -13,8 +13,9 @@ Parsimony. A catch-all (a switching coefficient, a step or drift in time, an inp
 round no named law leads; it is kept only if it improves the validation records (when there are
 some), never to pile a small coefficient (< `PILE_MIN_RELATIVE` of the parameter it changes) onto an
 accepted effect, and never when it moves the declared parameters far outside their intervals (more
-than `STAND_IN_SIGMAS` standard errors and `STAND_IN_RELATIVE` of the value): a term that does is a
-stand-in. A named law that does so after the first step is kept but labelled `approximates`.
+than `STAND_IN_SIGMAS` standard errors and `STAND_IN_RELATIVE` of the value) unless the validation
+records back the move (their error falls by `BACKED_BY_VALIDATION`): a term that does is a stand-in.
+A named law that does so after the first step is kept but labelled `approximates`.
 """
 from __future__ import annotations
 
@@ -37,6 +38,7 @@ AMBIGUOUS_BIC = 10.0         # whitened ΔBIC below which the estimation data do
 PILE_MIN_RELATIVE = 0.1
 STAND_IN_SIGMAS = 5.0
 STAND_IN_RELATIVE = 0.1
+BACKED_BY_VALIDATION = 0.2   # a move is backed when the validation error falls by this share
 
 
 def discriminate(request: DiscoverRequest, state: LoopState, screening: Screening, lead: Scored) -> bool:
@@ -65,7 +67,7 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     winner, runners, verdict, separate = choose(request, state, kept, screening)
     runners += [RunnerUp(effect=c.effect, equation=equation_names(screening, c), term=c.term, delta_bic=None,
                          outcome=why) for c, why in failed if c is not winner.sc.candidate]
-    verdict, note = stand_in_verdict(request, state, winner, verdict)
+    verdict, note = stand_in_verdict(request, state, winner, verdict, before_val)
     accept(request, state, winner, screening, note=note, verdict=verdict, runners_up=runners, separate_by=separate)
     return True
 
@@ -91,16 +93,23 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
     floor = (1 - MARGIN) * lead.score.explained
     chosen = [lead]
     seen = {lead.candidate.family}
+    pools: dict[bool, list[Scored]] = {False: [], True: []}   # named laws, approximating series
     for sc in screening.scored:
-        if len(chosen) >= MAX_CONTENDERS:
-            break
         c = sc.candidate
         if (not sc.significant or c.family in seen or c.family in state.tried or sc.score.explained < floor
                 or (c.catch_all and not lead.candidate.catch_all) or c.refit_only):
             continue
         seen.add(c.family)
+        pools[c.approximating].append(sc)
+    # named laws and approximating series in turn, each by screening rank: a power series that
+    # screens best does not crowd the named law out of the refits (nor the other way round)
+    turn = not lead.candidate.approximating
+    while len(chosen) < MAX_CONTENDERS and (pools[False] or pools[True]):
+        pool = pools[turn] or pools[not turn]
+        sc = pool.pop(0)
         if not any(_same_hypothesis(sc, other) for other in chosen):
             chosen.append(sc)
+        turn = not turn
     return [variants_of(screening, sc) for sc in chosen]
 
 
@@ -125,7 +134,7 @@ def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
     bics = whitened_bics(kept)
     order = sorted(range(len(kept)), key=lambda i: bics[i])
     vals = [_mean_nrmse(r.validation) for r in kept]
-    best, verdict, separate = order[0], "identified", None
+    best, second, verdict, separate = order[0], None, "identified", None
     if len(order) > 1:
         second = order[1]
         gap = bics[second] - bics[best]
@@ -135,14 +144,17 @@ def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
         if (gap < AMBIGUOUS_BIC and told is None) or (gap >= AMBIGUOUS_BIC and told == "second"):
             verdict = "ambiguous"
             separate = separation_hint(kept[best].sc.candidate, kept[second].sc.candidate)
-    winner = kept[best]
-    runners = [RunnerUp(effect=kept[i].sc.candidate.effect, equation=equation_names(screening, kept[i].sc.candidate),
-                        term=kept[i].sc.candidate.term, delta_bic=float(bics[i] - bics[best]),
-                        validation_nrmse=vals[i],
-                        outcome="as good on these data" if verdict == "ambiguous" and i == order[1 if best == order[0] else 0]
-                        else "worse by refit")
-               for i in sorted(range(len(kept)), key=lambda i: bics[i]) if i != best]
-    return winner, runners, verdict, separate
+    runners = []
+    for i in order:
+        if i == best:
+            continue
+        c = kept[i].sc.candidate
+        gap = float(bics[i] - bics[best])
+        outcome = ("as good on these data" if verdict == "ambiguous" and i == second
+                   else "worse on the validation records" if gap < AMBIGUOUS_BIC else "worse by refit")
+        runners.append(RunnerUp(effect=c.effect, equation=equation_names(screening, c), term=c.term,
+                                delta_bic=gap, validation_nrmse=vals[i], outcome=outcome))
+    return kept[best], runners, verdict, separate
 
 
 def _validation_tells(a: float | None, b: float | None, tol: float) -> str | None:
@@ -225,27 +237,34 @@ def catch_all_objection(request: DiscoverRequest, state: LoopState, r: Refitted,
             shown = "n/a" if b is None else f"{b:.4g}"
             return _rejected(r, screening, "parsimony", f"a catch-all kept only if it improves the validation records; "
                                                    f"mean NRMSE {a:.4g} -> {shown}")
-    moved = moved_parameters(request, state, r)
+    moved = moved_parameters(request, state, r, before_val)
     if state.steps and moved:
         return _rejected(r, screening, "parsimony", "a catch-all that moves the declared parameters far outside their "
                                                f"intervals is a stand-in: {moved}")
     return None
 
 
-def stand_in_verdict(request: DiscoverRequest, state: LoopState, r: Refitted, verdict: str) -> tuple[str, str]:
+def stand_in_verdict(request: DiscoverRequest, state: LoopState, r: Refitted, verdict: str,
+                     before_val: ValidationSummary | None) -> tuple[str, str]:
     """A named law added after the first step that moves the declared parameters far outside their
-    intervals approximates something else: (verdict, note for the description)."""
+    intervals approximates something else, unless the validation records back the move (their error
+    falls by `BACKED_BY_VALIDATION`): (verdict, note for the description)."""
     if not state.steps or r.sc.candidate.catch_all:
         return verdict, ""
-    moved = moved_parameters(request, state, r)
+    moved = moved_parameters(request, state, r, before_val)
     if not moved:
         return verdict, ""
     return "approximates", f"approximates; not identified: it moves {moved}"
 
 
-def moved_parameters(request: DiscoverRequest, state: LoopState, r: Refitted) -> str:
+def moved_parameters(request: DiscoverRequest, state: LoopState, r: Refitted,
+                     before_val: ValidationSummary | None) -> str:
     """The declared parameters the refit moved by more than STAND_IN_SIGMAS standard errors of the fit
-    before and STAND_IN_RELATIVE of their value, as text ('' when none)."""
+    before and STAND_IN_RELATIVE of their value, as text ('' when none, or when the validation records
+    back the move: a second effect may well correct what the first left biased)."""
+    a, b = _mean_nrmse(before_val), _mean_nrmse(r.validation)
+    if a is not None and b is not None and b < (1 - BACKED_BY_VALIDATION) * a:
+        return ""
     out = []
     for p in request.model.parameters:
         old, new = state.fit.parameters.get(p.name), r.fit.parameters.get(p.name)

@@ -106,7 +106,7 @@ class RegressionScorer:
             return None
         g = g.reshape(g.shape[0], -1)
         g0 = self.project(g)
-        if np.linalg.norm(g0) <= 1e-6 * max(np.linalg.norm(g), 1e-300) or self.rss0 <= 0:
+        if np.linalg.norm(g0) <= 1e-6 * max(float(np.linalg.norm(g)), 1e-300) or self.rss0 <= 0:
             return None   # the term is (nearly) a combination of existing ones, or nothing to explain
         coef, *_ = np.linalg.lstsq(g0, self.r0, rcond=None)
         fitted = g0 @ coef

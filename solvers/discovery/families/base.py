@@ -52,7 +52,7 @@ class Family(Protocol):
         ...
 
 
-def bind(family: Family, **spec: Any):
+def bind(family: "Family | TermFamily", **spec: Any):
     """A candidate's `apply`: the family's rewrite with the candidate's own spec."""
     return partial(family.rewrite, **spec)
 
@@ -66,7 +66,8 @@ def add_parameter_term(model: Model, *, equation: str, term: str, stem: str, sig
 
 
 class TermFamily:
-    """A family whose candidates are one term `sign p*term` in one state equation."""
+    """A family whose candidates are one term `sign p*term` in one state equation (subclasses
+    provide `candidates`)."""
 
     name = ""
     scope: Scope = "equation"

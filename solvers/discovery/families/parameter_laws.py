@@ -18,6 +18,11 @@ from greyfit.solvers.discovery.families.base import Scope, bind, param_regressor
 from greyfit.solvers.discovery.families.time_varying import varying_parameters
 
 
+# an absolute temperature in a process rarely doubles over a record (300 -> 600 K); a variable that
+# does (a level, a flow, a temperature in °C) is not one Arrhenius' law is written in
+ABSOLUTE_SPAN = 2.0
+
+
 def _law_variables(ctx: LibraryContext) -> list[tuple[str, list[np.ndarray]]]:
     return [(s, ctx.state_values(s)) for s in ctx.states] + [(u, ctx.input_values(u)) for u in ctx.trace.cm.inputs]
 
@@ -51,11 +56,12 @@ class ParameterLaw:
                     reg = param_regressor(ctx.trace, j, [(x - ref) ** power for x in values])
                     shown = var if ref == 0 else f"({var} - {fmt(ref)})"
                     out.append(Candidate(
-                        self.name, reg, f"{name} -> {name} + {name}_{var}{power}*{shown}" + ("^2" if power == 2 else ""),
+                        self.name, reg,
+                        f"{name} -> {name} + {name}_{var}{power}*{shown}" + ("^2" if power == 2 else ""),
                         f"{name} depends on {var} ({kind} law)",
                         bind(self, parameter=name, variable=var, reference=ref, power=power),
                         family=f"{self.name}:{name}:{var}:{power}", modifies=name,
-                        variables=(var,)))
+                        variables=(var,), approximating=True))
         return out
 
 
@@ -79,8 +85,9 @@ class Arrhenius:
             value = float(ctx.trace.p[0][ctx.trace.cm.parameters.index(name)])
             for var, values in _law_variables(ctx):
                 allv = np.concatenate(values)
-                if np.min(allv) <= 0 or np.ptp(allv) <= 1e-3 * np.mean(allv):
-                    continue   # a law of an absolute temperature: positive, and it must vary
+                lo, hi = float(np.min(allv)), float(np.max(allv))
+                if lo <= 0 or hi > ABSOLUTE_SPAN * lo or hi - lo <= 1e-3 * float(np.mean(allv)):
+                    continue   # a law of an absolute temperature: positive, varying, within a factor 2
                 ref = float(np.mean(allv))
                 # d/dÊ of p·exp(Ê(1 − T₀/T)) at Ê = 0: p·(1 − T₀/T)
                 reg = param_regressor(ctx.trace, j, [value * (1 - ref / x) for x in values])

@@ -41,6 +41,7 @@ class PowerLaw(TermFamily):
                               f"a power law {term} in d{eq}/dt", 0.0, variables)
                 if c is not None:
                     c.family = f"{self.name}:{eq}:{term}"   # each term its own hypothesis, refitted apart
+                    c.approximating = True
                     out.append(c)
         return out
 
@@ -52,11 +53,11 @@ class PowerLaw(TermFamily):
                 yield text.format(a=a), [fn(x) for x in va], (a,)
         for a, b in combinations(states, 2):
             va, vb = ctx.state_values(a), ctx.state_values(b)
-            for text, fn in PAIR:
-                yield text.format(a=a, b=b), [fn(x, y) for x, y in zip(va, vb)], (a, b)
+            for text, pair in PAIR:
+                yield text.format(a=a, b=b), [pair(x, y) for x, y in zip(va, vb)], (a, b)
         for where, a, b in declared_differences(ctx.model):
             if where != eq or a == b:
                 continue
             diff = [x - y for x, y in zip(ctx.values(a), ctx.values(b))]
-            for text, fn in DIFFERENCE:
-                yield text.format(a=a, b=b), [fn(d) for d in diff], tuple(v for v in (a, b) if v in states)
+            for text, law in DIFFERENCE:
+                yield text.format(a=a, b=b), [law(d) for d in diff], tuple(v for v in (a, b) if v in states)

@@ -83,7 +83,8 @@ class OutputAbs(_SensorFamily):
         if not sign_blind(measured):
             return []
         changes_sign = np.mean(np.concatenate(y_hat) < 0) > 0.02
-        return [Candidate(self.name, {}, f"{name} = abs(h)", f"the sensor of {name} does not see the sign: it measures |h|",
+        return [Candidate(self.name, {}, f"{name} = abs(h)",
+                          f"the sensor of {name} does not see the sign: it measures |h|",
                           bind(self, output=name),
                           outputs={j: [np.abs(y) - y if changes_sign else np.zeros_like(y) for y in y_hat]},
                           sign=1.0, family=f"output_abs:{name}", refit_only=not changes_sign, fresh_start=True)]

@@ -59,7 +59,8 @@ class StateDependent:
 def switch_variables(ctx: LibraryContext) -> list[tuple[str, str, list[np.ndarray], tuple[str, ...]]]:
     """(expression, label, samples, variables): every state, and every declared difference of a state
     and an input (a relative speed)."""
-    out = [(s, s, ctx.state_values(s), (s,)) for s in ctx.states]
+    out: list[tuple[str, str, list[np.ndarray], tuple[str, ...]]] = [
+        (s, s, ctx.state_values(s), (s,)) for s in ctx.states]
     inputs = set(ctx.trace.cm.inputs)
     seen: set[tuple[str, str]] = set()
     for _, a, b in declared_differences(ctx.model):

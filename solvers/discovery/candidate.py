@@ -114,6 +114,15 @@ class LibraryContext:
     def traced(self, s: str) -> bool:
         return self.states.index(s) in set(self.trace.traced)
 
+    def equation_variables(self, eq: str) -> list[str]:
+        """States and inputs d(eq)/dt depends on along the trajectory (its own state always): a law
+        that enters an equation is a law of what that equation already involves."""
+        i = self.states.index(eq)
+        cm = self.trace.cm
+        names = [s for k, s in enumerate(self.states)
+                 if k == i or any(np.any(j[:, i, k] != 0) for j in self.trace.jx)]
+        return names + [u for k, u in enumerate(cm.inputs) if any(np.any(j[:, i, k] != 0) for j in self.trace.ju)]
+
     def force_equations(self) -> list[str]:
         """Traced equations that are not kinematic identities dx/dt = v (those have no force to add to)."""
         return [s for s in self.states if self.traced(s) and s not in self.vel_of]

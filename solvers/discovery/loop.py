@@ -4,7 +4,8 @@ The steps, in the order they run:
 
 1. Fit the declared model with the requested method (`fit_model`); simulate it on the validation
    experiments, if any.
-2. Screen (`screening.screen`): every candidate of the effect library is scored
+2. Screen (`screening.screen`): every candidate of the effect library (`effects.library`, a registry
+   of families in `families/`) is scored
    - on the equation residuals of measured states (`scoring_equations`), and
    - on the output residuals through the output sensitivities (`scoring_outputs`): effects in
      equations of unmeasured states and in the output path (`output_effects`) show there.
@@ -12,14 +13,17 @@ The steps, in the order they run:
    of candidates tried (Bonferroni), it explains at least `min_explained` of the residual variance,
    and its sign is physical. One ranking: largest BIC drop first, a change in time (step, drift)
    behind a structural effect that explains nearly as much.
-3. Confirm (`confirm.confirm_candidate`): the best significant candidate is added and the whole
-   model refitted with the requested method, started one Gauss-Newton step from the old fit
-   (`warm_start`). It is kept if the refit converges, its BIC falls by `min_bic_drop`, its likelihood
-   ratio with the noise allowed to be coloured passes the screen's Bonferroni level (`refit_test`),
-   the new parameter has |value|/stderr ≥ `min_t_value`, and the validation records do not get
-   worse. A smoothed switch is refitted at its widest significant width and the width refined
-   after. Otherwise it is recorded in `rejected` with the reason and the next ranked candidate is
-   tried, within `max_refits` refits.
+3. Discriminate and confirm (`discriminate.discriminate`, `confirm.refit_candidate`): the best
+   significant candidate and its contenders of other families within a margin of its screening
+   evidence are each added and the whole model refitted with the requested method, started one
+   Gauss-Newton step from the old fit (`warm_start`). A refit passes if it converges, its BIC falls
+   by `min_bic_drop`, its likelihood ratio with the noise allowed to be coloured passes the screen's
+   Bonferroni level (`refit_test`), the new parameter has |value|/stderr ≥ `min_t_value`, and the
+   validation records do not get worse; a catch-all also under the parsimony rules. Of those that
+   pass, the best by whitened BIC and validation is added, the others reported as its runners-up;
+   two the data cannot tell apart make the step `ambiguous`. A smoothed switch is refitted at its
+   widest significant width and the width refined after. What fails is recorded in `rejected` with
+   the reason and the next ranked candidate is tried, within `max_refits` refits.
 4. Repeat up to `max_terms`; report before/after (estimation and validation), each step's evidence
    and the augmented model. When nothing is added, the conclusion says why.
 

@@ -1,13 +1,13 @@
 """The wider library, discrimination by refit and parsimony, against known truth: systems simulated
 with scipy (tests/discovery_systems.py), measured in their outputs only, 1 % noise (AR(1) where said),
-inputs held between samples (declared `input_interpolation: zoh`), a second record for validation."""
+inputs held between samples (declared `input_interpolation: zoh`), a second record for validation.
+EMPS (Coulomb friction and nothing else) is in test_discovery_outputs.py."""
 import numpy as np
 import pytest
 
 from greyfit.schemas.discovery import DiscoverRequest
 from greyfit.solvers.discovery import discover
 from tests import discovery_systems as ds
-from tests.emps import PUBLISHED, emps_position_request
 
 ZOH = {"input_interpolation": "zoh"}
 
@@ -80,16 +80,6 @@ def test_sensor_offset_and_source_offset_are_told_apart_by_refit():
     assert [s.effect for s in res.steps] == ["output_offset"]
     for name in ("L", "R", "C"):
         assert value(res, name) == pytest.approx(ds.RLC[name], rel=0.03)
-
-
-@pytest.mark.slow
-def test_emps_from_raw_position_coulomb_and_nothing_else_near_the_published_values():
-    res = discover(DiscoverRequest.model_validate(emps_position_request()))
-    assert [(s.effect, s.equation) for s in res.steps] == [("coulomb", "v")], (res.conclusion, res.rejected)
-    assert res.steps[0].parameters[0].value == pytest.approx(PUBLISHED["Fc"], rel=0.10)
-    for name in ("M", "Fv", "offset"):
-        assert value(res, name) == pytest.approx(PUBLISHED[name], rel=0.10), name
-    assert res.after.validation.rmse["qm"] < 0.8 * res.before.validation.rmse["qm"]
 
 
 COMPLETE = {

@@ -23,7 +23,9 @@ from greyfit.solvers.discovery.families.time_varying import varying_parameters
 ABSOLUTE_SPAN = 2.0
 
 
-def _law_variables(ctx: LibraryContext) -> list[tuple[str, list[np.ndarray]]]:
+def _law_variables(ctx: LibraryContext, j: int) -> list[tuple[str, list[np.ndarray]]]:
+    """Every state and input, with their samples: a parameter's dependence on a variable its equation
+    does not involve (a rate constant on the temperature) is exactly the coupling a model may lack."""
     return [(s, ctx.state_values(s)) for s in ctx.states] + [(u, ctx.input_values(u)) for u in ctx.trace.cm.inputs]
 
 
@@ -47,7 +49,7 @@ class ParameterLaw:
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
         out: list[Candidate] = []
         for name, j in varying_parameters(ctx):
-            for var, values in _law_variables(ctx):
+            for var, values in _law_variables(ctx, j):
                 allv = np.concatenate(values)
                 if np.ptp(allv) <= 0:
                     continue
@@ -83,7 +85,7 @@ class Arrhenius:
         out: list[Candidate] = []
         for name, j in varying_parameters(ctx):
             value = float(ctx.trace.p[0][ctx.trace.cm.parameters.index(name)])
-            for var, values in _law_variables(ctx):
+            for var, values in _law_variables(ctx, j):
                 allv = np.concatenate(values)
                 lo, hi = float(np.min(allv)), float(np.max(allv))
                 if lo <= 0 or hi > ABSOLUTE_SPAN * lo or hi - lo <= 1e-3 * float(np.mean(allv)):

@@ -46,7 +46,7 @@ class PowerLaw(TermFamily):
         return out
 
     def _terms(self, ctx: LibraryContext, eq: str):
-        states = ctx.states
+        states = [s for s in ctx.equation_variables(eq) if s in ctx.states]
         for a in states:
             va = ctx.state_values(a)
             for text, fn in SINGLE:

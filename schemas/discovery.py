@@ -6,6 +6,7 @@ from typing import Literal, Optional, get_args
 from pydantic import BaseModel, ConfigDict, Field
 
 from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.model import Expression, Model, Name
 
 # the families of solvers/discovery/families, in the registry's order (schemas do not import
@@ -208,3 +209,7 @@ class DiscoveryResult(BaseModel):
                                    "found until then is reported")
     ambiguous: bool = Field(default=False, description="some step is `ambiguous`: another law explains these "
                                                       "data as well; see its runners_up and separate_by")
+
+
+DiscoverJobCreate = job_create("DiscoverJobCreate", DiscoverRequest, "A batch of discovery requests "
+                               "(POST /v1/discover/jobs).")

@@ -15,21 +15,27 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from greyfit.schemas.discovery import (
-    DiscoverRequest, DiscoveryOptions, DiscoveryStep, Evidence, NewParameter, RejectedCandidate, ValidationSummary,
+    DiscoverRequest,
+    DiscoveryOptions,
+    DiscoveryStep,
+    Evidence,
+    NewParameter,
+    RejectedCandidate,
+    ValidationSummary,
 )
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.effects import Candidate
-from greyfit.solvers.discovery.screening import Scored, Screening, screen
 from greyfit.solvers.discovery.refit_test import output_residual, refit_likelihood_ratio
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
+from greyfit.solvers.discovery.screening import Scored, Screening, screen
 from greyfit.solvers.discovery.summary import equation_names, summarize, validate, validation_worse
 from greyfit.solvers.discovery.warm_start import gauss_newton_start
+from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.methods.registry import simulates_outputs
-from greyfit.solvers.dynamics.integration import integrator_of
 
 
 @dataclass
@@ -221,7 +227,7 @@ def accept(request: DiscoverRequest, state: LoopState, r: Refitted, screening: S
         parameters=new_parameters(r.fit, r.params),
         evidence=Evidence(scored_on=sc.scored_on, explained_variance=sc.score.explained,
                           screening_bic_drop=sc.score.bic_drop, p_value=sc.score.p_value,
-                          bic_before=state.fit.metrics.bic, bic_after=r.fit.metrics.bic, bic_drop=r.bic_drop,
+                          bic_before=bic(state.fit), bic_after=bic(r.fit), bic_drop=r.bic_drop,
                           t_value=r.t_value, noise_model_order=r.order, refit_p_value=r.lr_p,
                           residual_correlation_before=sc.score.corr_before,
                           residual_correlation_after=correlation_after(sc, r.request, r.fit, screening)),

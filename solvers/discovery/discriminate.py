@@ -20,6 +20,7 @@ A named law that does so after the first step is kept but labelled `approximates
 from __future__ import annotations
 
 import math
+from typing import Literal
 
 import numpy as np
 
@@ -177,8 +178,8 @@ def whitened_bics(kept: list[Refitted]) -> list[float]:
     except (FitError, RuntimeError, ValueError):
         return [bic(r.fit) for r in kept]
     phis = []
-    for r in ref_series:
-        ok = r[np.isfinite(r)]
+    for series_ref in ref_series:
+        ok = series_ref[np.isfinite(series_ref)]
         phis.append(ar_coefficients(ok, min(AR_MAX_ORDER, ok.size // 10)) if ok.size >= 20 else np.zeros(0))
     out = []
     for r in kept:
@@ -292,7 +293,8 @@ def separation_hint(a: Candidate, b: Candidate) -> str:
     return "a second record with a different input (level, amplitude or spectrum)"
 
 
-def _rejected(r: Refitted, screening: Screening, reason: str, detail: str) -> RejectedCandidate:
+def _rejected(r: Refitted, screening: Screening, reason: Literal["validation", "parsimony"],
+              detail: str) -> RejectedCandidate:
     c = r.sc.candidate
     return RejectedCandidate(effect=c.effect, equation=equation_names(screening, c), term=c.term, reason=reason,
                              detail=detail)

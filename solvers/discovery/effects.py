@@ -6,7 +6,7 @@ the registry keeps it, so one hypothesis is counted once.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import Callable, Sequence
 
 import numpy as np
 
@@ -22,7 +22,7 @@ __all__ = ["Candidate", "OutputFit", "library", "structure", "fmt"]
 SAME_COLUMN = 1 - 1e-9   # |correlation| above which two single columns are one hypothesis
 
 
-def library(model: Model, trace: TraceData, effects: list[str], custom: list[CustomCandidate],
+def library(model: Model, trace: TraceData, effects: Sequence[str], custom: Sequence[CustomCandidate],
             epsilon: float | None, scorer_for: Callable | None = None, significance: float = 0.01,
             min_explained: float = 0.05, outputs: OutputFit | None = None) -> tuple[list[Candidate], list[str]]:
     """Candidates of every selected family on this trace, and notes on what was not tried.

@@ -36,15 +36,15 @@ import numpy as np
 
 from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.confirm import LoopState, screen_state
 from greyfit.solvers.discovery.discriminate import discriminate
 from greyfit.solvers.discovery.screening import Screening
 from greyfit.solvers.discovery.summary import added_inputs, public_scores, steps_conclusion, summarize, validate
 from greyfit.solvers.errors import ModelDefinitionError
-from greyfit.solvers.model.expressions import compile_expression
 from greyfit.solvers.fit import fit_model
-from greyfit.solvers.data.preprocess import prepare_request
+from greyfit.solvers.model.expressions import compile_expression
 
 __all__ = ["discover", "LoopState", "try_in_rank_order"]
 

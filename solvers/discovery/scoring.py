@@ -100,7 +100,19 @@ class RegressionScorer:
         """Column(s) with the linearised free parameters regressed out."""
         return g - self.q @ (self.q.T @ g)
 
-    def score(self, g: np.ndarray) -> Score | None:
+    def stack(self, regressor: dict | None, outputs: dict | None = None) -> np.ndarray | None:
+        """The candidate's column(s) in the residual's row order (each scorer has its own rows)."""
+        raise NotImplementedError
+
+    def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
+        """Physical changes of the declared parameters from a step in the scorer's columns."""
+        raise NotImplementedError
+
+    def trajectories(self) -> list[tuple]:
+        """(states, inputs, times, experiment name) the residual was computed on, per experiment."""
+        raise NotImplementedError
+
+    def score(self, g: np.ndarray | None) -> Score | None:
         """g: the stacked candidate column(s), (rows,) or (rows, m)."""
         if g is None or not np.all(np.isfinite(g)):
             return None

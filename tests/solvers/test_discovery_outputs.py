@@ -12,7 +12,7 @@ from greyfit.solvers.discovery.screening import Scored, screen
 from greyfit.solvers.fit import fit_model
 from tests import partial_systems as ps
 from tests.emps import PUBLISHED, emps_position_request
-from tests.systems import msd_model, msd_input, simulate_msd
+from tests.systems import msd_input, msd_model, simulate_msd
 
 T = np.linspace(0, 20, 1001)
 COULOMB = 0.5
@@ -130,8 +130,9 @@ def test_complete_models_measured_in_outputs_get_nothing_added_over_ten_seeds():
 
 
 def test_a_rejected_first_candidate_does_not_stop_the_real_one():
-    """A spurious term ranked first (a user term sin(17.3 t), unrelated to the data, given the best score) is refitted, rejected on
-    the evidence, and the next ranked candidate, the real Coulomb friction, is found."""
+    """A spurious term ranked first (a user term sin(17.3 t), unrelated to the data, given the best
+    score) is refitted, rejected on the evidence, and the next ranked candidate, the real Coulomb
+    friction, is found."""
     record = msd_position_record(T, 3, coulomb_force)
     opts = DiscoveryOptions(candidates=[{"equation": "v", "term": "sin(17.3*t)", "parameter": "spurious"}])
     request = DiscoverRequest.model_validate({"model": position_only_msd(), "experiments": [record],

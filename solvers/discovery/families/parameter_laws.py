@@ -17,7 +17,6 @@ from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
 from greyfit.solvers.discovery.families.base import Scope, bind, param_regressor
 from greyfit.solvers.discovery.families.time_varying import varying_parameters
 
-
 # an absolute temperature in a process rarely doubles over a record (300 -> 600 K); a variable that
 # does (a level, a flow, a temperature in °C) is not one Arrhenius' law is written in
 ABSOLUTE_SPAN = 2.0

@@ -97,6 +97,8 @@ def _select_switches(ctx: LibraryContext, base, grid: np.ndarray, t_all: np.ndar
     explains little, so no per-step test), then drop switches that add too little jointly; the joint
     significance test and the confirming refit judge the result."""
     trace = ctx.trace
+    if ctx.scorer_for is None:
+        return []
     scorer = ctx.scorer_for(sorted(base))
     steps = {i: [c[:, None] * (t[:, None] >= grid[None, :]) for c, t in zip(cols, trace.t)]
              for i, cols in base.items()}

@@ -90,7 +90,8 @@ def variants_of(screening: Screening, sc: Scored) -> list[Scored]:
 def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[list[Scored]]:
     """The leader's variants and those of every significant candidate of another family within
     `MARGIN` of its explained variance, by screening BIC drop; catch-alls only beside a catch-all
-    leader; a candidate whose projected column equals an earlier one's is the same hypothesis."""
+    leader; an approximating series member whose projected column equals an earlier one's is the same
+    hypothesis."""
     floor = (1 - MARGIN) * lead.score.explained
     chosen = [lead]
     seen = {lead.candidate.family}
@@ -108,7 +109,9 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
     while len(chosen) < MAX_CONTENDERS and (pools[False] or pools[True]):
         pool = pools[turn] or pools[not turn]
         sc = pool.pop(0)
-        if not any(_same_hypothesis(sc, other) for other in chosen):
+        # a power or a smooth law equal on these data to one already in is a re-parametrisation of it;
+        # two named laws equal on these data are the ambiguity this step exists to report
+        if not (sc.candidate.approximating and any(_same_hypothesis(sc, other) for other in chosen)):
             chosen.append(sc)
         turn = not turn
     return [variants_of(screening, sc) for sc in chosen]
@@ -133,7 +136,8 @@ def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
            screening: Screening) -> tuple[Refitted, list[RunnerUp], str, str | None]:
     """(winner, runners-up, verdict, what would separate them) among refits that passed the gates."""
     bics = whitened_bics(kept)
-    order = sorted(range(len(kept)), key=lambda i: bics[i])
+    # an exact tie (equivalent laws) keeps the screening order: the leader first
+    order = sorted(range(len(kept)), key=lambda i: (round(bics[i], 3), i))
     vals = [_mean_nrmse(r.validation) for r in kept]
     best, second, verdict, separate = order[0], None, "identified", None
     if len(order) > 1:
@@ -144,14 +148,16 @@ def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
             best, second = second, best
         if (gap < AMBIGUOUS_BIC and told is None) or (gap >= AMBIGUOUS_BIC and told == "second"):
             verdict = "ambiguous"
-            separate = separation_hint(kept[best].sc.candidate, kept[second].sc.candidate)
+            tied = [kept[i].sc.candidate for i in order if i != best and abs(bics[i] - bics[best]) < AMBIGUOUS_BIC]
+            separate = separation_hint(kept[best].sc.candidate, tied or [kept[second].sc.candidate])
     runners = []
     for i in order:
         if i == best:
             continue
         c = kept[i].sc.candidate
         gap = float(bics[i] - bics[best])
-        outcome = ("as good on these data" if verdict == "ambiguous" and i == second
+        tie = verdict == "ambiguous" and (i == second or abs(gap) < AMBIGUOUS_BIC)
+        outcome = ("as good on these data" if tie
                    else "worse on the validation records" if gap < AMBIGUOUS_BIC else "worse by refit")
         runners.append(RunnerUp(effect=c.effect, equation=equation_names(screening, c), term=c.term,
                                 delta_bic=gap, validation_nrmse=vals[i], outcome=outcome))
@@ -277,8 +283,11 @@ def moved_parameters(request: DiscoverRequest, state: LoopState, r: Refitted,
     return ", ".join(out)
 
 
-def separation_hint(a: Candidate, b: Candidate) -> str:
-    """What data would tell two near-equivalent candidates apart."""
+def separation_hint(a: Candidate, others: list[Candidate]) -> str:
+    """What data would tell the chosen candidate apart from those as good on these data: the hint for
+    the first of another kind (sensor against state, a law against a change in time), else the first."""
+    b = next((o for o in others if bool(o.outputs) != bool(a.outputs) or o.record_specific != a.record_specific),
+             others[0])
     if bool(a.outputs) != bool(b.outputs):
         sensor, other = (a, b) if a.outputs else (b, a)
         return (f"a record at another operating level (a different input level or offset), or a measurement of "

@@ -98,3 +98,23 @@ def test_complete_models_under_ar1_noise_and_held_inputs_get_nothing_over_ten_se
         res = run(model, record(seed))
         assert res.steps == [], (system, seed, res.conclusion)
         assert res.model.equations == model["equations"]
+
+
+@pytest.mark.slow
+def test_offsets_that_are_equivalent_on_these_data_are_reported_ambiguous_with_what_separates_them():
+    """Measured on vc alone, a sensor offset on vc and a source offset in di/dt (or dvc/dt) give the
+    same outputs once the initial states are free: the step says `ambiguous`, names them, and asks for
+    the data that would tell them apart (another output)."""
+    def vc_only(record):
+        return {**record, "outputs": {"vc": record["outputs"]["vc"]}}
+    model = {**ds.rlc_model(), "outputs": {"vc": "vc"}}
+    res = run(model, vc_only(ds.rlc_record(1)), vc_only(ds.rlc_record(2, name="val")))
+    assert len(res.steps) == 1 and res.ambiguous, res.conclusion
+    step = res.steps[0]
+    assert step.verdict == "ambiguous" and "another output" in step.separate_by
+    tied = [r for r in step.runners_up if r.outcome == "as good on these data"]
+    assert {step.effect} | {r.effect for r in tied} == {"output_offset", "offset"}
+    assert all(abs(r.delta_bic) < 10 for r in tied)
+    assert "ambiguous" in res.conclusion
+    for name in ("L", "R", "C"):
+        assert value(res, name) == pytest.approx(ds.RLC[name], rel=0.03)

@@ -27,8 +27,10 @@ from greyfit.solvers.inference.covariance import correlation_from, estimate_cova
 from greyfit.solvers.inference.profile import check_profile_names, run_profiles
 from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.methods.batch import BatchFit, Residuals
+from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warnings
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
+from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.methods.multistart import draw_starts
 from greyfit.solvers.methods.node_initialisation import node_warnings
 from greyfit.solvers.methods.registry import batch_method, online_method
@@ -71,13 +73,13 @@ def fit_model(request: FitRequest) -> FitResult:
     """
     online = online_method(request.method)
     if online is not None:
-        return online.fit(request)
+        return attach_model(online.fit(request), request.model)
     prepared, preprocessing = prepare_request(request)
     result = _fit_prepared(prepared)
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
-    return result
+    return attach_model(result, request.model)   # units and the model travel with the result
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:
@@ -115,6 +117,8 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     x0s = problem.x0_of(outcome.w)
     jp = built.jacobian(theta_s, outcome.w, x0s)
     keep = np.array([b is None for b in bounds] + [True] * jp.n_extra)
+    if built.eep is not None:   # noise in the regressors biases equation error: an instrumental-variable check
+        before = before + equation_error_bias_warnings(built.eep, cm, data, layout, outcome.w, keep[:layout.size], opts)
     ndata, nvarys = jp.res.size, int(keep.sum())
     cost = 0.5 * float(jp.res @ jp.res)
     channels = built.channels(theta, x0s, jp.res)

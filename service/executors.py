@@ -175,6 +175,11 @@ class LocalWorkerPool:
         """A free worker that is alive (one that died idle is replaced by the next poll())."""
         return next((s for s in self.slots if not s.keys and s.process.is_alive()), None)
 
+    def unready(self) -> Optional[str]:
+        """Why this executor cannot run tasks now (readiness), or None: local workers are replaced
+        when they die, so the pool is always able to."""
+        return None
+
     def can_start_now(self) -> bool:
         """Whether submit() would start a task at once; quick, so a caller's thread may ask (Dispatcher)."""
         return self._idle() is not None
@@ -312,6 +317,16 @@ class DaskExecutor:
 
     def free(self) -> int:
         return self.capacity() - len(self.futures)
+
+    def unready(self) -> Optional[str]:
+        """Why the cluster cannot run tasks now (readiness): its scheduler out of reach, or no
+        workers; None when it can. Read from the client's view of the scheduler, kept up to date
+        by the client itself: no round trip per probe."""
+        if self.client.status != "running":
+            return f"the Dask scheduler does not answer (client {self.client.status})"
+        if not self.client.scheduler_info().get("workers"):
+            return "the Dask cluster has no workers"
+        return None
 
     def queue_room(self) -> int:
         return 0   # the scheduler queues; a task is submitted when a thread is free

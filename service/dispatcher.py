@@ -76,6 +76,10 @@ class Dispatcher:
     # --- called from the web layer -------------------------------------------------------------
     def submit_sync(self, kind: str, request: dict | str) -> cf.Future:
         fut: cf.Future = cf.Future()
+        reason = self.executor.unready()
+        if reason is not None:   # nothing would run it (a Dask cluster without workers): say so now
+            fut.set_exception(RuntimeError(reason))
+            return fut
         key = f"sync-{uuid.uuid4()}"
         if self._start_sync_now(key, kind, request, fut):
             return fut

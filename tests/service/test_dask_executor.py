@@ -59,6 +59,8 @@ def test_readiness_says_when_the_dask_cluster_has_no_workers(tmp_path):
                 time.sleep(0.2)
             assert resp.status_code == 503 and "no workers" in resp.json()["detail"]
             assert resp.headers["retry-after"]
+            fit = c.post("/v1/fits", json=msd_request(0, n=41))   # at once, not after the wall-time limit
+            assert fit.status_code == 503 and "no workers" in fit.json()["detail"] and fit.headers["retry-after"]
             small.scale(1)
             deadline = time.monotonic() + 30
             while time.monotonic() < deadline and c.get("/readyz").status_code != 200:

@@ -55,6 +55,17 @@ class Settings(BaseSettings):
                                      "progress under synchronous load (at most workers - 1; with one "
                                      "worker, jobs and synchronous fits alternate)")
     retry_after_seconds: int = Field(default=2, ge=1, description="the Retry-After of 503 and 429 answers")
+    log_format: Literal["json", "text"] = Field(
+        default="json", description="log lines on stderr: json (one object a line: time, level, logger, message, "
+                                    "request_id, task_id) or text")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        default="INFO", description="level of greyfit's own loggers (other libraries log at WARNING and above)")
+    worker_stall_seconds: float = Field(
+        default=60.0, gt=0, description="a local worker whose CPU time stands still this long mid-task "
+                                        "(stopped, hung) is lost: replaced and its task retried")
+    body_read_seconds: float = Field(
+        default=60.0, gt=0, description="a request body must arrive within this many seconds of the request's "
+                                        "start (a 64 MB body: at least ~1.1 MB/s); a slower sender gets 408")
 
     def resolved_database_url(self) -> str:
         if self.database_url:

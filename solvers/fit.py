@@ -30,6 +30,8 @@ from greyfit.solvers.methods.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
+from greyfit.solvers.checks.step_choice import choose_substeps, substeps_retry
+from greyfit.solvers.checks.verdict import review_fit
 from greyfit.solvers.methods.shooting_curvature import make_solver
 from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.simulation.validate import validate_fit
@@ -110,12 +112,15 @@ def fit_model(request: FitRequest) -> FitResult:
     if request.method in (FitMethod.recursive_least_squares, FitMethod.mras):   # online estimators
         from greyfit.solvers.methods.online.estimate import fit_online
         return fit_online(request)
-    prepared, preprocessing = prepare_request(request)
+    prepared, preprocessing = choose_substeps(*prepare_request(request))
     result = _fit_prepared(prepared)
+    retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
+    if retry is not None:   # the chosen substeps proved coarse at the estimates: once more, finer
+        (prepared, preprocessing), result = retry, _fit_prepared(retry[0])
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
-    return result
+    return review_fit(prepared, result)   # lack of fit and input handling in the verdict
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:

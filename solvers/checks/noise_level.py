@@ -80,9 +80,13 @@ def validation_warnings(request: FitRequest, result: FitResult) -> list[FitWarni
         ratio = rmse_val ** 2 / rmse ** 2
         bound = max(VALIDATION_FLOOR, _bound(2.0 / max(n_val, MIN_SAMPLES), 2.0 / max(n_fit, 1.0)))
         if ratio > bound:
-            out.append(_warning(name, "validation", ratio, bound, rmse_val, rmse,
-                                "on the validation records (their RMSE; the fit's own is the residual)",
-                                code="validation_misfit"))
+            out.append(FitWarning(
+                code="validation_misfit",
+                message=f"output '{name}': the RMSE on the validation records ({rmse_val:.3g}) is "
+                        f"{math.sqrt(ratio):.2f}× the fit's own ({rmse:.3g}); variance ratio {ratio:.2f} > "
+                        f"{bound:.2f}: the model does not carry over to data it was not fitted to",
+                detail={"output": name, "test": "validation", "variance_ratio": ratio, "bound": bound,
+                        "validation_rmse": rmse_val, "rmse": rmse}))
     return out
 
 
@@ -120,6 +124,8 @@ def replicate_warnings(request: FitRequest, result: FitResult) -> list[FitWarnin
 def noise_level_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
     """`residual_above_noise` / `validation_misfit` where the data give a noise estimate."""
     if request.method == FitMethod.equation_error or result.quality == "failed" or negligible_residual(result):
-        return []   # equation error's channels are smoothed derivatives, not the measured outputs
+        return []
+    if all(p.fixed for p in result.parameters.values()):
+        return []   # nothing estimated: a simulation reported like a fit, judged by no check   # equation error's channels are smoothed derivatives, not the measured outputs
     return (high_frequency_warnings(request, result) + validation_warnings(request, result)
             + replicate_warnings(request, result))

@@ -8,12 +8,14 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
 from greyfit.schemas.model import RESERVED_NAMES, Expression, FiniteFloat, Model, Name, Parameter
 
 MAX_DEGREE = 40
+DEPRECATED_COSTS = {"seed_log": "log1p_abs_error"}   # old name -> the name that says what it is
 Coefficients = list[Expression]
 
 
@@ -148,10 +150,11 @@ class FrequencyFitOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    cost: Literal["relative_complex", "complex", "log", "seed_log"] = Field(
+    cost: Literal["relative_complex", "complex", "log", "log1p_abs_error"] = Field(
         default="relative_complex",
         description="relative_complex: (Ĝ-G)/|G|; complex: Ĝ-G; log: log|Ĝ/G| and phase of Ĝ/G; "
-                    "seed_log: log(|Ĝ-G|+1) (the cost of seed 001)")
+                    "log1p_abs_error: log(|Ĝ-G|+1), the cost of the course notes on parameter estimation "
+                    "from frequency data ('seed_log' is accepted as a deprecated alias)")
     stability: Literal["routh", "penalty", "check", "none"] = Field(
         default="routh", description="routh: Liénard-Chipart (Routh-Hurwitz) conditions of every closed-loop "
         "denominator as constraints >= stability_margin; penalty: their violation as an extra residual; "
@@ -171,6 +174,11 @@ class FrequencyFitOptions(BaseModel):
     max_cpu_time: float = Field(default=120.0, gt=0, le=86_400)
     tol: float = Field(default=1e-10, gt=0, lt=1)
     confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
+
+    @field_validator("cost", mode="before")
+    @classmethod
+    def _deprecated_cost_names(cls, value):
+        return DEPRECATED_COSTS.get(value, value) if isinstance(value, str) else value
 
 
 class FrequencyFitRequest(BaseModel):
@@ -219,3 +227,7 @@ class FrequencyResponseResult(BaseModel):
     operating_point: Optional[dict[str, float]] = Field(
         default=None, description="linearised ODE models: the states and inputs of the operating point "
                                   "at the fitted parameters")
+
+
+FrequencyJobCreate = job_create("FrequencyJobCreate", FrequencyFitRequest,
+                                "A batch of frequency-response fits (POST /v1/frequency-fits/jobs).")

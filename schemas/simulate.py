@@ -54,6 +54,14 @@ class SimulateRequest(BaseModel):
 
 
 class SimulateResult(BaseModel):
+    def report(self) -> str:
+        """A text report for people (`greyfit ... --summary` prints it)."""
+        from greyfit.schemas.text_report import simulate_report
+        return simulate_report(self)
+
+    def __str__(self) -> str:
+        return self.report()
+
     parameters: dict[str, float]
     experiments: list[SimulatedExperiment]
     validation: Optional[ValidationResult] = Field(

@@ -11,6 +11,7 @@ from fastapi.openapi.utils import get_openapi
 
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
+from greyfit.service.task_kinds import JOB_KINDS, KINDS
 
 SCHEME = "bearerAuth"
 ANSWERS = {
@@ -28,6 +29,12 @@ ANSWERS = {
 SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits", "/v1/report",
               "/v1/jobs/{job_id}/report")
 PUBLIC = ("/healthz", "/readyz")
+JOB_PATHS = tuple(k.jobs_path for k in KINDS.values() if k.jobs_path)
+IDEMPOTENCY_HEADER = {
+    "name": "Idempotency-Key", "in": "header", "required": False,
+    "schema": {"type": "string", "minLength": 1, "maxLength": 200, "pattern": "^[\\x21-\\x7e]+$"},
+    "description": "makes a retry safe: the same key with the same body returns the job made the first time "
+                   "(never a second one); with another body, 422"}
 
 
 def _problem_response(description: str, headers: bool) -> dict:
@@ -47,6 +54,8 @@ def describe(app: FastAPI, settings: Settings) -> dict:
     schemas["Problem"] = problem_schema
     for unused in ("HTTPValidationError", "ValidationError"):
         schemas.pop(unused, None)
+    if "JobPublic" in schemas:   # the job kinds are the task-kind table's (schemas/ cannot import it)
+        schemas["JobPublic"]["properties"]["kind"]["enum"] = list(JOB_KINDS)
     components["securitySchemes"] = {SCHEME: {"type": "http", "scheme": "bearer",
                                               "description": "GREYFIT_API_KEY, when the server sets one"}}
     for path, ops in spec["paths"].items():
@@ -60,6 +69,8 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 codes.append("400")
             if path in SYNC_PATHS:
                 codes.append("504")
+            if method == "post" and path in JOB_PATHS:
+                op.setdefault("parameters", []).append(IDEMPOTENCY_HEADER)
             for code in sorted(set(codes)):
                 responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
     return spec

@@ -1,21 +1,26 @@
 """Batch jobs. A job's status is what clients poll, so its answers are made without FastAPI's
 second pass over the returned model (dump, validate, dump again), and results go out as the
 workers wrote them."""
+import hashlib
 import json
-from typing import Any, Callable, Optional
+import re
+from typing import Annotated, Any, Callable, Optional
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 from pydantic import BaseModel
 
-from greyfit.schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
+from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
-from greyfit.service.store import job_status
+from greyfit.service.store import IdempotencyKeyReused, job_status
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
 
 MAX_OFFSET = 2 ** 31 - 1   # databases take 64-bit offsets at most; nobody pages this far
+MAX_INDEX = 2 ** 31 - 1    # PostgreSQL's INTEGER: a larger task index cannot exist and must not reach it
+# job ids are uuid4 text: anything else (a NUL byte, a megabyte) is a 422 before it reaches the database
+JOB_ID = Path(description="the job's id, as POST returned it", max_length=36, pattern=r"^[0-9A-Za-z-]+$")
 
 
 def job_public(record: dict[str, Any]) -> JobPublic:
@@ -40,6 +45,26 @@ def as_json(model: BaseModel, status_code: int = 200, headers: Optional[dict] = 
     return Response(model.model_dump_json(), status_code=status_code, headers=headers, media_type="application/json")
 
 
+IDEMPOTENCY_KEY = re.compile(r"^[\x21-\x7e]{1,200}$")
+
+
+def idempotency_of(request: Request, kind: str, texts: list, label: Optional[str]) -> Optional[tuple[str, str]]:
+    """(key, fingerprint) of the request's Idempotency-Key header, or None without one.
+
+    The fingerprint covers the kind, the label and each request's JSON text: the same key with the
+    same body is the same job (a retry after a lost answer), with another body an error."""
+    key = request.headers.get("idempotency-key")
+    if key is None:
+        return None
+    key = key.strip().strip('"')   # the draft sends it as a structured-field string: "abc"
+    if not IDEMPOTENCY_KEY.match(key):
+        raise HTTPException(400, "Idempotency-Key must be 1 to 200 printable ASCII characters without spaces")
+    digest = hashlib.sha256(f"{kind}\0{label}".encode())
+    for text in texts:
+        digest.update(b"\0" + (text if isinstance(text, str) else json.dumps(text, sort_keys=True)).encode())
+    return key, digest.hexdigest()
+
+
 def submit_job(request: Request, kind: str, requests: list, label: Optional[str],
                check: Callable = check_limits) -> Response:
     """Store a job of one task per request (each checked against this server's limits by `check`)."""
@@ -50,15 +75,14 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
                             "split the batch")
     for i, req in enumerate(requests):
         check(req, settings, prefix=f"requests[{i}].")
-    job_id = state.store.create_job(kind, request_texts(request, requests), label)
+    texts = request_texts(request, requests)
+    try:
+        job_id = state.store.create_job(kind, texts, label, idempotency_of(request, kind, texts, label))
+    except IdempotencyKeyReused as exc:
+        raise HTTPException(422, f"Idempotency-Key '{exc}' was first sent with another body; a retry must "
+                            "send the same body, a new job a new key") from None
     state.dispatcher.wake()
     return as_json(job_public(state.store.get_job(job_id)), 202, {"Location": f"/v1/jobs/{job_id}"})
-
-
-@router.post("", response_model=JobPublic, status_code=202)
-def create_job(body: JobCreate, request: Request) -> Response:
-    """Accept a batch of fits; each request becomes a task. Poll the Location header."""
-    return submit_job(request, "fit", body.requests, body.label)
 
 
 @router.get("", response_model=JobsPublic)
@@ -76,13 +100,13 @@ def _record(request: Request, job_id: str) -> dict:
 
 
 @router.get("/{job_id}", response_model=JobPublic)
-def get_job(job_id: str, request: Request) -> Response:
+def get_job(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
     """Status, progress and per-task status of a job."""
     return as_json(job_public(_record(request, job_id)))
 
 
 @router.get("/{job_id}/results", response_model=JobResults)
-def get_results(job_id: str, request: Request) -> Response:
+def get_results(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
     """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet."""
     record = _record(request, job_id)
     entries = []
@@ -98,7 +122,7 @@ def get_results(job_id: str, request: Request) -> Response:
 
 
 @router.delete("/{job_id}", response_model=JobPublic)
-def cancel_job(job_id: str, request: Request) -> Response:
+def cancel_job(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
     """Cancel: queued tasks are dropped, running ones stopped; finished results are kept."""
     _record(request, job_id)
     request.app.state.store.cancel(job_id)

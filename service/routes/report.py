@@ -1,13 +1,16 @@
 import json
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
 from sqlalchemy import and_, select
 
+from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.report import ReportRequest
 from greyfit.service.deps import require_api_key
 from greyfit.service.json_body import StrictJSONRoute
-from greyfit.service.limits import check_limits, data_values
+from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
+from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.routes.sync import run_sync, run_sync_request
 from greyfit.service.settings import Settings
 from greyfit.service.store import task_requests, tasks
@@ -25,11 +28,15 @@ async def _page(request: Request, payload: dict | str) -> HTMLResponse:
 
 def _check_report(body: ReportRequest, settings: Settings) -> None:
     """The request that comes with a result is simulated again: the fits' limits apply to it."""
-    if body.request is not None:
+    if isinstance(body.request, FrequencyFitRequest):
+        check_frequency_limits(body.request, settings, "request.")
+    elif body.request is not None:
         check_limits(body.request, settings, "request.")
 
 
 def _report_values(body: ReportRequest) -> int:
+    if isinstance(body.request, FrequencyFitRequest):
+        return frequency_values(body.request)
     return data_values(body.request) if body.request is not None else 0
 
 
@@ -43,7 +50,8 @@ async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
 
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=HTML)
-async def job_report(job_id: str, request: Request, index: int = Query(0, ge=0)) -> HTMLResponse:
+async def job_report(job_id: Annotated[str, JOB_ID], request: Request,
+                     index: int = Query(0, ge=0, le=MAX_INDEX)) -> HTMLResponse:
     """The report page of task `index` of a finished job (its stored request supplies the data)."""
     store = request.app.state.store
     if store.get_job(job_id) is None:

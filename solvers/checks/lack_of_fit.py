@@ -15,11 +15,13 @@ lag a held input by about a sample and read that as a missing effect on a right 
 """
 from __future__ import annotations
 
-from greyfit.schemas.discovery import DiscoveryOptions
+from typing import Any
+
+from greyfit.schemas.discovery import DiscoveryOptions, Effect
 from greyfit.schemas.fit import FitMethod, FitRequest, FitResult, FitWarning
 from greyfit.solvers.errors import FitError
 
-SCREENED_EFFECTS = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
+SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
                     "output_offset", "output_gain"]
 SIGNIFICANCE = 0.001         # family-wise, over the candidates tried (the screen's Bonferroni): a
 #                              right model is flagged in about 0.1 % of fits, far below the 3 % `good` may lose
@@ -63,7 +65,8 @@ def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitW
     if why:
         return [FitWarning(code="lack_of_fit_not_screened", message=f"lack of fit not screened: {why}",
                            detail={"reason": why})]
-    from greyfit.solvers.discovery.screening import screen   # the discovery wing, only when used
+    from greyfit.solvers.discovery.screening import screen  # the discovery wing, only when used
+
     opts = DiscoveryOptions(effects=SCREENED_EFFECTS, significance=SIGNIFICANCE)
     try:
         screening = screen(request, result, opts, set())
@@ -75,9 +78,10 @@ def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitW
             and not sc.candidate.refit_only]
     if not hits:
         return []
-    top = [{"effect": sc.candidate.effect, "term": sc.candidate.term, "description": sc.candidate.description,
-            "explained": round(float(sc.score.explained), 4), "p_value": float(sc.score.p_value)}
-           for sc in hits[:TOP_CANDIDATES]]
+    top: list[dict[str, Any]] = [
+        {"effect": sc.candidate.effect, "term": sc.candidate.term, "description": sc.candidate.description,
+         "explained": round(float(sc.score.explained), 4), "p_value": float(sc.score.p_value)}
+        for sc in hits[:TOP_CANDIDATES]]
     alpha = SIGNIFICANCE / max(screening.tries, 1)
     return [FitWarning(
         code="missing_effect_likely",

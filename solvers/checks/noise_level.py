@@ -123,9 +123,11 @@ def replicate_warnings(request: FitRequest, result: FitResult) -> list[FitWarnin
 
 def noise_level_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
     """`residual_above_noise` / `validation_misfit` where the data give a noise estimate."""
-    if request.method == FitMethod.equation_error or result.quality == "failed" or negligible_residual(result):
+    if request.method == FitMethod.equation_error:
+        return []   # its channels are smoothed derivatives, not the measured outputs
+    if result.quality == "failed" or negligible_residual(result):
         return []
     if all(p.fixed for p in result.parameters.values()):
-        return []   # nothing estimated: a simulation reported like a fit, judged by no check   # equation error's channels are smoothed derivatives, not the measured outputs
+        return []   # nothing estimated: a simulation reported like a fit, judged by no check
     return (high_frequency_warnings(request, result) + validation_warnings(request, result)
             + replicate_warnings(request, result))

@@ -12,6 +12,7 @@ import numpy as np
 
 from greyfit.schemas.fit import FitResult, FitWarning
 from greyfit.solvers.inference.covariance import CovarianceEstimate, combination, null_directions
+from greyfit.solvers.methods.registry import method_family
 
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
@@ -19,6 +20,9 @@ SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "pa
                  # lack of fit and integration (issue 22): each points at a wrong answer
                  "missing_effect_likely", "residual_above_noise", "validation_misfit",
                  "input_held_fitted_linear", "input_faster_than_sampling", "integration_step_coarse"}
+# online, frequency and equation-error checks (solvers/methods/online/checks.py, solvers/frequency/checks.py,
+# solvers/methods/equation_error_bias.py) whose warnings count against `good`
+SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "initial_simulation_diverged", "robust_covariance", "poor_excitation_at_start",
               "lack_of_fit_not_screened"}
@@ -69,7 +73,7 @@ def noise_level(y: np.ndarray) -> float:
 
 def _fit_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
     out = []
-    if q.method == "equation_error":
+    if method_family(q.method) == "equation_error":
         return out   # channels are derivatives, smoothed: their differences do not show the noise
     for name, series in q.measured.items():
         rmse = result.metrics.rmse.get(name)

@@ -26,6 +26,7 @@ import numpy as np
 from greyfit.solvers.dynamics.columns import evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
+from greyfit.solvers.dynamics.integration import integrator_of
 
 EXPECTED_ITERATIONS = 20
 SOLVER_CACHE_SIZE = 16
@@ -41,7 +42,7 @@ def supports(oem, single: bool = False) -> bool:
     opts = oem.options
     return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0"
             and (single or opts.shooting_interval == 1) and opts.hessian == "gauss_newton"
-            and (opts.integrator == "rk4" or oem.cm.model.discrete is not None)
+            and (integrator_of(opts).symbolic or oem.cm.model.discrete is not None)
             and all(d.n >= 2 for d in oem.data))
 
 
@@ -71,8 +72,8 @@ class _Stage:
 
     def map(self, count: int, *args) -> list[ca.MX]:
         f = self.single
-        args, blocks = self._padded(args, count, [f.size2_in(i) for i in range(f.n_in())])
-        outs = self.block.map(blocks, "serial")(*args)
+        padded, blocks = self._padded(args, count, [f.size2_in(i) for i in range(f.n_in())])
+        outs = self.block.map(blocks, "serial")(*padded)
         outs = outs if isinstance(outs, (list, tuple)) else [outs]
         return [o[:, :count * f.size2_out(j)] if o.size2() != count * f.size2_out(j) else o
                 for j, o in enumerate(outs)]
@@ -80,8 +81,8 @@ class _Stage:
     def accum(self, count: int, x0, *args) -> ca.MX:
         """x_1 … x_count of x_k+1 = f(x_k, args_k) (`mapaccum`)."""
         f = self.single
-        args, blocks = self._padded(args, count, [f.size2_in(i) for i in range(1, f.n_in())])
-        states = self.block.mapaccum("sim", blocks, [0], [0])(x0, *args)[1]
+        padded, blocks = self._padded(args, count, [f.size2_in(i) for i in range(1, f.n_in())])
+        states = self.block.mapaccum("sim", blocks, [0], [0])(x0, *padded)[1]
         return states[:, :count] if states.size2() != count else states
 
 

@@ -55,7 +55,8 @@ def test_a_missing_term_is_named_with_its_evidence():
 def test_auto_interpolation_holds_a_prbs_and_says_so():
     body = SCENARIOS["thermal"]("correct", 1)
     r = fit(body)
-    assert r.preprocessing.input_interpolation == {"P": "zoh"} and "piecewise constant" in r.preprocessing.interpolation_note
+    assert r.preprocessing.input_interpolation == {"P": "zoh"}
+    assert "piecewise constant" in r.preprocessing.interpolation_note
     assert r.quality == "good"
     truth = THERMAL_TRUTH["C"]
     assert abs(r.parameters["C"].value - truth) < 3 * r.parameters["C"].stderr
@@ -88,7 +89,8 @@ def test_mixed_inputs_are_all_held_and_the_note_says_which_looked_smooth():
     model["equations"] = {"x": "(P + Q - x/R)/C"}
     r = fit({"model": model, "experiments": [exp]})
     assert r.preprocessing.input_interpolation == {"P": "zoh", "Q": "zoh"}
-    assert "smooth ['Q']" in r.preprocessing.interpolation_note and "['Q'] are taken as held" in r.preprocessing.interpolation_note
+    note = r.preprocessing.interpolation_note
+    assert "smooth ['Q']" in note and "['Q'] are taken as held" in note
 
 
 # --- integration step ------------------------------------------------------------------------------

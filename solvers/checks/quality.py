@@ -17,6 +17,7 @@ from greyfit.solvers.methods.registry import method_family
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
                  "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation",
+                 "multiple_optima",   # solvers/methods/multistart.py
                  # lack of fit and integration (issue 22): each points at a wrong answer
                  "missing_effect_likely", "residual_above_noise", "validation_misfit",
                  "input_held_fitted_linear", "input_faster_than_sampling", "integration_step_coarse"}
@@ -25,7 +26,9 @@ SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "pa
 SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "initial_simulation_diverged", "robust_covariance", "poor_excitation_at_start",
-              "lack_of_fit_not_screened"}
+              "lack_of_fit_not_screened",
+              "singular_derivative_guarded",     # solvers/model/compiler.py
+              "polished_with_exact_hessian"}     # solvers/methods/multistart.py
 
 NOISE_FLOOR_RATIO = 5.0      # rmse this many times the data's own noise estimate ...
 NOISE_FLOOR_POINTS = 20.0    # ... and the fit % this many points below what that noise allows

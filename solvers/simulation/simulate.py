@@ -358,9 +358,13 @@ def simulate_request(request: SimulateRequest) -> SimulateResult:
     states = {k: v for k, v in states.items() if k in names}   # a previous fit may have had other records
     for name, values in request.initial_states.items():
         states.setdefault(name, {}).update(values)
-    prepared, _ = prepare_request(request)
+    prepared, _ = prepare_request(request)   # resolves input_interpolation "auto" as the fits do
+    options = prepared.options
+    chosen = fit.preprocessing.substeps if fit is not None and fit.preprocessing is not None else None
+    if chosen and "substeps" not in request.options.model_fields_set:   # simulate as the fit integrated
+        options = options.model_copy(update={"substeps": chosen})
     cm = compile_model(model)
-    sims = simulate_arrays(model, params, prepared.experiments, request.options, states,
+    sims = simulate_arrays(model, params, prepared.experiments, options, states,
                            request.estimate_window, request.horizon, cm=cm)
     measured = any(np.isfinite(s.data.y).any() for s in sims)
     used = {p.name: float(p.value) for p in model.parameters}

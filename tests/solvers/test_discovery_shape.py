@@ -140,7 +140,8 @@ def test_a_base_fit_that_warns_of_coarse_steps_is_refitted_with_finer_ones():
     model = {"name": "lag", "states": ["x"], "inputs": ["u"], "outputs": {"y": "x"},
              "parameters": [{"name": "a", "value": 1.0, "lower": 0.0}, {"name": "b", "value": 0.5}],
              "equations": {"x": "-a*x + b*u"}}
-    body = {"model": model, "method": "multiple_shooting", "options": {"input_interpolation": "zoh"},
+    # substeps given: the fit keeps them (it chooses its own only when none are given)
+    body = {"model": model, "method": "multiple_shooting", "options": {"input_interpolation": "zoh", "substeps": 1},
             "experiments": [{"name": "est", "time": t.tolist(), "inputs": {"u": u.tolist()},
                              "outputs": {"y": y.tolist()}}]}
     coarse = fit_model(FitRequest.model_validate(body))

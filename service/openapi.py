@@ -1,13 +1,25 @@
-"""The OpenAPI description says what the service really sends: problem+json errors and the key.
+"""The OpenAPI description says what the service really sends, and the pages that show it offline.
 
 FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
 problem+json answers the middleware and handlers give (400, 401, 404, 413, 422, 429, 500, 503, and
-504 for synchronous fits) and the bearer security scheme.
+504 for synchronous fits) and the bearer security scheme, and a real example request (the
+mass-spring-damper fit) where FastAPI would generate junk, so "Try it out" sends a fit that works.
+
+`/docs` (Swagger UI) and `/redoc` (ReDoc) load their scripts from `service/static/`, served by the
+service itself: FastAPI's defaults load them from a CDN and stay blank on a machine without network.
 """
 from __future__ import annotations
 
-from fastapi import FastAPI
+import json
+from functools import lru_cache
+from pathlib import Path
+from typing import Callable
+
+from fastapi import FastAPI, Request
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
 from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
 
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
@@ -28,6 +40,24 @@ ANSWERS = {
 SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits", "/v1/report",
               "/v1/jobs/{job_id}/report")
 PUBLIC = ("/healthz", "/readyz")
+
+STATIC = Path(__file__).resolve().parent / "static"
+STATIC_URL = "/static"
+
+
+@lru_cache(maxsize=1)
+def msd_fit_request() -> dict:
+    """The mass-spring-damper fit of examples/msd_request.json (shipped in the package as a copy)."""
+    return json.loads((STATIC / "examples" / "msd_request.json").read_text(encoding="utf-8"))
+
+
+# path of an operation -> (example name, summary, request body built from the MSD fit)
+EXAMPLES: dict[str, tuple[str, str, Callable[[dict], dict]]] = {
+    "/v1/fits": ("msd_fit", "Mass-spring-damper m x'' + c x' + k x = u, c and k from x and v (noisy)",
+                 lambda msd: msd),
+    "/v1/jobs": ("msd_job", "The mass-spring-damper fit as a batch job of one request",
+                 lambda msd: {"requests": [msd], "label": "demo"}),
+}
 
 
 def _problem_response(description: str, headers: bool) -> dict:
@@ -62,7 +92,19 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 codes.append("504")
             for code in sorted(set(codes)):
                 responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
+    _add_examples(spec)
     return spec
+
+
+def _add_examples(spec: dict) -> None:
+    """Give the request bodies in EXAMPLES a working example (media type `examples`, shown by both UIs)."""
+    examples = spec["components"].setdefault("examples", {})
+    for path, (name, summary, build) in EXAMPLES.items():
+        body = spec["paths"].get(path, {}).get("post", {}).get("requestBody")
+        if body is None:
+            continue
+        examples[name] = {"summary": summary, "value": build(msd_fit_request())}
+        body["content"]["application/json"]["examples"] = {name: {"$ref": f"#/components/examples/{name}"}}
 
 
 def install_openapi(app: FastAPI, settings: Settings) -> None:
@@ -72,3 +114,29 @@ def install_openapi(app: FastAPI, settings: Settings) -> None:
         return app.openapi_schema
 
     app.openapi = openapi
+
+
+def install_docs(app: FastAPI) -> None:
+    """Serve /docs (Swagger UI) and /redoc (ReDoc) with assets from service/static/, no network needed."""
+    app.mount(STATIC_URL, StaticFiles(directory=STATIC), name="static")
+
+    def url(request: Request, path: str) -> str:
+        # behind a proxy that strips a prefix, the browser must ask for the prefixed path
+        return request.scope.get("root_path", "").rstrip("/") + path
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui(request: Request) -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=url(request, app.openapi_url), title=f"{app.title} - Swagger UI",
+            swagger_js_url=url(request, f"{STATIC_URL}/swagger-ui/swagger-ui-bundle.js"),
+            swagger_css_url=url(request, f"{STATIC_URL}/swagger-ui/swagger-ui.css"),
+            swagger_favicon_url=url(request, f"{STATIC_URL}/swagger-ui/favicon-32x32.png"),
+            swagger_ui_parameters={"validatorUrl": None})   # no badge fetched from the validator's site
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc(request: Request) -> HTMLResponse:
+        return get_redoc_html(
+            openapi_url=url(request, app.openapi_url), title=f"{app.title} - ReDoc",
+            redoc_js_url=url(request, f"{STATIC_URL}/redoc/redoc.standalone.js"),
+            redoc_favicon_url=url(request, f"{STATIC_URL}/swagger-ui/favicon-32x32.png"),
+            with_google_fonts=False)

@@ -182,7 +182,7 @@ class TimeVarying(BaseModel):
 
 # --- fit side ------------------------------------------------------------------------------------
 class RlsOptions(BaseModel):
-    """Recursive least squares (seed 003, eqs. 7-38/39 and 7-44/45)."""
+    """Recursive least squares (the textbook chapter *Model reference adaptive systems*, eqs. 7-38/39, 7-44/45)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -204,22 +204,24 @@ class RlsOptions(BaseModel):
 
 
 class MrasOptions(BaseModel):
-    """Model-reference adaptive estimator (seed 003, 7.3) with the PI adaptation law (7-29/30)."""
+    """Model-reference adaptive estimator (*Model reference adaptive systems*, 7.3), PI adaptation law (7-29/30)."""
 
     model_config = ConfigDict(extra="forbid")
 
     kp: float = Field(default=0.0, ge=0, description="proportional adaptation gain (>= 0)")
     ki: float = Field(default=1000.0, gt=0, description="integral adaptation gain [1/s] (> 0), on normalised signals")
     substeps: int = Field(default=1, ge=1, le=100, description="Euler steps of the adjustable model per sample")
-    trajectory_every: int = Field(default=1, ge=1, le=100_000)
+    trajectory_every: int = Field(default=1, ge=1, le=100_000,
+                                  description="keep every n-th sample of θ(t) in the result")
 
 
 class Prefilter(BaseModel):
-    """The same stable low-pass on both sides of the equation (seed 004; state-variable filter).
+    """The same stable low-pass on both sides of the equation (a state-variable filter).
 
     Continuous-time models: n cascaded first-order filters ω/(s+ω) on states and inputs; the
     derivative of the filtered state comes from the filter itself, ω(F^{n-1}x − F^n x), so no
-    differentiation of noisy data is needed. Discrete-time models: seed 004's
+    differentiation of noisy data is needed. Discrete-time models: the filter of Aoki & Kawata's
+    *Robust parameter estimation by noise reduction*,
     H_f = (1−a_f)/(1 − a_f z⁻¹), a_f = exp(−2π f_c Ts), n times, on outputs and inputs.
     The first 5 time constants are dropped (filter start-up).
     """
@@ -228,7 +230,7 @@ class Prefilter(BaseModel):
 
     kind: Literal["lowpass"] = "lowpass"
     cutoff_hz: float = Field(gt=0, description="cut-off frequency f_c [Hz]")
-    order: int = Field(default=1, ge=1, le=4)
+    order: int = Field(default=1, ge=1, le=4, description="number of cascaded first-order filters")
 
 
 class ExcitationReport(BaseModel):

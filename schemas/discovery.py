@@ -61,6 +61,8 @@ class DiscoveryOptions(BaseModel):
 
 
 class DiscoverRequest(FitRequest):
+    """A fit request plus `discovery`: fit, find the effect the model lacks, add it, refit."""
+
     discovery: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
 
 
@@ -156,6 +158,8 @@ class RejectedCandidate(BaseModel):
 
 
 class DiscoveryResult(BaseModel):
+    """Before and after, each effect added with its evidence, the candidates rejected, the final fit and model."""
+
     conclusion: str
     before: FitSummary
     after: FitSummary

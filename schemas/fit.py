@@ -113,12 +113,17 @@ class FitOptions(BaseModel):
 
 
 class FitRequest(BaseModel):
+    """A model, the records to fit it to, the method and its options (POST /v1/fits, `greyfit fit`)."""
+
     model_config = ConfigDict(extra="forbid")
 
-    model: Model
-    experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
-    method: FitMethod = FitMethod.multiple_shooting
-    options: FitOptions = Field(default_factory=FitOptions)
+    model: Model = Field(description="states, inputs, parameters with bounds, equations and outputs")
+    experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS,
+                                          description="the records fitted; they share the parameters")
+    method: FitMethod = Field(default=FitMethod.multiple_shooting,
+                              description="what is minimised: equation_error, single_shooting, multiple_shooting, "
+                                          "or an online estimator (recursive_least_squares, mras)")
+    options: FitOptions = Field(default_factory=FitOptions, description="solver options, each with a default")
     validation: list[Experiment] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
         description="records not used to fit; the result's `validation` has their simulation metrics")

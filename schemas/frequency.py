@@ -178,6 +178,8 @@ class FrequencyFitOptions(BaseModel):
 
 
 class FrequencyFitRequest(BaseModel):
+    """A transfer-function (or linearised ODE) model and measured frequency responses (POST /v1/frequency-fits)."""
+
     model_config = ConfigDict(extra="forbid")
 
     model: FrequencyModel

@@ -228,7 +228,7 @@ class Prefilter(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["lowpass"] = "lowpass"
+    kind: Literal["lowpass"] = Field(default="lowpass", description="the filter: a low-pass (the only kind)")
     cutoff_hz: float = Field(gt=0, description="cut-off frequency f_c [Hz]")
     order: int = Field(default=1, ge=1, le=4, description="number of cascaded first-order filters")
 

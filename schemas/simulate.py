@@ -54,6 +54,8 @@ class SimulateRequest(BaseModel):
 
 
 class SimulateResult(BaseModel):
+    """Simulated states and outputs per record, the parameters used, and metrics where outputs were given."""
+
     parameters: dict[str, float]
     experiments: list[SimulatedExperiment]
     validation: Optional[ValidationResult] = Field(

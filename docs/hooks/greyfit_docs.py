@@ -23,7 +23,7 @@ ROOT = Path(__file__).resolve().parents[2]
 NAMESPACE = ROOT / "build" / "docs-namespace"
 LAYOUT = {"greyfit": "greyfit", "greyfit/schemas": "schemas", "greyfit/solvers": "solvers",
           "greyfit/service": "service"}
-MARKER = re.compile(r"^<!-- (fields|settings): ([\w.]+) -->$", re.M)
+MARKER = re.compile(r"^<!-- (fields|fields-only|settings): ([\w.]+) -->$", re.M)
 BOUNDS = (("minimum", "≥ {}"), ("exclusiveMinimum", "> {}"), ("maximum", "≤ {}"), ("exclusiveMaximum", "< {}"),
           ("minLength", "at least {} characters"), ("maxLength", "at most {} characters"),
           ("minItems", "at least {} items"), ("maxItems", "at most {} items"))
@@ -52,7 +52,9 @@ def on_page_markdown(markdown: str, page: Any, config: Any, files: Any) -> str:
     def table(match: re.Match) -> str:
         kind, dotted = match.groups()
         model = _import(dotted)
-        return settings_table(model) if kind == "settings" else fields_tables(model)
+        if kind == "settings":
+            return settings_table(model)
+        return fields_tables(model, nested=kind == "fields")
 
     return MARKER.sub(table, markdown)
 
@@ -62,19 +64,19 @@ def _import(dotted: str) -> type[BaseModel]:
     return getattr(importlib.import_module(module), name)
 
 
-def fields_tables(model: type[BaseModel]) -> str:
-    """The model's table, then one table per nested option model it holds (each once)."""
+def fields_tables(model: type[BaseModel], nested: bool = True) -> str:
+    """The model's table, then (`nested`) one table per model it holds, each once."""
     out, queue, seen = [], [model], set()
     while queue:
         current = queue.pop(0)
         if current in seen:
             continue
         seen.add(current)
-        rows, nested = _rows(current)
+        rows, inner = _rows(current, link=nested)
         anchor = current.__name__.lower()
         title = "" if current is model else f"\n#### `{current.__name__}` {{#{anchor}}}\n\n{_summary(current)}\n"
         out.append(title + "\n| field | type | default | meaning |\n|---|---|---|---|\n" + "\n".join(rows) + "\n")
-        queue += nested
+        queue += inner if nested else []
     return "\n".join(out)
 
 
@@ -82,15 +84,17 @@ def _summary(model: type[BaseModel]) -> str:
     return (model.__doc__ or "").strip().split("\n\n")[0].replace("\n", " ")
 
 
-def _rows(model: type[BaseModel]) -> tuple[list[str], list[type[BaseModel]]]:
+def _rows(model: type[BaseModel], link: bool) -> tuple[list[str], list[type[BaseModel]]]:
     schema = model.model_json_schema()
     rows, nested = [], []
     for name, field in model.model_fields.items():
         prop = schema.get("properties", {}).get(name, {})
-        sub = _nested_model(field.annotation)
-        if sub is not None:
-            nested.append(sub)
-        kind = f"[`{sub.__name__}`](#{sub.__name__.lower()})" if sub is not None else _type(prop, schema)
+        subs = _nested_models(field.annotation)
+        nested += subs
+        kind = _type(prop, schema)
+        if subs and link:
+            kind = " or ".join(f"[`{s.__name__}`](#{s.__name__.lower()})" for s in subs)
+            kind = f"list of {kind}" if prop.get("type") == "array" else kind
         meaning = _cell(field.description or prop.get("description", ""))
         bounds = ", ".join(fmt.format(_number(prop[key])) for key, fmt in BOUNDS if key in prop)
         if bounds:
@@ -99,12 +103,14 @@ def _rows(model: type[BaseModel]) -> tuple[list[str], list[type[BaseModel]]]:
     return rows, nested
 
 
-def _nested_model(annotation: Any) -> type[BaseModel] | None:
-    """A nested option model (possibly Optional[...]), documented in a table of its own."""
-    for candidate in (annotation, *getattr(annotation, "__args__", ())):
-        if isinstance(candidate, type) and issubclass(candidate, BaseModel):
-            return candidate
-    return None
+def _nested_models(annotation: Any) -> list[type[BaseModel]]:
+    """The models a field holds (itself, or inside Optional/Union/list/dict), each with a table of its own."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    found: list[type[BaseModel]] = []
+    for arg in getattr(annotation, "__args__", ()):
+        found += [m for m in _nested_models(arg) if m not in found]
+    return found
 
 
 def _type(prop: dict, schema: dict) -> str:

@@ -125,8 +125,9 @@ def _type(prop: dict, schema: dict) -> str:
     kind = prop.get("type", "any")
     if kind == "array":
         return f"list of {_type(prop.get('items', {}), schema)}"
-    if kind == "object" and isinstance(prop.get("additionalProperties"), dict):
-        return f"map of {_type(prop['additionalProperties'], schema)}"
+    values = prop.get("additionalProperties") or next(iter(prop.get("patternProperties", {}).values()), None)
+    if kind == "object" and isinstance(values, dict):
+        return f"map of name → {_type(values, schema)}"
     return {"number": "number", "integer": "integer", "string": "string", "boolean": "boolean",
             "null": "null", "object": "object"}.get(kind, kind)
 

@@ -26,10 +26,17 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.bench_methods import in_fresh_process  # noqa: E402
 
-# top-level steps of solvers.fit._fit_prepared, then stages nested in them (indented in the table)
-TOP = ["prepare_request", "compile_model", "prepare_experiments", "build_layout", "build_equation_error",
-       "OutputErrorModel", "build_multiple_shooting", "pre_fit_warnings", "_solve", "sensitivity_jacobian",
-       "_residuals", "residual_analyses", "estimate_covariance", "_quality_inputs", "assess_fit"]
+# top-level steps of solvers/fit.py's outline and of the method object it builds
+# (solvers/methods/batch.py), by (module or class, name); then stages nested in them (indented)
+FIT = "greyfit.solvers.fit"
+BATCH = "greyfit.solvers.methods.batch"
+STEPS = [(FIT, "prepare_request"), (FIT, "compile_model"), (FIT, "prepare_experiments"), (FIT, "build_layout"),
+         (BATCH, "build_equation_error"), (BATCH, "OutputErrorModel"), (BATCH, "build_multiple_shooting"),
+         (FIT, "pre_fit_warnings"), (BATCH, "solve_from_starts"), (BATCH, "sensitivity_jacobian"),
+         (BATCH + ":EquationErrorFit", "channels"), (BATCH + ":OutputErrorFit", "channels"),
+         (FIT, "residual_analyses"), (FIT, "estimate_covariance"), (FIT, "_result"), (FIT, "_quality_inputs"),
+         (FIT, "assess_fit")]
+TOP = list(dict.fromkeys(name for _, name in STEPS))
 NESTED = {"finite_result": "assess_fit"}
 
 
@@ -43,8 +50,10 @@ def msd_sync_request():
 
 def run_case(case: str, fits: int, queue) -> None:
     os.environ.update({"GREYFIT_COMPILE": "always", "OPENBLAS_NUM_THREADS": "1"})
-    import greyfit.solvers.fit as fit
+    import importlib
+
     import greyfit.solvers.checks.quality as quality
+    import greyfit.solvers.fit as fit
     from bench.bench_speed import seat_request
     spent: dict[str, float] = defaultdict(float)
 
@@ -59,9 +68,10 @@ def run_case(case: str, fits: int, queue) -> None:
                 spent[name] += time.process_time() - c0
         setattr(owner, name, wrapper)
 
-    for name in TOP:
-        if hasattr(fit, name):
-            timed(fit, name)
+    for where, name in STEPS:
+        module, _, cls = where.partition(":")
+        owner = importlib.import_module(module)
+        timed(getattr(owner, cls) if cls else owner, name)
     timed(quality, "finite_result")
     req = seat_request("equation_error")[0] if case == "ee" else msd_sync_request()
     for _ in range(10):
@@ -123,7 +133,7 @@ def main() -> None:
     peer = cases["seat, equation error"][3]
     if peer is not None:
         total = cases["seat, equation error"][0]["total"]
-        solve = cases["seat, equation error"][0]["_solve"]
+        solve = cases["seat, equation error"][0]["solve_from_starts"]
         print(f"\npeer: scipy lsq_linear on the same regressors (solve only, no diagnostics) {1e3 * peer:.3f} ms; "
               f"greyfit's solve stage {1e3 * solve:.3f} ms (scipy / greyfit {peer / max(solve, 1e-9):.2f}), "
               f"greyfit's whole fit {1e3 * total:.3f} ms")

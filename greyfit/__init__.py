@@ -26,6 +26,10 @@ if TYPE_CHECKING:
     from greyfit.schemas.fit import FitOptions, FitRequest, FitResult
     from greyfit.schemas.frequency import FrequencyFitRequest
     from greyfit.schemas.simulate import SimulateRequest, SimulateResult
+    from greyfit.solvers.discovery.loop import discover
+    from greyfit.solvers.fit import fit_model as fit
+    from greyfit.solvers.frequency.fit import fit_frequency_response as frequency_fit
+    from greyfit.solvers.simulation.simulate import simulate_request as simulate
 
 # name -> (module, attribute): resolved on first access (PEP 562), so importing greyfit is cheap
 _LAZY = {
@@ -44,7 +48,9 @@ _LAZY = {
     "FrequencyFitRequest": ("greyfit.schemas.frequency", "FrequencyFitRequest"),
 }
 
-__all__ = ["__version__", *_LAZY]
+__all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "FitRequest", "FitResult",
+           "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
+           "FrequencyFitRequest"]
 
 
 def __getattr__(name: str) -> Any:

@@ -24,9 +24,9 @@ from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.jobs import JobPublic, JobResults
 from greyfit.schemas.simulate import SimulateRequest, SimulateResult
 
+from greyfit.service.task_kinds import JOB_KINDS, KINDS
+
 FINISHED = ("succeeded", "failed", "cancelled")
-JOB_KINDS = {"fit": (FitRequest, "/v1/jobs"), "discover": (DiscoverRequest, "/v1/discover/jobs"),
-             "frequency_fit": (FrequencyFitRequest, "/v1/frequency-fits/jobs")}
 
 
 class GreyfitError(Exception):
@@ -90,7 +90,9 @@ class Client:
                    label: Optional[str] = None, kind: str = "fit") -> JobPublic:
         """A batch job of fits (kind 'fit'), discoveries ('discover') or frequency-response fits
         ('frequency_fit'); returns at once."""
-        schema, path = JOB_KINDS[kind]
+        if kind not in JOB_KINDS:
+            raise ValueError(f"kind must be one of {list(JOB_KINDS)}")
+        schema, path = KINDS[kind].request_schema(), KINDS[kind].jobs_path
         body = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
         if label is not None:
             body["label"] = label

@@ -6,6 +6,7 @@ from typing import Literal, Optional
 from pydantic import BaseModel, ConfigDict, Field
 
 from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.model import Expression, Model, Name
 
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "saturation",
@@ -182,3 +183,7 @@ class DiscoveryResult(BaseModel):
     budget_exhausted: bool = Field(
         default=False, description="the search stopped because `discovery.time_budget_s` was spent; what was "
                                    "found until then is reported")
+
+
+DiscoverJobCreate = job_create("DiscoverJobCreate", DiscoverRequest, "A batch of discovery requests "
+                               "(POST /v1/discover/jobs).")

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.frequency import FrequencyResponseResult
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
 from greyfit.schemas.preprocess import PreprocessingReport
@@ -276,3 +277,6 @@ class FitResult(BaseModel):
         default=None, description="profile-likelihood intervals of the parameters in options.profile")
     trajectory: Optional[ParameterTrajectory] = Field(
         default=None, description="θ(t) ± 2σ: online estimators and time-varying parameters")
+
+
+JobCreate = job_create("JobCreate", FitRequest, "A batch of fits (POST /v1/jobs).")

@@ -10,6 +10,7 @@ from typing import Annotated, Literal, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
 
+from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
 from greyfit.schemas.model import RESERVED_NAMES, Expression, FiniteFloat, Model, Name, Parameter
 
@@ -225,3 +226,7 @@ class FrequencyResponseResult(BaseModel):
     operating_point: Optional[dict[str, float]] = Field(
         default=None, description="linearised ODE models: the states and inputs of the operating point "
                                   "at the fitted parameters")
+
+
+FrequencyJobCreate = job_create("FrequencyJobCreate", FrequencyFitRequest,
+                                "A batch of frequency-response fits (POST /v1/frequency-fits/jobs).")

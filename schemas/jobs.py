@@ -3,29 +3,26 @@ from __future__ import annotations
 
 from typing import Any, Literal, Optional
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, create_model
 
-from greyfit.schemas.fit import FitRequest
-from greyfit.schemas.frequency import FrequencyFitRequest
 
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TaskStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
-class JobCreate(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> type[BaseModel]:
+    """The body of a batch job of `request_schema`s: {"requests": [...], "label": ...}.
 
-    requests: list[FitRequest] = Field(min_length=1)
-    label: Optional[str] = Field(default=None, max_length=200)
+    Assign it to a module-level name `name` in the request schema's own module: the body parser
+    processes receive the class by that reference."""
+    model = create_model(
+        name, __config__=ConfigDict(extra="forbid"), __doc__=doc or f"A batch of {request_schema.__name__}s.",
+        __module__=request_schema.__module__,
+        requests=(list[request_schema], Field(min_length=1)),  # type: ignore[valid-type]
+        label=(Optional[str], Field(default=None, max_length=200)))
+    return model
 
 
-class FrequencyJobCreate(BaseModel):
-    """A batch of frequency-response fits (POST /v1/frequency-fits/jobs)."""
-
-    model_config = ConfigDict(extra="forbid")
-
-    requests: list[FrequencyFitRequest] = Field(min_length=1)
-    label: Optional[str] = Field(default=None, max_length=200)
 
 
 class TaskError(BaseModel):
@@ -53,7 +50,7 @@ class JobProgress(BaseModel):
 
 class JobPublic(BaseModel):
     id: str
-    kind: Literal["fit", "discover", "frequency_fit"]
+    kind: str = Field(description="the task kind (service/task_kinds.py lists them; OpenAPI gives the enum)")
     label: Optional[str] = None
     status: JobStatus
     progress: JobProgress

@@ -19,8 +19,9 @@ from greyfit.service.json_body import BodyParser, body_model
 from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import install_docs, install_openapi
 from greyfit.service.problems import install_handlers
-from greyfit.service.routes import discover, fits, frequency, health, jobs, ops
+from greyfit.service.routes import health, jobs, ops
 from greyfit.service.routes import report as report_routes, simulate as simulate_routes
+from greyfit.service.routes.tasks import task_routers
 from greyfit.service.settings import Settings, get_settings
 from greyfit.service.store import JobStore, make_engine
 
@@ -83,8 +84,8 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     app.state.metrics = Metrics()
     app.state.body_parser = BodyParser(settings.body_parser_processes, settings.retry_after_seconds)
     install_handlers(app)
-    routers = (health.router, fits.router, discover.router, jobs.router, ops.router,
-               simulate_routes.router, report_routes.router, frequency.router)
+    routers = (health.router, *task_routers(), jobs.router, ops.router, simulate_routes.router,
+               report_routes.router)
     for router in routers:
         app.include_router(router)
     # what the parser processes import when they start: the schemas (a model defined in a route's

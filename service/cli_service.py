@@ -6,6 +6,8 @@ import sys
 import time
 from pathlib import Path
 
+from greyfit.service.task_kinds import JOB_KINDS, KINDS
+
 
 def add_serve(sub) -> None:
     p = sub.add_parser("serve", help="run the HTTP service (uvicorn)")
@@ -39,8 +41,6 @@ def cmd_serve(args) -> int:
     return 0
 
 
-BATCH_SCHEMAS = {"fit": ("greyfit.schemas.fit", "FitRequest"), "discover": ("greyfit.schemas.discovery", "DiscoverRequest"),
-                 "frequency_fit": ("greyfit.schemas.frequency", "FrequencyFitRequest")}
 
 
 def add_batch(sub) -> None:
@@ -48,21 +48,19 @@ def add_batch(sub) -> None:
     p.add_argument("requests", help="JSON lines, one request (of --kind) per line")
     p.add_argument("--out", required=True, help="JSON lines of results; lines already there are skipped")
     p.add_argument("--workers", type=int, default=None)
-    p.add_argument("--kind", choices=list(BATCH_SCHEMAS), default="fit",
-                   help="fit: FitRequest, discover: DiscoverRequest, frequency_fit: FrequencyFitRequest")
+    p.add_argument("--kind", choices=list(JOB_KINDS), default="fit",
+                   help="the kind of every request: " + ", ".join(
+                       f"{k}: {KINDS[k].request.rpartition(':')[2]}" for k in JOB_KINDS))
     p.set_defaults(func=cmd_batch)
 
 
 def cmd_batch(args) -> int:
-    import importlib
-
     from pydantic import ValidationError
 
     from greyfit.service.executors import LocalWorkerPool
     from greyfit.service.settings import Settings
     settings = Settings(**({"workers": args.workers} if args.workers else {}))
-    module, name = BATCH_SCHEMAS[args.kind]
-    schema = getattr(importlib.import_module(module), name)
+    schema = KINDS[args.kind].request_schema()
     out_path = Path(args.out)
     done: set[int] = set()
     if out_path.exists():

@@ -23,6 +23,7 @@ from fastapi.staticfiles import StaticFiles
 
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
+from greyfit.service.task_kinds import JOB_KINDS
 
 SCHEME = "bearerAuth"
 ANSWERS = {
@@ -77,6 +78,8 @@ def describe(app: FastAPI, settings: Settings) -> dict:
     schemas["Problem"] = problem_schema
     for unused in ("HTTPValidationError", "ValidationError"):
         schemas.pop(unused, None)
+    if "JobPublic" in schemas:   # the job kinds are the task-kind table's (schemas/ cannot import it)
+        schemas["JobPublic"]["properties"]["kind"]["enum"] = list(JOB_KINDS)
     components["securitySchemes"] = {SCHEME: {"type": "http", "scheme": "bearer",
                                               "description": "GREYFIT_API_KEY, when the server sets one"}}
     for path, ops in spec["paths"].items():

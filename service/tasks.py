@@ -7,66 +7,27 @@ from typing import Any, Callable
 
 from pydantic import ValidationError
 
-TASK_KINDS = ("fit", "discover", "simulate", "report", "frequency_fit")
+from greyfit.service.task_kinds import KINDS, TASK_KINDS
+
+__all__ = ["run_task", "TASK_KINDS"]
 
 
 @lru_cache(maxsize=None)   # built once per worker process: a fit of milliseconds notices the imports
-def _runners() -> dict[str, Callable[[dict, float], Any]]:
-    from greyfit.schemas import FitRequest
-    from greyfit.solvers.fit import fit_model
+def _runners() -> dict[str, Callable[[dict | str, float], Any]]:
+    return {name: _runner(name) for name in KINDS}
 
-    def fit(request: dict | str, cpu_seconds: float):
-        req = _parse(FitRequest, request)
-        # Ipopt stops by itself before the worker's hard CPU limit would kill it
-        req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
-        return fit_model(req)
 
-    def frequency_fit(request: dict | str, cpu_seconds: float):
-        from greyfit.schemas.frequency import FrequencyFitRequest
-        from greyfit.solvers.frequency import fit_frequency_response
-        req = _parse(FrequencyFitRequest, request)
-        req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
-        return fit_frequency_response(req)
+def _runner(name: str) -> Callable[[dict | str, float], Any]:
+    kind = KINDS[name]
+    schema, run = kind.request_schema(), kind.runner()
 
-    runners = {"fit": fit, "frequency_fit": frequency_fit}
-    try:
-        from greyfit.schemas.discovery import DiscoverRequest
-        from greyfit.solvers.discovery import discover
-
-        def disc(request: dict | str, cpu_seconds: float):
-            req = _parse(DiscoverRequest, request)
+    def runner(request: dict | str, cpu_seconds: float):
+        req = _parse(schema, request)
+        if kind.caps_cpu:   # Ipopt stops by itself before the worker's hard CPU limit would kill it
             req.options.max_cpu_time = min(req.options.max_cpu_time, 0.9 * cpu_seconds)
-            return discover(req)
+        return run(req)
 
-        runners["discover"] = disc
-    except ImportError:  # pragma: no cover - discovery is part of the package
-        pass
-    runners.update(_workflow_runners())
-    return runners
-
-
-def _workflow_runners() -> dict[str, Callable[[dict, float], Any]]:
-    """Simulation and report pages also run in workers (CPU-bound: never in the web process)."""
-    from greyfit.schemas.report import ReportRequest
-    from greyfit.schemas.simulate import SimulateRequest
-
-    def simulate(request: dict | str, cpu_seconds: float):
-        from greyfit.solvers.simulation.simulate import simulate_request
-        return simulate_request(_parse(SimulateRequest, request))
-
-    def report(request: dict | str, cpu_seconds: float):
-        from greyfit.service.report import report_public
-        from greyfit.solvers.errors import DataError
-        parsed = _parse(ReportRequest, request)
-        try:
-            return report_public(parsed)
-        except (ValueError, OverflowError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
-            # a result that was not made by greyfit (odd keys, values near the float limits) cannot
-            # be drawn: that is the caller's input, not a server fault
-            raise DataError(f"this result cannot be drawn ({type(exc).__name__}: {exc}); send a result "
-                            "as greyfit returned it", "result") from exc
-
-    return {"simulate": simulate, "report": report}
+    return runner
 
 
 def _parse(model, request: dict | str):

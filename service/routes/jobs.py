@@ -7,7 +7,7 @@ from typing import Any, Callable, Optional
 from fastapi import APIRouter, HTTPException, Query, Request, Response
 from pydantic import BaseModel
 
-from greyfit.schemas.jobs import JobCreate, JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
+from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
@@ -53,12 +53,6 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
     job_id = state.store.create_job(kind, request_texts(request, requests), label)
     state.dispatcher.wake()
     return as_json(job_public(state.store.get_job(job_id)), 202, {"Location": f"/v1/jobs/{job_id}"})
-
-
-@router.post("", response_model=JobPublic, status_code=202)
-def create_job(body: JobCreate, request: Request) -> Response:
-    """Accept a batch of fits; each request becomes a task. Poll the Location header."""
-    return submit_job(request, "fit", body.requests, body.label)
 
 
 @router.get("", response_model=JobsPublic)

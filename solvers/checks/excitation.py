@@ -8,6 +8,7 @@ import numpy as np
 from greyfit.schemas.fit import FitWarning
 from greyfit.solvers.inference.covariance import null_directions
 from greyfit.solvers.errors import DataError
+from greyfit.solvers.dynamics.integration import INTEGRATORS
 
 START_CONDITION_LIMIT = 1e10   # at the initial guess; noise-free data give ~1e-16 exact nulls
 PE_MAX_ORDER = 8
@@ -138,7 +139,7 @@ def _roughness(u: np.ndarray) -> float:
 
 def step_size_warning(max_rate: float, dt: float, substeps: int, integrator: str) -> list[FitWarning]:
     """RK4 with |λ|·h above ~0.5 per step is inaccurate on the model's fastest mode."""
-    if integrator != "rk4" or not np.isfinite(max_rate):
+    if not INTEGRATORS[integrator].fixed_step or not np.isfinite(max_rate):
         return []
     h = dt / substeps
     if max_rate * h <= 0.5:

@@ -14,6 +14,7 @@ from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.methods.node_initialisation import DIVERGED
 from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
+from greyfit.solvers.dynamics.integration import integrator_of
 
 ACTIVE_TOLERANCE = 1e-6
 
@@ -66,7 +67,7 @@ def _parameters_on_inputs(cm: CompiledModel) -> dict[str, set[str]]:
 def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                          theta_s: np.ndarray, states: list[np.ndarray], options: FitOptions) -> list[FitWarning]:
     """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
-    if options.integrator != "rk4" or cm.model.discrete is not None:   # no integration step to judge
+    if not integrator_of(options).fixed_step or cm.model.discrete is not None:   # no integration step to judge
         return []
     jac_fn = cm.derive(("dfdx_columns",), lambda: Columns(_state_jacobian(cm)))
     rate, dt = 0.0, np.inf

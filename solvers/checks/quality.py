@@ -12,6 +12,7 @@ import numpy as np
 
 from greyfit.schemas.fit import FitResult, FitWarning
 from greyfit.solvers.inference.covariance import CovarianceEstimate, combination, null_directions
+from greyfit.solvers.methods.registry import method_family
 
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
@@ -66,7 +67,7 @@ def noise_level(y: np.ndarray) -> float:
 
 def _fit_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
     out = []
-    if q.method == "equation_error":
+    if method_family(q.method) == "equation_error":
         return out   # channels are derivatives, smoothed: their differences do not show the noise
     for name, series in q.measured.items():
         rmse = result.metrics.rmse.get(name)

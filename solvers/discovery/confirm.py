@@ -28,6 +28,8 @@ from greyfit.solvers.discovery.summary import equation_names, summarize, validat
 from greyfit.solvers.discovery.warm_start import gauss_newton_start
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.methods.registry import simulates_outputs
+from greyfit.solvers.dynamics.integration import integrator_of
 
 
 @dataclass
@@ -315,7 +317,7 @@ def refit_options(req: FitRequest, cand: Candidate, beta: float):
     so the budget is capped (one that does not is reported as not converged, not as evidence).
     More RK4 substeps when the new term is stiff (a sharp tanh): |λ|·h ≤ RK4_STEP_LIMIT."""
     opts = req.options.model_copy(update={"max_iter": min(req.options.max_iter, REFIT_MAX_ITER)})
-    if req.method.value == "equation_error" or opts.integrator != "rk4" or cand.stiffness == 0:
+    if not simulates_outputs(req.method) or not integrator_of(opts).fixed_step or cand.stiffness == 0:
         return opts
     rate = abs(beta) * cand.stiffness
     dt = max(float(np.max(np.diff(e.time))) for e in req.experiments)

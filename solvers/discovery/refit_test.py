@@ -22,6 +22,7 @@ from greyfit.solvers.discovery.scoring import chi2_sf
 from greyfit.solvers.discovery.screening import fitted_values
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.methods.shooting import OutputErrorModel
+from greyfit.solvers.methods.registry import simulates_outputs
 
 AR_MAX_ORDER = 20
 
@@ -89,7 +90,7 @@ def refit_likelihood_ratio(old_req: FitRequest, old: FitResult, new_req: FitRequ
                            new: FitResult) -> tuple[int | None, float | None]:
     """(largest AR order used, p-value) of the refit against the model before; (None, None) for
     equation error or when a residual cannot be simulated."""
-    if new_req.method.value == "equation_error":
+    if not simulates_outputs(new_req.method):
         return None, None
     try:
         before, after = residual_series(old_req, old), residual_series(new_req, new)

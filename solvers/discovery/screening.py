@@ -7,7 +7,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from greyfit.schemas.discovery import DiscoveryOptions
-from greyfit.schemas.fit import FitMethod, FitRequest, FitResult
+from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.discovery.effects import Candidate, library
 from greyfit.solvers.discovery.output_effects import output_effects
@@ -17,6 +17,7 @@ from greyfit.solvers.discovery.scoring_outputs import OutputScorer
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
 from greyfit.solvers.methods.shooting import OutputErrorModel
+from greyfit.solvers.methods.registry import simulates_outputs
 
 
 @dataclass
@@ -99,7 +100,7 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         out.equations_scored = [cm.states[i] for i in eq_trace.traced]
 
     # output residuals through the sensitivities: any state equation, measured or not, and the outputs
-    if request.method != FitMethod.equation_error and np.all([np.all(np.isfinite(s)) for s in simulated]):
+    if simulates_outputs(request.method) and np.all([np.all(np.isfinite(s)) for s in simulated]):
         scorer = output_scorer if output_scorer is not None else OutputScorer(oem, theta_s, x0s)
         out.output_scorer = scorer
         sim_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=False)

@@ -1,5 +1,14 @@
-"""One-sample integrator Functions: fixed-step RK4 (expanded to SX) or CVODES for stiff models."""
+"""One-sample integrator Functions: fixed-step RK4 (expanded to SX) or CVODES for stiff models.
+
+Each integrator is a record (`INTEGRATORS`) that says what it supports, so the rest of the code asks
+`integrator_of(options).fixed_step` (is there a step size to judge and refine with substeps?) or
+`.symbolic` (does the step expand to SX: compiled kernels, the structured shooting form, SX
+sensitivities?) instead of comparing names. A new integrator is one builder and one entry.
+"""
 from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable
 
 import casadi as ca
 
@@ -24,26 +33,34 @@ def _make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     if cm.model.discrete is not None:   # difference equation: the step is f itself
         from greyfit.solvers.model.discrete import make_discrete_step
         return make_discrete_step(cm)
+    return integrator_of(options).build(cm, options)
+
+
+def _rk4_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     x = ca.SX.sym("x", cm.nx)
     u0, u1 = ca.SX.sym("u0", cm.nu), ca.SX.sym("u1", cm.nu)
     p, t0, dt = ca.SX.sym("p", cm.np), ca.SX.sym("t0"), ca.SX.sym("dt")
-    if options.integrator == "rk4":
-        n = options.substeps
-        h = dt / n
-        xk = x
-        for i in range(n):
-            def f(xx, frac):
-                return cm.rhs(xx, _input_at(u0, u1, frac, options.input_interpolation), p,
-                              t0 + frac * dt)
-            a = i / n
-            k1 = f(xk, a)
-            k2 = f(xk + h / 2 * k1, a + 0.5 / n)
-            k3 = f(xk + h / 2 * k2, a + 0.5 / n)
-            k4 = f(xk + h * k3, a + 1.0 / n)
-            xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
-        return ca.Function("step", [x, u0, u1, p, t0, dt], [xk]).expand()
+    n = options.substeps
+    h = dt / n
+    xk = x
+    for i in range(n):
+        def f(xx, frac):
+            return cm.rhs(xx, _input_at(u0, u1, frac, options.input_interpolation), p,
+                          t0 + frac * dt)
+        a = i / n
+        k1 = f(xk, a)
+        k2 = f(xk + h / 2 * k1, a + 0.5 / n)
+        k3 = f(xk + h / 2 * k2, a + 0.5 / n)
+        k4 = f(xk + h * k3, a + 1.0 / n)
+        xk = xk + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+    return ca.Function("step", [x, u0, u1, p, t0, dt], [xk]).expand()
 
+
+def _cvodes_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     # CVODES on normalised time tau in [0, 1] so that one Function serves every interval length.
+    x = ca.SX.sym("x", cm.nx)
+    u0, u1 = ca.SX.sym("u0", cm.nu), ca.SX.sym("u1", cm.nu)
+    p, t0, dt = ca.SX.sym("p", cm.np), ca.SX.sym("t0"), ca.SX.sym("dt")
     tau = ca.SX.sym("tau")
     params = ca.vertcat(u0, u1, p, t0, dt)
     ode = dt * cm.rhs(x, _input_at(u0, u1, tau, options.input_interpolation), p, t0 + tau * dt)
@@ -54,3 +71,29 @@ def _make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
     pm, t0m, dtm = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
     xf = integ(x0=xm, p=ca.vertcat(u0m, u1m, pm, t0m, dtm))["xf"]
     return ca.Function("step", [xm, u0m, u1m, pm, t0m, dtm], [xf])
+
+
+@dataclass(frozen=True)
+class Integrator:
+    """What an integrator supports.
+
+    fixed_step : a step h = dt / substeps whose accuracy is judged by the fastest mode's |λ|·h
+        (and refined by raising `options.substeps`); False for adaptive ones.
+    symbolic : the step expands to SX, so kernels compile to C and shooting takes its structured form.
+    """
+
+    name: str
+    fixed_step: bool
+    symbolic: bool
+    build: Callable[[CompiledModel, FitOptions], ca.Function]
+
+
+INTEGRATORS: dict[str, Integrator] = {i.name: i for i in (
+    Integrator("rk4", fixed_step=True, symbolic=True, build=_rk4_step),
+    Integrator("cvodes", fixed_step=False, symbolic=False, build=_cvodes_step),
+)}
+
+
+def integrator_of(options: FitOptions) -> Integrator:
+    """The record of the integrator `options` name."""
+    return INTEGRATORS[options.integrator]

@@ -14,7 +14,8 @@ from greyfit.schemas.frequency import (
 )
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.errors import DataError
-from greyfit.solvers.fit import _at_bound, _message, draw_starts
+from greyfit.solvers.fit import _at_bound, _message
+from greyfit.solvers.methods.multistart import draw_starts
 from greyfit.solvers.frequency.data import prepare_frequency_data
 from greyfit.solvers.frequency.levy import levy_fit
 from greyfit.solvers.frequency.linearise import compile_linearised_model

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from greyfit.schemas.fit import FitMethod, FitRequest, FitResult
+from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.model.discrete import armax_start, check_sample_time, is_discrete
@@ -15,6 +15,7 @@ from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.data.prefilter import apply_prefilter
 from greyfit.solvers.model.time_varying import IRLS_STATUS, TimeVaryingExpansion, expand_time_varying
+from greyfit.solvers.methods.registry import simulates_outputs
 
 
 @dataclass
@@ -54,7 +55,7 @@ def prepare_batch(request: FitRequest, cm: CompiledModel, data: list[ExperimentD
         check_sample_time(cm, data)
     note = None
     if request.options.prefilter is not None:
-        if request.method != FitMethod.equation_error:
+        if simulates_outputs(request.method):
             raise DataError("a prefilter serves equation error and recursive least squares; output "
                             "error needs none (its residual is not built from noisy regressors)", "options.prefilter")
         data, note = apply_prefilter(cm, data, request.options.prefilter)

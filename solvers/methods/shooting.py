@@ -8,7 +8,7 @@ import numpy as np
 
 from greyfit.schemas.fit import FitOptions
 from greyfit.solvers.data.experiments import ExperimentData, fill_missing
-from greyfit.solvers.dynamics.integration import make_step
+from greyfit.solvers.dynamics.integration import integrator_of, make_step
 from greyfit.solvers.methods import shooting_structured
 from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.dynamics.compiled import compiled
@@ -198,7 +198,7 @@ class OutputErrorModel:
 
 
 def _sensitivity_functions(cm: CompiledModel, step: ca.Function, options: FitOptions):
-    sym = ca.MX.sym if options.integrator == "cvodes" and cm.model.discrete is None else ca.SX.sym
+    sym = ca.MX.sym if not integrator_of(options).symbolic and cm.model.discrete is None else ca.SX.sym
     x, u0, u1 = sym("x", cm.nx), sym("u0", cm.nu), sym("u1", cm.nu)
     p, t0, dt = sym("p", cm.np), sym("t0"), sym("dt")
     xn = step(x, u0, u1, p, t0, dt)

@@ -27,6 +27,7 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import FitOptions
+from greyfit.solvers.nlp.protocol import Solver
 from greyfit.solvers.nlp.solver import LeastSquaresSolver, NlpOutcome
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
@@ -146,7 +147,7 @@ class GapCurvature:
         return total
 
 
-def make_solver(problem: LeastSquaresProblem, options: FitOptions):
+def make_solver(problem: LeastSquaresProblem, options: FitOptions) -> Solver:
     """The solver `fit_model` uses: the hybrid for multiple shooting, the structured form where the
     problem has one (solvers/methods/shooting_structured.py), else plain Gauss-Newton."""
     shooting = problem.constraint_hessian is not None or problem.graph_builder is not None
@@ -155,7 +156,7 @@ def make_solver(problem: LeastSquaresProblem, options: FitOptions):
     return HybridShootingSolver(problem, options)
 
 
-def make_warm_solver(problem: LeastSquaresProblem, options: FitOptions):
+def make_warm_solver(problem: LeastSquaresProblem, options: FitOptions) -> Solver:
     """For re-optimisations that start next to an optimum (profile points): multiple shooting goes
     straight to the curvature phase, where Gauss-Newton would first circle a misfitting optimum and
     could wander into a degenerate region (an iteration there took 30 s)."""
@@ -187,8 +188,9 @@ class HybridShootingSolver:
         if problem.solver_factory is not None:   # structured Gauss-Newton (shooting_structured.py)
             self.short = problem.solver_factory(max_iter=short_iter)
         else:
-            self.short = LeastSquaresSolver(problem, options, curvature=False, ipopt={"max_iter": short_iter})
-        self.compiled = getattr(self.short, "compiled", False)
+            self.short: Solver = LeastSquaresSolver(problem, options, curvature=False,
+                                                    ipopt={"max_iter": short_iter})
+        self.compiled = self.short.compiled
         self.curved: LeastSquaresSolver | None = None
         self.plain: LeastSquaresSolver | None = None
         self.phases: list[str] = []   # what the last solve did, for tests and notes

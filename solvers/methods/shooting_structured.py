@@ -26,6 +26,7 @@ import numpy as np
 from greyfit.solvers.dynamics.columns import evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
+from greyfit.solvers.dynamics.integration import integrator_of
 
 EXPECTED_ITERATIONS = 20
 SOLVER_CACHE_SIZE = 16
@@ -41,7 +42,7 @@ def supports(oem, single: bool = False) -> bool:
     opts = oem.options
     return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0"
             and (single or opts.shooting_interval == 1) and opts.hessian == "gauss_newton"
-            and (opts.integrator == "rk4" or oem.cm.model.discrete is not None)
+            and (integrator_of(opts).symbolic or oem.cm.model.discrete is not None)
             and all(d.n >= 2 for d in oem.data))
 
 

@@ -10,11 +10,12 @@ from __future__ import annotations
 import numpy as np
 
 from greyfit.schemas.experiment import Experiment
-from greyfit.schemas.fit import FitMethod, FitRequest, FitResult
+from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.validation import ValidationResult
 from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
 from greyfit.solvers.simulation.simulate import parameter_vector, simulate_arrays, validation_from
+from greyfit.solvers.methods.registry import simulates_outputs
 
 CONTIGUITY_TOLERANCE = 1e-6   # relative to the estimation record's last time step
 
@@ -43,7 +44,7 @@ def _contiguous_states(request: FitRequest, result: FitResult, cm: CompiledModel
             if kind:
                 pairs[v.name] = (est, kind)
                 break
-    if not pairs or request.method == FitMethod.equation_error:
+    if not pairs or not simulates_outputs(request.method):
         return {}, {}, {}
     ests = list({est.name: est for est, _ in pairs.values()}.values())
     sims = simulate_arrays(request.model, params, ests, request.options, result.initial_states, cm=cm)

@@ -1,0 +1,117 @@
+"""The one table of task kinds: what a worker runs, what routes, jobs, the CLI batch and the client offer.
+
+Why: a kind used to be spelt in five places (the worker's runners, the jobs schema's Literal, the
+CLI batch's schema table, the client's job table, the routes), so a new route with jobs cost eight
+files. Every one of those now reads `KINDS`. A new kind is its schemas, its solver function and one
+entry here; `service/routes/tasks.py` makes its synchronous and job routes from the entry.
+
+This module imports only the schemas and the standard library: the client reads it too.
+"""
+from __future__ import annotations
+
+import importlib
+from dataclasses import dataclass
+from typing import Any, Callable, Optional
+
+from pydantic import BaseModel
+
+
+def _load(path: str) -> Any:
+    module, _, name = path.partition(":")
+    return getattr(importlib.import_module(module), name)
+
+
+@dataclass(frozen=True)
+class TaskKind:
+    """One kind of task.
+
+    `request`, `result` and `run` are "module:name" paths, loaded on first use, so that reading
+    the table (the client, the CLI's argument parser) imports neither CasADi nor matplotlib.
+    """
+
+    name: str
+    request: str                      # the request schema
+    result: str                       # the result schema
+    run: str                          # function(request) -> result, in solvers/ (or service/ for pages)
+    caps_cpu: bool = True             # options.max_cpu_time is capped below the worker's CPU limit
+    sync_path: Optional[str] = None   # POST route answering synchronously (generated when `generate`)
+    jobs_path: Optional[str] = None   # POST route taking a batch job of these (generated when `generate`)
+    job_body: Optional[str] = None    # the job body schema (`schemas.jobs.job_create`), with jobs_path
+    limits: str = "greyfit.service.limits:check_limits"    # check(request, settings, prefix)
+    values: str = "greyfit.service.limits:data_values"     # number of data values (sync size limit)
+    tag: str = "fits"
+    summary: str = ""                 # the sync route's docstring (OpenAPI)
+    job_summary: str = ""
+    elsewhere: str = ""               # where a request too large for a synchronous answer belongs
+    operation: str = ""               # the sync route's function name (OpenAPI operationId)
+    job_operation: str = ""
+    generate: bool = True             # False: its routes are written by hand (simulate, report)
+
+    def request_schema(self) -> type[BaseModel]:
+        return _load(self.request)
+
+    def result_schema(self) -> type[BaseModel]:
+        return _load(self.result)
+
+    def runner(self) -> Callable[[BaseModel], BaseModel]:
+        return _load(self.run)
+
+    def job_schema(self) -> type[BaseModel]:
+        if self.job_body is None:
+            raise LookupError(f"task kind {self.name} takes no jobs")
+        return _load(self.job_body)
+
+    def check(self) -> Callable[..., None]:
+        return _load(self.limits)
+
+    def count(self) -> Callable[[Any], int]:
+        return _load(self.values)
+
+
+_FREQ_LIMITS = "greyfit.service.limits:check_frequency_limits"
+
+KINDS: dict[str, TaskKind] = {k.name: k for k in (
+    TaskKind("fit", "greyfit.schemas.fit:FitRequest", "greyfit.schemas.fit:FitResult",
+             "greyfit.solvers.fit:fit_model", sync_path="/v1/fits", jobs_path="/v1/jobs", job_body="greyfit.schemas.fit:JobCreate",
+             summary="Run one fit synchronously (small problems); larger ones belong in /v1/jobs.",
+             job_summary="Accept a batch of fits; each request becomes a task. Poll the Location header.",
+             elsewhere='Submit it as a batch job: POST /v1/jobs {"requests": [<this body>]}',
+             operation="create_fit", job_operation="create_job", tag="fits"),
+    TaskKind("discover", "greyfit.schemas.discovery:DiscoverRequest", "greyfit.schemas.discovery:DiscoveryResult",
+             "greyfit.solvers.discovery:discover", sync_path="/v1/discover", jobs_path="/v1/discover/jobs",
+             job_body="greyfit.schemas.discovery:DiscoverJobCreate",
+             summary="Fit, trace the residual to a missing physical effect, add it, refit: before/after and "
+                     "evidence.",
+             job_summary="Discovery requests as a batch job; results at /v1/jobs/{id}/results.",
+             elsewhere="Submit it as a job: POST /v1/discover/jobs",
+             operation="create_discovery", job_operation="create_discovery_job", tag="discovery"),
+    TaskKind("frequency_fit", "greyfit.schemas.frequency:FrequencyFitRequest", "greyfit.schemas.fit:FitResult",
+             "greyfit.solvers.frequency:fit_frequency_response", sync_path="/v1/frequency-fits",
+             jobs_path="/v1/frequency-fits/jobs", job_body="greyfit.schemas.frequency:FrequencyJobCreate", limits=_FREQ_LIMITS,
+             values="greyfit.service.limits:frequency_values",
+             summary="Fit a transfer-function model (optionally in a known feedback loop) to frequency "
+                     "responses.",
+             job_summary="Frequency-response fits as a batch job; results at /v1/jobs/{id}/results.",
+             elsewhere="Decimate the sine-test records, or submit it as a job: POST /v1/frequency-fits/jobs",
+             operation="create_frequency_fit", job_operation="create_frequency_job", tag="frequency fits"),
+    TaskKind("simulate", "greyfit.schemas.simulate:SimulateRequest", "greyfit.schemas.simulate:SimulateResult",
+             "greyfit.solvers.simulation.simulate:simulate_request", caps_cpu=False, generate=False),
+    TaskKind("report", "greyfit.schemas.report:ReportRequest", "greyfit.schemas.report:ReportPublic",
+             "greyfit.service.task_kinds:run_report", caps_cpu=False, generate=False),
+)}
+
+TASK_KINDS = tuple(KINDS)
+JOB_KINDS = tuple(name for name, k in KINDS.items() if k.jobs_path)
+
+
+def run_report(request: BaseModel) -> BaseModel:
+    """The report page of a result (matplotlib: in a worker, never in the web process)."""
+    from greyfit.service.report import report_public
+    from greyfit.solvers.errors import DataError
+    try:
+        return report_public(request)
+    except (ValueError, OverflowError, TypeError, KeyError, IndexError, ArithmeticError) as exc:
+        # a result that was not made by greyfit (odd keys, values near the float limits) cannot
+        # be drawn: that is the caller's input, not a server fault
+        raise DataError(f"this result cannot be drawn ({type(exc).__name__}: {exc}); send a result "
+                        "as greyfit returned it", "result") from exc

@@ -1,0 +1,177 @@
+"""The two batch families behind one interface: equation error and output error (shooting).
+
+`fit_model` builds one of these through the registry (`solvers.methods.registry`) and then only
+asks it questions: solve from these starts, the Jacobian for the covariance, the residual per
+reported channel, the initial states. What differs between the families lives here, once.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Literal, Protocol
+
+import numpy as np
+
+from greyfit.schemas.fit import FitOptions
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.methods.equation_error import EquationErrorProblem, build_equation_error
+from greyfit.solvers.methods.multistart import solve_from_starts
+from greyfit.solvers.methods.shooting import (
+    OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
+)
+from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
+from greyfit.solvers.nlp.solver import NlpOutcome
+
+
+@dataclass
+class Residuals:
+    """Unweighted residual (model − measured) and measured signal per reported channel."""
+
+    channels: list[str]
+    per_experiment: list[tuple[np.ndarray, np.ndarray]]  # (measured, residual), each (nch, N)
+    states: list[np.ndarray] | None = None   # simulated states per experiment (output error)
+
+
+@dataclass
+class Jacobian:
+    """What the covariance needs: J and r at the solution, the columns' labels, values, scales."""
+
+    jac: np.ndarray
+    res: np.ndarray
+    groups: np.ndarray          # the residual row's channel (for per-channel noise variances)
+    labels: list[str]
+    values: np.ndarray
+    scale: np.ndarray
+    n_extra: int                # columns past the parameters (free initial states)
+
+
+class BatchFit(Protocol):
+    """A method's built problem, as `fit_model` uses it."""
+
+    problem: LeastSquaresProblem
+    data: list[ExperimentData]
+    affine_solve: Callable | None       # equation error with a TV penalty: IRLS (batch extensions)
+    eep: EquationErrorProblem | None    # set by equation error (checks read its rows)
+    oem: OutputErrorModel | None        # set by output error (checks read its simulations)
+
+    def solve(self, starts: list[np.ndarray], options: FitOptions,
+              cpu0: float) -> tuple[NlpOutcome, int, bool | None]:
+        """(best outcome, starts used, whether compiled C evaluated the model)."""
+        ...
+
+    def jacobian(self, theta_s: np.ndarray, w: np.ndarray, x0s: list[dict[str, float]]) -> Jacobian:
+        ...
+
+    def channels(self, theta: np.ndarray, x0s: list[dict[str, float]], res: np.ndarray) -> Residuals:
+        ...
+
+    def initial_states(self, x0s: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+        ...
+
+    def solver_details(self) -> dict:
+        """Fields of `SolverInfo` only this family knows."""
+        ...
+
+
+class EquationErrorFit:
+    """Residual ẋ_measured − f(x, u, θ) on measured (or smoothed) states and derivatives."""
+
+    oem: OutputErrorModel | None = None
+
+    def __init__(self, eep: EquationErrorProblem, data: list[ExperimentData], cm: CompiledModel,
+                 layout: ParameterLayout):
+        self.eep, self.problem, self.data, self.cm, self.layout = eep, eep.problem, data, cm, layout
+        self.affine_solve: Callable | None = None   # set by the batch extensions (IRLS for TV)
+
+    @classmethod
+    def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+              options: FitOptions) -> "EquationErrorFit":
+        return cls(build_equation_error(cm, data, layout, options), data, cm, layout)
+
+    def solve(self, starts, options, cpu0):
+        if self.affine_solve is not None:
+            affine = self.affine_solve(self.problem, self.layout, self.eep.linear)
+            if affine:
+                return (*affine, None)
+        outcome, used, is_c = solve_from_starts(self.problem, options, starts,
+                                                self.eep.linear and self.problem.penalty is None, cpu0)
+        if outcome.status == "Linear_Least_Squares":   # the per-sample Jacobian was all that ran
+            is_c = self.eep.sample.compiled
+        return outcome, used, is_c
+
+    def jacobian(self, theta_s, w, x0s):
+        jac, res = self.problem.evaluate_jacobian(w)
+        groups = np.concatenate([np.tile(np.arange(len(self.eep.equations)), ed.rows.size)
+                                 for ed in self.eep.per_experiment])
+        return Jacobian(jac, res, groups, list(self.layout.labels), self.layout.physical(theta_s),
+                        self.layout.scale, 0)
+
+    def channels(self, theta, x0s, res):
+        """The solver's own weighted residual (measured − model), unweighted, per derivative."""
+        eep, per, start = self.eep, [], 0
+        neq = len(eep.equations)
+        w = eep.weights[eep.equations][:, None]
+        for e, d in enumerate(self.data):
+            ed = eep.per_experiment[e]
+            block = res[start:start + neq * ed.rows.size].reshape(ed.rows.size, neq).T
+            start += neq * ed.rows.size
+            meas = np.full((neq, d.n), np.nan)
+            resid = np.full((neq, d.n), np.nan)
+            meas[:, ed.rows] = ed.dx[eep.equations][:, ed.rows]
+            resid[:, ed.rows] = -block / w
+            per.append((meas, resid))
+        return Residuals([f"der({self.cm.states[i]})" for i in eep.equations], per)
+
+    def initial_states(self, x0s):
+        per = self.eep.per_experiment
+        return {d.name: {s: float(per[e].x[i, per[e].rows[0]]) for i, s in enumerate(self.cm.states)}
+                for e, d in enumerate(self.data)}
+
+    def solver_details(self):
+        return {"derivative_filter": self.eep.derivative_filter, "linear_in_parameters": self.eep.linear}
+
+
+class OutputErrorFit:
+    """Residual y_simulated − y_measured; single shooting (one simulation per record) or multiple
+    shooting (nodes as decision variables, gaps as constraints)."""
+
+    eep: EquationErrorProblem | None = None
+    affine_solve: Callable | None = None
+
+    def __init__(self, oem: OutputErrorModel, problem: LeastSquaresProblem):
+        self.oem, self.problem, self.data = oem, problem, oem.data
+
+    @classmethod
+    def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+              options: FitOptions, shooting: Literal["single", "multiple"]) -> "OutputErrorFit":
+        oem = OutputErrorModel(cm, data, layout, options)
+        builder = build_single_shooting if shooting == "single" else build_multiple_shooting
+        return cls(oem, builder(oem))
+
+    def solve(self, starts, options, cpu0):
+        return solve_from_starts(self.problem, options, starts, False, cpu0)
+
+    def jacobian(self, theta_s, w, x0s):
+        """Sensitivities of the simulated outputs at the solution: for multiple shooting the nodes
+        are eliminated this way (its gaps are zero there), free initial states become columns."""
+        oem, cm = self.oem, self.oem.cm
+        theta = oem.layout.physical(theta_s)
+        x0_free = [x0s[e][cm.states[i]] / oem.xscale[i] for e, f in enumerate(oem.free_x0) for i in f]
+        x0_scale = [oem.xscale[i] for f in oem.free_x0 for i in f]
+        jac, res, groups = sensitivity_jacobian(oem, theta_s, x0s)
+        return Jacobian(jac, res, groups, list(oem.layout.labels) + oem.x0_labels(),
+                        np.concatenate([theta, np.array(x0_free) * np.array(x0_scale, dtype=float)]),
+                        np.concatenate([oem.layout.scale, x0_scale]), len(x0_free))
+
+    def channels(self, theta, x0s, res):
+        cm, data = self.oem.cm, self.oem.data
+        sims = self.oem.simulate(theta, [np.array([x0s[e][s] for s in cm.states]) for e in range(len(data))])
+        per = [(d.y, ys - d.y) for d, (_, ys) in zip(data, sims)]
+        return Residuals(list(cm.outputs), per, [xs for xs, _ in sims])
+
+    def initial_states(self, x0s):
+        return {d.name: x0s[e] for e, d in enumerate(self.oem.data)}
+
+    def solver_details(self):
+        return {"derivative_filter": None, "linear_in_parameters": None}

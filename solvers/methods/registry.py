@@ -1,0 +1,114 @@
+"""The one place a fit method is named: `FitMethod` → the object that implements it.
+
+Why: the method used to be decided again in the fit pipeline, inside the shooting builders and by
+name comparisons in the checks, discovery and validation. Everything that depends on the method now
+asks its entry here: `family` says what kind of residual it minimises (equation error compares
+derivatives, output error simulates), `build` makes its problem for `fit_model`, and online
+estimators run their own `fit`. Adding a method is one class and one line in `METHODS`.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Literal, Protocol
+
+from greyfit.schemas.fit import FitMethod, FitOptions, FitRequest, FitResult
+
+if TYPE_CHECKING:
+    from greyfit.solvers.data.experiments import ExperimentData
+    from greyfit.solvers.methods.batch import BatchFit
+    from greyfit.solvers.model.compiler import CompiledModel
+    from greyfit.solvers.model.parameters import ParameterLayout
+
+Family = Literal["equation_error", "output_error", "online", "frequency"]
+
+
+class BatchMethod(Protocol):
+    """A method `fit_model` solves as one least-squares NLP over all records."""
+
+    @property
+    def family(self) -> Family: ...
+
+    def build(self, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+              options: FitOptions) -> BatchFit:
+        """The method's problem, ready for the solver (see `solvers.methods.batch.BatchFit`)."""
+        ...
+
+
+class OnlineMethod(Protocol):
+    """A method that runs over one record sample by sample and returns its own `FitResult`."""
+
+    @property
+    def family(self) -> Family: ...
+
+    def fit(self, request: FitRequest) -> FitResult:
+        """Estimate over the request's single experiment."""
+        ...
+
+
+@dataclass(frozen=True)
+class _EquationError:
+    family: Family = "equation_error"
+
+    def build(self, cm, data, layout, options):
+        from greyfit.solvers.methods.batch import EquationErrorFit
+        return EquationErrorFit.build(cm, data, layout, options)
+
+
+@dataclass(frozen=True)
+class _OutputError:
+    shooting: Literal["single", "multiple"]
+    family: Family = "output_error"
+
+    def build(self, cm, data, layout, options):
+        from greyfit.solvers.methods.batch import OutputErrorFit
+        return OutputErrorFit.build(cm, data, layout, options, self.shooting)
+
+
+@dataclass(frozen=True)
+class _Online:
+    family: Family = "online"
+
+    def fit(self, request: FitRequest) -> FitResult:
+        from greyfit.solvers.methods.online.estimate import fit_online
+        return fit_online(request)
+
+
+@dataclass(frozen=True)
+class _Frequency:
+    """Frequency-response fits take a `FrequencyFitRequest` (solvers.frequency); the entry is here
+    so that every `FitMethod` has one and results can be asked about their family."""
+    family: Family = "frequency"
+
+
+METHODS: dict[FitMethod, _EquationError | _OutputError | _Online | _Frequency] = {
+    FitMethod.equation_error: _EquationError(),
+    FitMethod.single_shooting: _OutputError("single"),
+    FitMethod.multiple_shooting: _OutputError("multiple"),
+    FitMethod.recursive_least_squares: _Online(),
+    FitMethod.mras: _Online(),
+    FitMethod.frequency_response: _Frequency(),
+}
+
+
+def method_family(method: FitMethod | str) -> Family:
+    """'equation_error', 'output_error', 'online' or 'frequency' for a method or its name."""
+    return METHODS[FitMethod(method)].family
+
+
+def simulates_outputs(method: FitMethod | str) -> bool:
+    """Whether the method's residual is a simulation's (output error), not a derivative's."""
+    return method_family(method) == "output_error"
+
+
+def batch_method(method: FitMethod) -> BatchMethod:
+    """The batch implementation of `method` (TypeError for online and frequency methods)."""
+    entry = METHODS[method]
+    if isinstance(entry, (_EquationError, _OutputError)):
+        return entry
+    raise TypeError(f"{method.value} is not a batch method")
+
+
+def online_method(method: FitMethod) -> OnlineMethod | None:
+    """The online implementation of `method`, None for batch and frequency methods."""
+    entry = METHODS[method]
+    return entry if isinstance(entry, _Online) else None

@@ -33,8 +33,12 @@ def on_startup(command: str, dirty: bool) -> None:
     """Lay out greyfit/ as installed: its own files linked, the three subpackages linked as folders."""
     package = NAMESPACE / "greyfit"
     package.mkdir(parents=True, exist_ok=True)
-    for path in (ROOT / "greyfit").glob("*.py"):
-        _link(package / path.name, path)
+    sources = {path.name: path for path in (ROOT / "greyfit").glob("*.py")}
+    for stale in package.glob("*.py"):
+        if stale.name not in sources:   # a module removed since the last build
+            stale.unlink()
+    for name, path in sources.items():
+        _link(package / name, path)
     for target, source in LAYOUT.items():
         if target != "greyfit":
             _link(NAMESPACE / target, ROOT / source)

@@ -31,9 +31,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.service.conftest import msd_request  # noqa: E402
-from tests.service.test_real_server import free_port, start_server, stop_server  # noqa: E402
-from tests.service.test_real_server_bodies import large_fit_request, probe_healthz  # noqa: E402
+from tests.servers import free_port, large_fit_request, msd_request, probe_healthz, start_server, stop_server  # noqa: E402
 
 
 def tree_rss_mb(pid: int) -> float:

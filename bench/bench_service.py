@@ -39,7 +39,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.service.test_real_server import free_port, stop_server as stop  # noqa: E402
+from tests.servers import free_port  # noqa: E402
+from tests.servers import stop_server as stop  # noqa: E402
 from tests.systems import msd_experiment, msd_model, simulate_msd  # noqa: E402
 
 JSON = {"content-type": "application/json"}

@@ -95,7 +95,7 @@ CASES["white + missing input part (std 0.3)"] = missing_part
 def synthetic(runs: int) -> None:
     keys = ["white old", "white new", "white LB", "indep old", "indep new"]
     print(f"\n## synthetic residuals, {runs} runs per cell: % flagged (family-wise level of the new tests 1 %)")
-    print(f"| case | N | " + " | ".join(keys) + " |")
+    print("| case | N | " + " | ".join(keys) + " |")
     print("|---|---|" + "---|" * len(keys))
     for case, make in CASES.items():
         for n in (200, 1000, 5000):

@@ -10,6 +10,10 @@ JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TaskStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
 
+# no control characters (a NUL byte cannot be stored by PostgreSQL; the others break logs and pages)
+LABEL_PATTERN = r"^[^\x00-\x1f\x7f]*$"
+
+
 def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> type[BaseModel]:
     """The body of a batch job of `request_schema`s: {"requests": [...], "label": ...}.
 
@@ -19,7 +23,7 @@ def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> typ
         name, __config__=ConfigDict(extra="forbid"), __doc__=doc or f"A batch of {request_schema.__name__}s.",
         __module__=request_schema.__module__,
         requests=(list[request_schema], Field(min_length=1)),  # type: ignore[valid-type]
-        label=(Optional[str], Field(default=None, max_length=200)))
+        label=(Optional[str], Field(default=None, max_length=200, pattern=LABEL_PATTERN)))
     return model
 
 

@@ -12,13 +12,20 @@ def settings_of(request: Request) -> Settings:
     return request.app.state.settings
 
 
-def require_api_key(request: Request) -> None:
-    """The key check as a dependency (service.auth.ApiKeyGate does it for the whole app, before the body)."""
+def carries_api_key(request: Request) -> bool:
+    """Whether the server has a key and the request carries it (public routes show more to such callers)."""
     key = request.app.state.settings.api_key
     if not key:
-        return
+        return False
     scheme, _, token = request.headers.get("authorization", "").partition(" ")
     # compare bytes: compare_digest refuses non-ASCII str, and a header may carry any octet
-    if scheme.lower() != "bearer" or not hmac.compare_digest(token.strip().encode("latin-1"), key.encode("utf-8")):
+    return scheme.lower() == "bearer" and hmac.compare_digest(token.strip().encode("latin-1"), key.encode("utf-8"))
+
+
+def require_api_key(request: Request) -> None:
+    """The key check as a dependency (service.auth.ApiKeyGate does it for the whole app, before the body)."""
+    if not request.app.state.settings.api_key:
+        return
+    if not carries_api_key(request):
         raise HTTPException(401, "missing or wrong API key: send 'Authorization: Bearer <key>'",
                             headers={"WWW-Authenticate": "Bearer"})

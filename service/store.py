@@ -103,7 +103,13 @@ class _Raced(Exception):
 
 
 class StoreUnavailable(Exception):
-    """The job store cannot take writes (deleted, read-only, full or unreachable): answered 503."""
+    """The job store cannot take writes (deleted, read-only, full or unreachable): answered 503.
+
+    `public` says which component failed without the database's text (paths, hosts, ports)."""
+
+    def __init__(self, detail: str, public: str = "the job store does not take writes"):
+        super().__init__(detail)
+        self.public = public
 
 
 @dataclass
@@ -206,7 +212,9 @@ class JobStore:
         """Raise StoreUnavailable if the SQLite file was deleted or replaced since the server started."""
         if self.sqlite_path is not None and self._file_identity() != self._sqlite_id:
             raise StoreUnavailable(f"the SQLite job store {self.sqlite_path} was deleted or replaced while the "
-                                   "server ran; jobs written now would be lost: restart the server")
+                                   "server ran; jobs written now would be lost: restart the server",
+                                   "the SQLite job store file was deleted or replaced while the server ran; "
+                                   "restart the server")
 
     def check_writable(self, owner: str) -> None:
         """Prove the store takes a write (readiness); raise StoreUnavailable saying why not."""
@@ -217,7 +225,8 @@ class JobStore:
                 conn.execute(store_probes.insert().values(owner=owner, at=time.time()))
         except Exception as exc:   # what the database says is the useful detail
             raise StoreUnavailable(f"the job store does not take writes: {type(exc).__name__}: "
-                                   f"{str(exc).splitlines()[0][:300]}") from exc
+                                   f"{str(exc).splitlines()[0][:300]}",
+                                   f"the job store does not take writes ({type(exc).__name__})") from exc
 
     def create_job(self, kind: str, requests: list[dict | str], label: Optional[str]) -> str:
         """A job of one task per request (a dict, or its JSON text, stored as it is)."""

@@ -1,5 +1,6 @@
 from fastapi import APIRouter, Request
 
+from greyfit.service.deps import carries_api_key
 from greyfit.service.problems import Problem, problem
 from greyfit.service.store import StoreUnavailable
 
@@ -19,7 +20,11 @@ def readyz(request: Request):
     try:
         state.store.check_writable(state.dispatcher.owner)
     except StoreUnavailable as exc:   # report, do not raise: this is what a probe reads
-        return problem(503, "Not ready", str(exc), "not-ready")
+        # the database's own message names files, hosts and ports: only for callers with the key
+        detail = str(exc) if carries_api_key(request) else exc.public
+        answer = problem(503, "Not ready", detail, "not-ready")
+        answer.headers["Retry-After"] = str(state.settings.retry_after_seconds)
+        return answer
     if not state.dispatcher.is_alive():
         return problem(503, "Not ready", "the dispatcher thread is not running", "not-ready")
     return {"status": "ready", "executor": state.settings.executor}

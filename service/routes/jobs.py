@@ -2,9 +2,9 @@
 second pass over the returned model (dump, validate, dump again), and results go out as the
 workers wrote them."""
 import json
-from typing import Any, Callable, Optional
+from typing import Annotated, Any, Callable, Optional
 
-from fastapi import APIRouter, HTTPException, Query, Request, Response
+from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
 from pydantic import BaseModel
 
 from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
@@ -16,6 +16,9 @@ from greyfit.service.store import job_status
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
 
 MAX_OFFSET = 2 ** 31 - 1   # databases take 64-bit offsets at most; nobody pages this far
+MAX_INDEX = 2 ** 31 - 1    # PostgreSQL's INTEGER: a larger task index cannot exist and must not reach it
+# job ids are uuid4 text: anything else (a NUL byte, a megabyte) is a 422 before it reaches the database
+JOB_ID = Path(description="the job's id, as POST returned it", max_length=36, pattern=r"^[0-9A-Za-z-]+$")
 
 
 def job_public(record: dict[str, Any]) -> JobPublic:
@@ -70,13 +73,13 @@ def _record(request: Request, job_id: str) -> dict:
 
 
 @router.get("/{job_id}", response_model=JobPublic)
-def get_job(job_id: str, request: Request) -> Response:
+def get_job(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
     """Status, progress and per-task status of a job."""
     return as_json(job_public(_record(request, job_id)))
 
 
 @router.get("/{job_id}/results", response_model=JobResults)
-def get_results(job_id: str, request: Request) -> Response:
+def get_results(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
     """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet."""
     record = _record(request, job_id)
     entries = []
@@ -92,7 +95,7 @@ def get_results(job_id: str, request: Request) -> Response:
 
 
 @router.delete("/{job_id}", response_model=JobPublic)
-def cancel_job(job_id: str, request: Request) -> Response:
+def cancel_job(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
     """Cancel: queued tasks are dropped, running ones stopped; finished results are kept."""
     _record(request, job_id)
     request.app.state.store.cancel(job_id)

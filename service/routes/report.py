@@ -1,4 +1,5 @@
 import json
+from typing import Annotated
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
@@ -10,6 +11,7 @@ from greyfit.service.json_body import StrictJSONRoute
 from greyfit.service.limits import check_limits, data_values
 from greyfit.service.routes.sync import run_sync, run_sync_request
 from greyfit.service.settings import Settings
+from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.store import task_requests, tasks
 
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
@@ -43,7 +45,8 @@ async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
 
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=HTML)
-async def job_report(job_id: str, request: Request, index: int = Query(0, ge=0)) -> HTMLResponse:
+async def job_report(job_id: Annotated[str, JOB_ID], request: Request,
+                     index: int = Query(0, ge=0, le=MAX_INDEX)) -> HTMLResponse:
     """The report page of task `index` of a finished job (its stored request supplies the data)."""
     store = request.app.state.store
     if store.get_job(job_id) is None:

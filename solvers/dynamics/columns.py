@@ -125,10 +125,10 @@ def nonzeros(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
     for i, a in enumerate(args):
         if a.size != fn.nnz_in(i):
             raise ValueError(f"input {i} of {fn.name()}: {a.size} numbers for {fn.nnz_in(i)}")
-        buf.set_arg(i, memoryview(a))
+        buf.set_arg(i, memoryview(a))  # type: ignore[arg-type]
     outs = [np.empty(fn.nnz_out(i)) for i in range(fn.n_out())]
     for i, o in enumerate(outs):
-        buf.set_res(i, memoryview(o))
+        buf.set_res(i, memoryview(o))  # type: ignore[arg-type]
     run()
     if buf.ret() != 0:
         raise RuntimeError(f"evaluation of {fn.name()} failed")

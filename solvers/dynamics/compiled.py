@@ -36,7 +36,7 @@ import casadi as ca
 try:
     import fcntl
 except ImportError:   # not POSIX: no cross-process lock, at worst a library is built twice
-    fcntl = None
+    fcntl = None  # type: ignore[assignment]
 
 # -Bsymbolic: the columns driver must call this library's own function, not a namesake loaded
 # before it (glibc exports a legacy `step`)
@@ -95,6 +95,13 @@ def cache_dir() -> Path:
 
 def compiler() -> str | None:
     return _which(os.environ.get("CC", "gcc"))
+
+
+def _compiler_path() -> str:
+    path = compiler()
+    if path is None:   # callers check `compiler()` before building; a race with PATH changes lands here
+        raise RuntimeError("no C compiler on PATH (set CC)")
+    return path
 
 
 @functools.lru_cache(maxsize=8)
@@ -198,7 +205,7 @@ def _build(fn: ca.Function, library: Path) -> bool:
                 with open(Path(tmp) / source, "a") as c_file:   # columns.py's loop over samples
                     c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
                 target = Path(tmp) / "lib.so"
-                subprocess.run([compiler(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
+                subprocess.run([_compiler_path(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
                                check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)
                 os.replace(target, library)   # atomic: other processes see all of it or nothing
         return True

@@ -11,7 +11,8 @@ class FunctionCache:
     thousand samples costs about a millisecond, as much as evaluating it."""
 
     def __init__(self, size: int = 64):
-        self.size, self.items = size, OrderedDict()
+        self.size = size
+        self.items: OrderedDict[tuple, ca.Function] = OrderedDict()
 
     def get(self, key: tuple, build) -> ca.Function:
         if key in self.items:

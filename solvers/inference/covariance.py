@@ -93,7 +93,7 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
             f"not identifiable from these data: {'; '.join(nulls)}", condition, nulls)
     inv = np.linalg.inv(normed) / np.outer(d, d)
     counts = None if groups is None else np.bincount(groups)
-    if counts is not None and np.count_nonzero(counts) > 1:
+    if groups is not None and counts is not None and np.count_nonzero(counts) > 1:
         group_var = np.bincount(groups, weights=residual * residual) / np.maximum(counts * dof / ndata, 1e-300)
         meat = j.T @ (j * group_var[groups][:, None])
         cov_scaled = inv @ meat @ inv
@@ -107,7 +107,7 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
                                   "or non-finite variance; the weights or scales differ by too many "
                                   "orders of magnitude)", condition)
     stderr, ci = _intervals(cov, cols[:npar], labels, values, level, dof)
-    if not robust or sample_keys is None:
+    if not robust or sample_keys is None or experiment_keys is None:
         return CovarianceEstimate(names, cov, stderr, ci, None, condition)
     meat, bandwidth = hac_meat(j, residual, sample_keys, experiment_keys)
     hac = (inv @ meat @ inv * (ndata / dof) * np.outer(sc, sc))[:npar, :npar]

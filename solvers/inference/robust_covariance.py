@@ -79,7 +79,8 @@ def hac_meat(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray,
         blocks = [scores[exp_of_key == e] for e in np.unique(exp_of_key)]
     bandwidth = andrews_bandwidth(blocks)
     lags = int(np.floor(bandwidth))
-    return sum(_bartlett_sum(b, lags) for b in blocks), bandwidth
+    meat = np.sum([_bartlett_sum(b, lags) for b in blocks], axis=0)
+    return meat, bandwidth
 
 
 def _bartlett_sum(b: np.ndarray, lags: int) -> np.ndarray:

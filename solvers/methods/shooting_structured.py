@@ -72,8 +72,8 @@ class _Stage:
 
     def map(self, count: int, *args) -> list[ca.MX]:
         f = self.single
-        args, blocks = self._padded(args, count, [f.size2_in(i) for i in range(f.n_in())])
-        outs = self.block.map(blocks, "serial")(*args)
+        padded, blocks = self._padded(args, count, [f.size2_in(i) for i in range(f.n_in())])
+        outs = self.block.map(blocks, "serial")(*padded)
         outs = outs if isinstance(outs, (list, tuple)) else [outs]
         return [o[:, :count * f.size2_out(j)] if o.size2() != count * f.size2_out(j) else o
                 for j, o in enumerate(outs)]
@@ -81,8 +81,8 @@ class _Stage:
     def accum(self, count: int, x0, *args) -> ca.MX:
         """x_1 … x_count of x_k+1 = f(x_k, args_k) (`mapaccum`)."""
         f = self.single
-        args, blocks = self._padded(args, count, [f.size2_in(i) for i in range(1, f.n_in())])
-        states = self.block.mapaccum("sim", blocks, [0], [0])(x0, *args)[1]
+        padded, blocks = self._padded(args, count, [f.size2_in(i) for i in range(1, f.n_in())])
+        states = self.block.mapaccum("sim", blocks, [0], [0])(x0, *padded)[1]
         return states[:, :count] if states.size2() != count else states
 
 

@@ -32,6 +32,8 @@ def make_discrete_step(cm: CompiledModel) -> ca.Function:
 
 def check_sample_time(cm: CompiledModel, data: list[ExperimentData]) -> None:
     """Every experiment must be sampled at exactly the model's Ts."""
+    if cm.model.discrete is None:
+        return
     ts = cm.model.discrete.sample_time
     for e, d in enumerate(data):
         steps = np.diff(d.t)

@@ -91,13 +91,19 @@ def linear_form(cm: CompiledModel, layout: ParameterLayout, equations: list[int]
     return LinearForm(cm_eta, layout_eta, True, coefficients, texts)
 
 
+def _coefficients(form: LinearForm) -> ca.Function:
+    if form.coefficients is None:
+        raise TypeError("this linear form estimates θ itself: it has no coefficient map")
+    return form.coefficients
+
+
 def _gauss_newton(form: LinearForm, eta: np.ndarray, weight: np.ndarray, theta0: np.ndarray) -> np.ndarray:
     """θ (nθ, M) minimising (η − c(θ))ᵀW(η − c(θ)) column by column, all columns at once.
 
     Gauss-Newton with step halving: c(θ) is often a ratio (T/L), where a full step can overshoot.
     """
     m, n = eta.shape[1], theta0.shape[0]
-    f = form.coefficients.map(m)
+    f = _coefficients(form).map(m)
     theta = np.array(theta0, dtype=float)
 
     def evaluate(th):
@@ -148,7 +154,7 @@ def to_physical(form: LinearForm, eta: np.ndarray, cov_eta: np.ndarray | None, t
     theta = _gauss_newton(form, eta, weight, start)
     if cov_eta is None:
         return theta, None
-    _, jac = form.coefficients.map(m)(theta)
+    _, jac = _coefficients(form).map(m)(theta)
     jac = np.array(jac).reshape(n_eta, m, theta.shape[0]).transpose(1, 0, 2)
     jw = jac.transpose(0, 2, 1) @ weight
     with np.errstate(all="ignore"):

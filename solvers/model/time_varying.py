@@ -153,7 +153,7 @@ class TimeVaryingExpansion:
 def _knots(spec: TimeVarying, t0: float, t1: float) -> np.ndarray:
     if spec.knots is not None:
         return np.array(spec.knots, dtype=float)
-    return np.linspace(t0, t1, spec.segments + 1)
+    return np.linspace(t0, t1, (spec.segments or 1) + 1)   # the schema requires one of the two
 
 
 def expand_time_varying(model: Model, cm: CompiledModel, data: list[ExperimentData]) -> TimeVaryingExpansion | None:

@@ -13,7 +13,7 @@ from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.fit import FitOptions
 from greyfit.schemas.model import Model
 from greyfit.schemas.simulate import SimulatedExperiment, SimulateRequest, SimulateResult
-from greyfit.schemas.validation import ExperimentValidation, OutputMetrics, ValidationResult
+from greyfit.schemas.validation import ExperimentValidation, InitialStateSource, OutputMetrics, ValidationResult
 from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
@@ -32,7 +32,7 @@ class Simulation:
     x0: np.ndarray
     states: np.ndarray          # (nx, N)
     outputs: np.ndarray         # (ny, N)
-    source: str
+    source: InitialStateSource
     estimated: list[str] = field(default_factory=list)
     window: int | None = None
     predicted: np.ndarray | None = None
@@ -106,8 +106,8 @@ def estimate_initial_state(cm: CompiledModel, d: ExperimentData, p: np.ndarray, 
             x0[cm.states.index(state)] = row[np.isfinite(row)][0]
     for i, v in known.items():
         x0[i] = v
-    free = oem.free_x0[0]
-    if not free:
+    free_idx = oem.free_x0[0]
+    if not free_idx:
         return x0, None
 
     def evaluate(x):
@@ -121,7 +121,7 @@ def estimate_initial_state(cm: CompiledModel, d: ExperimentData, p: np.ndarray, 
         damping = mu * np.maximum(np.diag(jtj), 1e-12 * max(1.0, float(np.trace(jtj))))
         step = -np.linalg.lstsq(jtj + np.diag(damping), jtr, rcond=None)[0]
         trial = x0.copy()
-        trial[free] += step * oem.xscale[free]
+        trial[free_idx] += step * oem.xscale[free_idx]
         if not np.all(np.isfinite(trial)):
             mu *= 10
             continue
@@ -174,8 +174,8 @@ def k_step_ahead(oem: OutputErrorModel, e: int, p: np.ndarray, states: np.ndarra
     m = d.n - k
     if m > 0:
         starts = states[:, :m].copy()
-        for out, state in cm.direct_outputs.items():
-            meas = d.y[cm.outputs.index(out), :m]
+        for output, state in cm.direct_outputs.items():
+            meas = d.y[cm.outputs.index(output), :m]
             i = cm.states.index(state)
             starts[i] = np.where(np.isfinite(meas), meas, starts[i])
         cols = (np.arange(m)[:, None] + np.arange(k)[None, :]).ravel()

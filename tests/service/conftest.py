@@ -1,16 +1,15 @@
 """TestClient on a temporary data directory, with settings overridden per test module."""
-import copy
 import json
 import time
 from pathlib import Path
 
-import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
 from greyfit.service.app import create_app
 from greyfit.service.settings import Settings
-from tests.systems import msd_experiment, msd_model, simulate_msd
+from tests.servers import msd_request, slow_request  # noqa: F401  (the tests import them from here)
+from tests.systems import msd_experiment, msd_model, simulate_msd  # noqa: F401
 
 EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "msd_request.json"
 
@@ -35,19 +34,6 @@ def client(module_tmp):
 @pytest.fixture
 def example() -> dict:
     return json.loads(EXAMPLE.read_text())
-
-
-def msd_request(seed: int, noise: float = 0.005, n: int = 101) -> dict:
-    t = np.linspace(0, 10, n)
-    return {"model": msd_model(c=0.5, k=3.0), "method": "multiple_shooting",
-            "experiments": [msd_experiment(t, simulate_msd(t), noise=noise, seed=seed)]}
-
-
-def slow_request() -> dict:
-    """About a second of work: a 2001-sample output-error fit with several starts."""
-    body = msd_request(0, n=2001)
-    body["options"] = {"multistart": 4, "substeps": 4}
-    return copy.deepcopy(body)
 
 
 def wait_for_job(client, job_id: str, timeout: float = 120, headers=None) -> dict:

@@ -1,68 +1,15 @@
 """Against a real `greyfit serve` process on loopback: kill -9 mid-job, restart, nothing lost."""
 import os
 import signal
-import socket
-import subprocess
-import sys
 import time
 from pathlib import Path
 
 import httpx
 import pytest
 
-from tests.service.conftest import msd_request, slow_request
+from tests.servers import free_port, msd_request, slow_request, start_server, stop_server, wait_until_finished  # noqa: F401
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
-
-
-def start_server(data_dir: Path, port: int, workers: int = 2, log: Path | None = None,
-                 **env_overrides: str) -> subprocess.Popen:
-    """A `greyfit serve` subprocess, ready; its output goes to `log` when given, else nowhere."""
-    env = {**os.environ, "GREYFIT_LEASE_SECONDS": "2", "GREYFIT_POLL_SECONDS": "0.02", **env_overrides}
-    out = open(log, "ab") if log is not None else subprocess.DEVNULL
-    try:
-        proc = subprocess.Popen([sys.executable, "-m", "greyfit.service.cli", "serve", "--host", "127.0.0.1",
-                                 "--port", str(port), "--data-dir", str(data_dir), "--workers", str(workers)],
-                                cwd=ROOT, env=env, start_new_session=True, stdout=out, stderr=subprocess.STDOUT)
-    finally:
-        if log is not None:
-            out.close()   # the child holds its own descriptor
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline:
-        try:
-            if httpx.get(f"http://127.0.0.1:{port}/readyz", timeout=1).status_code == 200:
-                return proc
-        except httpx.HTTPError:
-            pass
-        if proc.poll() is not None:
-            raise AssertionError(f"server exited with {proc.returncode}")
-        time.sleep(0.2)
-    os.killpg(proc.pid, signal.SIGKILL)
-    raise AssertionError("server did not become ready")
-
-
-def wait_until_finished(base: str, job_id: str, timeout: float = 180) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        job = httpx.get(f"{base}/v1/jobs/{job_id}").json()
-        if job["status"] not in ("queued", "running"):
-            return job
-        time.sleep(0.2)
-    raise AssertionError(f"job {job_id} did not finish in {timeout} s: {job}")
-
-
-def stop_server(server: subprocess.Popen) -> None:
-    server.send_signal(signal.SIGTERM)
-    try:
-        server.wait(timeout=20)
-    except subprocess.TimeoutExpired:
-        os.killpg(server.pid, signal.SIGKILL)
 
 
 @pytest.mark.slow

@@ -12,7 +12,6 @@ processes the probes wait only for their share of the CPU (p95 ~30 ms on a quiet
 with one parse at 334 ms at load 3.6). A fixed 0.5 s measured the load instead: it failed at
 load 3.5, where everything, the probes included, ran several times slower.
 """
-import asyncio
 import copy
 import json
 import threading
@@ -24,43 +23,12 @@ import pytest
 
 from greyfit.schemas import FitRequest
 from greyfit.service.json_parsing import parse_and_validate
-from tests.service.conftest import msd_request
-from tests.service.test_real_server import free_port, start_server, stop_server, wait_until_finished
+from tests.servers import (  # noqa: F401  (re-exported for the tests that import them from here)
+    free_port, large_fit_request, msd_request, probe_healthz, start_server, stop_server, wait_until_finished,
+)
 
 BODY_MEGABYTES = 20
 HEALTHZ_P95_FLOOR_S = 0.5
-
-
-def large_fit_request(megabytes: float) -> dict:
-    """A fit request whose four time series make the body about this large."""
-    n = int(megabytes * 2 ** 20 / 80)
-    t = np.arange(n) * 1e-3
-    body = msd_request(0, n=11)
-    exp = body["experiments"][0]
-    exp["time"] = t.tolist()
-    exp["inputs"] = {"u": np.sin(t).tolist()}
-    exp["outputs"] = {"x": np.cos(t).tolist(), "v": np.sin(t).tolist()}
-    return body
-
-
-def probe_healthz(base: str, stop: threading.Event, every: float = 0.025) -> list[float]:
-    """Latencies of /healthz probes sent on a fixed schedule until `stop` is set."""
-    async def run() -> list[float]:
-        latencies: list[float] = []
-        async with httpx.AsyncClient(base_url=base, timeout=60) as http:
-            async def one(due: float) -> None:
-                await http.get("/healthz")
-                latencies.append(time.perf_counter() - due)
-
-            tasks, due = [], time.perf_counter()
-            while not stop.is_set():
-                tasks.append(asyncio.create_task(one(due)))
-                due += every
-                await asyncio.sleep(max(0.0, due - time.perf_counter()))
-            await asyncio.gather(*tasks)
-        return latencies
-
-    return asyncio.run(run())
 
 
 def parse_seconds(body: bytes) -> float:

@@ -14,7 +14,7 @@ from urllib.parse import urljoin, urlsplit
 import httpx
 import pytest
 
-from tests.service.test_real_server import free_port, start_server, stop_server
+from tests.servers import free_port, start_server, stop_server
 from tests.service.test_report_browser import browser, chromium
 
 ROOT = Path(__file__).resolve().parents[2]

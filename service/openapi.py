@@ -2,18 +2,16 @@
 
 FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
 problem+json answers the middleware and handlers give (400, 401, 404, 413, 422, 429, 500, 503, and
-504 for synchronous fits) and the bearer security scheme, and a real example request (the
-mass-spring-damper fit) where FastAPI would generate junk, so "Try it out" sends a fit that works.
+504 for synchronous fits) and the bearer security scheme, and real example requests
+(service/openapi_examples.py) where FastAPI would generate junk, so "Try it out" sends a fit that
+works.
 
 `/docs` (Swagger UI) and `/redoc` (ReDoc) load their scripts from `service/static/`, served by the
 service itself: FastAPI's defaults load them from a CDN and stay blank on a machine without network.
 """
 from __future__ import annotations
 
-import json
-from functools import lru_cache
 from pathlib import Path
-from typing import Callable
 
 from fastapi import FastAPI, Request
 from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
@@ -21,6 +19,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
+from greyfit.service.openapi_examples import add_examples
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
 from greyfit.service.task_kinds import JOB_KINDS
@@ -44,21 +43,6 @@ PUBLIC = ("/healthz", "/readyz")
 
 STATIC = Path(__file__).resolve().parent / "static"
 STATIC_URL = "/static"
-
-
-@lru_cache(maxsize=1)
-def msd_fit_request() -> dict:
-    """The mass-spring-damper fit of examples/msd_request.json (shipped in the package as a copy)."""
-    return json.loads((STATIC / "examples" / "msd_request.json").read_text(encoding="utf-8"))
-
-
-# path of an operation -> (example name, summary, request body built from the MSD fit)
-EXAMPLES: dict[str, tuple[str, str, Callable[[dict], dict]]] = {
-    "/v1/fits": ("msd_fit", "Mass-spring-damper m x'' + c x' + k x = u, c and k from x and v (noisy)",
-                 lambda msd: msd),
-    "/v1/jobs": ("msd_job", "The mass-spring-damper fit as a batch job of one request",
-                 lambda msd: {"requests": [msd], "label": "demo"}),
-}
 
 
 def _problem_response(description: str, headers: bool) -> dict:
@@ -95,19 +79,8 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 codes.append("504")
             for code in sorted(set(codes)):
                 responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
-    _add_examples(spec)
+    add_examples(spec)
     return spec
-
-
-def _add_examples(spec: dict) -> None:
-    """Give the request bodies in EXAMPLES a working example (media type `examples`, shown by both UIs)."""
-    examples = spec["components"].setdefault("examples", {})
-    for path, (name, summary, build) in EXAMPLES.items():
-        body = spec["paths"].get(path, {}).get("post", {}).get("requestBody")
-        if body is None:
-            continue
-        examples[name] = {"summary": summary, "value": build(msd_fit_request())}
-        body["content"]["application/json"]["examples"] = {name: {"$ref": f"#/components/examples/{name}"}}
 
 
 def install_openapi(app: FastAPI, settings: Settings) -> None:

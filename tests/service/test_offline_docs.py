@@ -118,6 +118,37 @@ def test_the_documented_job_example_is_accepted_and_its_fit_converges(client):
     assert_converged_near_truth(row["result"])
 
 
+def test_every_shipped_example_is_a_copy_of_the_repository_example():
+    shipped = ROOT / "service" / "static" / "examples"
+    copies = {"msd_request.json": "msd_request.json",
+              "frequency_pi_loop_request.json": "seed001_frequency_request.json"}
+    assert {p.name for p in shipped.glob("*.json")} == set(copies)
+    for name, source in copies.items():
+        assert json.loads((shipped / name).read_text()) == json.loads((ROOT / "examples" / source).read_text())
+
+
+def test_the_other_documented_examples_are_accepted_and_say_what_their_summary_does(client):
+    spec = client.get("/openapi.json").json()
+    documented = {path for path, ops in spec["paths"].items()
+                  if "examples" in ops.get("post", {}).get("requestBody", {}).get("content", {}).get(
+                      "application/json", {})}
+    assert {"/v1/fits", "/v1/jobs", "/v1/discover", "/v1/simulate", "/v1/frequency-fits"} <= documented
+    sim = client.post("/v1/simulate", json=documented_example(spec, "/v1/simulate"))
+    assert sim.status_code == 200, sim.text
+    # the true parameters reproduce the noisy record to its noise: fit % as high as the fit's own
+    assert min(sim.json()["validation"]["fit_percent"].values()) > 97
+    freq = client.post("/v1/frequency-fits", json=documented_example(spec, "/v1/frequency-fits"))
+    assert freq.status_code == 200, freq.text
+    result = freq.json()
+    assert result["success"] is True and all(loop["stable"] for loop in result["frequency_response"]["loops"])
+    truth = {"a1": 20, "a2": 500, "a3": 2000, "b1": 33.2224, "b2": 14840}   # docs/frequency.md
+    for name, value in truth.items():
+        assert abs(result["parameters"][name]["value"] / value - 1) < 0.02, (name, result["parameters"][name])
+    disc = client.post("/v1/discover", json=documented_example(spec, "/v1/discover"))
+    assert disc.status_code == 200, disc.text
+    assert disc.json()["steps"] == [] and "no significant missing effect" in disc.json()["conclusion"]
+
+
 @pytest.mark.slow
 def test_headless_chromium_renders_both_pages_with_every_other_host_unreachable(tmp_path):
     exe = browser()

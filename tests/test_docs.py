@@ -49,6 +49,16 @@ def test_the_generated_options_table_lists_every_fit_option_with_its_default():
     assert "`0.99`" in rows["forgetting"]    # a nested model's default, from RlsOptions itself
 
 
+def test_the_settings_table_names_every_variable_and_keeps_placeholders_as_text():
+    from greyfit.service.settings import Settings
+
+    table = docs_hook().settings_table(Settings)
+    for name in Settings.model_fields:
+        assert f"| `GREYFIT_{name.upper()}` |" in table, name
+    assert "— |" not in table, "a setting without a description: give it description= in service/settings.py"
+    assert "sqlite:///&lt;data_dir&gt;/greyfit.db" in table   # not swallowed as an HTML tag
+
+
 def test_user_facing_text_cites_the_source_documents_by_title():
     pages = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").glob("*.md"))]
     for page in pages:

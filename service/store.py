@@ -21,7 +21,8 @@ from dataclasses import dataclass
 from typing import Any, Optional
 
 from sqlalchemy import (
-    Column, Float, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect, select,
+    Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect,
+    select,
     text, update,
 )
 from sqlalchemy.engine import Engine, make_url
@@ -51,7 +52,12 @@ tasks = Table(
     Column("owner", String(36)),
     Column("started_at", Float),
     Column("finished_at", Float),
+    Column("queued_at", Float),   # the job's creation time, copied: the claim reads the queue in this order
 )
+# The queue in claim order, queued rows only: a claim reads the first rows of this index instead of
+# sorting every queued row (0.4 ms at 1 000 queued, 313 ms at 300 000 with the sort; bench_claims.py)
+QUEUE_INDEX = Index("ix_tasks_queue", tasks.c.queued_at, tasks.c.job_id, tasks.c.idx,
+                    postgresql_where=tasks.c.status == "queued", sqlite_where=tasks.c.status == "queued")
 
 # written once when the job is created, read when the task is claimed (and by a job's report page)
 task_requests = Table(
@@ -75,7 +81,7 @@ TERMINAL = ("succeeded", "failed", "cancelled")
 _CLAIM_CANDIDATES = (select(tasks.c.job_id, tasks.c.idx, tasks.c.attempts, jobs.c.kind)
                      .join(jobs, jobs.c.id == tasks.c.job_id)
                      .where(tasks.c.status == "queued")
-                     .order_by(jobs.c.created_at, tasks.c.idx).limit(bindparam("b_limit")))
+                     .order_by(tasks.c.queued_at, tasks.c.job_id, tasks.c.idx).limit(bindparam("b_limit")))
 # PostgreSQL: a row another replica is claiming is passed over, not waited for
 _CLAIM_CANDIDATES_SKIP_LOCKED = _CLAIM_CANDIDATES.with_for_update(skip_locked=True, of=tasks)
 _REQUEST_TEXTS = select(task_requests.c.idx, task_requests.c.request).where(
@@ -128,12 +134,14 @@ def make_engine(url: str) -> Engine:
         def _pragmas(dbapi_conn, _record):  # WAL: readers do not block the dispatcher's writes
             cur = dbapi_conn.cursor()
             cur.execute("PRAGMA journal_mode=WAL")
-            cur.execute("PRAGMA synchronous=NORMAL")
+            # FULL: a job answered 202 survives a power loss (NORMAL may lose the last commits then)
+            cur.execute("PRAGMA synchronous=FULL")
             cur.close()
     else:
         engine = create_engine(url, pool_pre_ping=True)
     metadata.create_all(engine)
     _move_requests_out_of_tasks(engine)
+    _add_queue_order(engine)
     _compress_texts_with_lz4(engine)
     return engine
 
@@ -182,6 +190,20 @@ def _move_requests_out_of_tasks(engine: Engine) -> None:
                 return
         conn.execute(text("INSERT INTO task_requests (job_id, idx, request) SELECT job_id, idx, request FROM tasks"))
         conn.execute(text("ALTER TABLE tasks DROP COLUMN request"))
+
+
+def _add_queue_order(engine: Engine) -> None:
+    """A store made before `tasks.queued_at`: add it (from the jobs' creation times) and its index, once."""
+    if "queued_at" in {c["name"] for c in inspect(engine).get_columns("tasks")}:
+        return
+    with engine.begin() as conn:
+        if engine.dialect.name == "postgresql":
+            conn.execute(text("LOCK TABLE tasks IN ACCESS EXCLUSIVE MODE"))
+            if "queued_at" in {c["name"] for c in inspect(conn).get_columns("tasks")}:
+                return
+        conn.execute(text("ALTER TABLE tasks ADD COLUMN queued_at FLOAT"))
+        conn.execute(text("UPDATE tasks SET queued_at = (SELECT created_at FROM jobs WHERE jobs.id = tasks.job_id)"))
+        QUEUE_INDEX.create(conn)
 
 
 def _sqlite_file(engine: Engine) -> Optional[str]:
@@ -237,7 +259,8 @@ class JobStore:
             conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
                                               created_at=now, total=len(requests)))
             conn.execute(tasks.insert(), [
-                {"job_id": job_id, "idx": i, "status": "queued", "attempts": 0} for i in range(len(requests))])
+                {"job_id": job_id, "idx": i, "status": "queued", "attempts": 0, "queued_at": now}
+                for i in range(len(requests))])
             conn.execute(task_requests.insert(), [
                 {"job_id": job_id, "idx": i, "request": r if isinstance(r, str) else json.dumps(r)}
                 for i, r in enumerate(requests)])

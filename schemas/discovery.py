@@ -161,6 +161,14 @@ class RejectedCandidate(BaseModel):
 class DiscoveryResult(BaseModel):
     """Before and after, each effect added with its evidence, the candidates rejected, the final fit and model."""
 
+    def report(self) -> str:
+        """A text report for people (`greyfit ... --summary` prints it)."""
+        from greyfit.schemas.text_report import discovery_report
+        return discovery_report(self)
+
+    def __str__(self) -> str:
+        return self.report()
+
     conclusion: str
     before: FitSummary
     after: FitSummary

@@ -3,12 +3,12 @@ from __future__ import annotations
 
 import math
 from enum import Enum
-from typing import Any, Literal, Optional
+from typing import Annotated, Any, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 from greyfit.schemas.experiment import Experiment
-from greyfit.schemas.frequency import FrequencyResponseResult
+from greyfit.schemas.frequency import FrequencyResponseResult, LinearisedOdeModel, TransferFunctionModel
 from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
@@ -160,6 +160,7 @@ class ParameterEstimate(BaseModel):
     stderr_classical: Optional[float] = Field(
         default=None, description="sigma^2 (J^T J)^-1 standard error; equals stderr unless the "
         "robust (HAC) covariance is reported")
+    unit: Optional[str] = Field(default=None, description="the unit declared on the model's parameter")
 
 
 class CovariancePublic(BaseModel):
@@ -244,6 +245,18 @@ class ProfileInterval(BaseModel):
     note: Optional[str] = None
 
 
+def _result_model_kind(value) -> str:
+    kind = value.get("kind") if isinstance(value, dict) else getattr(value, "kind", None)
+    return kind if kind in ("transfer_function", "linearised_ode") else "ode"
+
+
+# an ODE model has no `kind`; the frequency models say theirs
+ResultModel = Annotated[Union[Annotated[Model, Tag("ode")],
+                              Annotated[TransferFunctionModel, Tag("transfer_function")],
+                              Annotated[LinearisedOdeModel, Tag("linearised_ode")]],
+                        Discriminator(_result_model_kind)]
+
+
 class FitResult(BaseModel):
     """Outcome of one fit; `success: false` is a result, not an error."""
 
@@ -277,6 +290,18 @@ class FitResult(BaseModel):
         default=None, description="profile-likelihood intervals of the parameters in options.profile")
     trajectory: Optional[ParameterTrajectory] = Field(
         default=None, description="θ(t) ± 2σ: online estimators and time-varying parameters")
+    model: Optional[ResultModel] = Field(
+        default=None, description="the model that was fitted (an ODE model, or the frequency fit's "
+        "transfer function or linearised model): with `parameters` it is what `simulate` and `report` need "
+        "to simulate again, so they do not need the request")
+
+    def report(self, *, min_correlation: float = 0.9) -> str:
+        """A text report for people, like lmfit's `fit_report()`."""
+        from greyfit.schemas.text_report import fit_report
+        return fit_report(self, min_correlation=min_correlation)
+
+    def __str__(self) -> str:
+        return self.report()
 
 
 JobCreate = job_create("JobCreate", FitRequest, "A batch of fits (POST /v1/jobs).")

@@ -134,6 +134,19 @@ class Model(BaseModel):
                 raise ValueError(f"constants.{name}: must be a finite number")
         return self
 
+    units: dict[Name, Annotated[str, StringConstraints(max_length=32)]] = Field(
+        default_factory=dict, description="units of states, inputs, outputs and of time (key `t`), e.g. "
+        "{\"x\": \"m\", \"t\": \"s\"}: the report's axes and tables show them (parameters carry their own `unit`)")
+
+    @model_validator(mode="after")
+    def _units_name_something(self) -> "Model":
+        known = {"t", *self.states, *self.inputs, *(self.outputs or {})}
+        unknown = sorted(set(self.units) - known)
+        if unknown:
+            raise ValueError(f"units: '{unknown[0]}' is not a state, input, output or t; units are keyed by "
+                             f"those names (parameters carry their own `unit`)")
+        return self
+
     def measured_outputs(self) -> dict[str, str]:
         """Output equations, defaulting to every state measured as itself."""
         return dict(self.outputs) if self.outputs is not None else {s: s for s in self.states}

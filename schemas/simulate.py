@@ -56,6 +56,14 @@ class SimulateRequest(BaseModel):
 class SimulateResult(BaseModel):
     """Simulated states and outputs per record, the parameters used, and metrics where outputs were given."""
 
+    def report(self) -> str:
+        """A text report for people (`greyfit ... --summary` prints it)."""
+        from greyfit.schemas.text_report import simulate_report
+        return simulate_report(self)
+
+    def __str__(self) -> str:
+        return self.report()
+
     parameters: dict[str, float]
     experiments: list[SimulatedExperiment]
     validation: Optional[ValidationResult] = Field(

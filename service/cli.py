@@ -1,4 +1,8 @@
-"""`greyfit` command line: fit, discover, batch, serve, simulate, report."""
+"""`greyfit` command line: fit, discover, batch, serve, simulate, report.
+
+Exit codes: 0 done; 1 a batch in which every request failed; 2 bad input (file, JSON, request) or a
+fit that could not be built; 3 the result's quality is one that `--fail-on` names.
+"""
 from __future__ import annotations
 
 import argparse
@@ -7,6 +11,10 @@ import sys
 from pathlib import Path
 
 from pydantic import ValidationError
+
+EXIT_BAD_INPUT = 2
+EXIT_QUALITY = 3
+FAIL_ON = {"failed": ("failed",), "suspect": ("suspect", "failed")}
 
 
 def _read_json(path: str) -> dict:
@@ -22,6 +30,26 @@ def _validation_message(exc: ValidationError) -> str:
     return "\n".join(lines)
 
 
+def emit(result, args) -> None:
+    """The result as JSON on stdout, or its text report with --summary; JSON to --output too."""
+    if getattr(args, "output", None):
+        Path(args.output).write_text(result.model_dump_json(indent=2 if args.pretty else None) + "\n")
+    if args.summary:
+        print(result.report())
+    elif not getattr(args, "output", None):
+        print(result.model_dump_json(indent=2 if args.pretty else None))
+
+
+def quality_exit(fit, args) -> int:
+    """0, or 3 when the fit's quality is one `--fail-on` names (a message on stderr says why)."""
+    from greyfit.schemas.text_report import effective_quality
+    quality = effective_quality(fit)
+    if args.fail_on and quality in FAIL_ON[args.fail_on]:
+        print(f"greyfit: the result is {quality} (--fail-on {args.fail_on}): {fit.message}", file=sys.stderr)
+        return EXIT_QUALITY
+    return 0
+
+
 def cmd_fit(args) -> int:
     from greyfit.schemas import FitRequest
     from greyfit.solvers.fit import fit_model
@@ -33,65 +61,63 @@ def cmd_fit(args) -> int:
         result = fit_frequency_response(FrequencyFitRequest.model_validate(body))
     else:
         result = fit_model(FitRequest.model_validate(body))
-    print(result.model_dump_json(indent=2 if args.pretty else None))
-    return 0
+    emit(result, args)
+    return quality_exit(result, args)
 
 
 def cmd_discover(args) -> int:
     from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.service.cli_progress import DiscoveryProgress
     from greyfit.solvers.discovery import discover
     request = DiscoverRequest.model_validate(_read_json(args.request))
-    result = discover(request)
-    print(result.model_dump_json(indent=2 if args.pretty else None))
-    if args.summary:
-        print(format_discovery(result), file=sys.stderr)
-    return 0
+    progress = DiscoveryProgress(sys.stderr, quiet=args.quiet)
+    result = discover(request, progress=progress)
+    progress.close()
+    emit(result, args)
+    return quality_exit(result.fit, args)
 
 
-def format_discovery(result) -> str:
-    """A before/after table for people."""
-    lines = [f"conclusion: {result.conclusion}", ""]
-    if not result.before.success:
-        lines += [f"the declared model's fit did not succeed (status: {result.before.status})", ""]
-    lines.append(f"{'output':12s} {'data':10s} {'RMSE before':>12s} {'RMSE after':>12s} {'fit % before':>13s} "
-                 f"{'fit % after':>12s}")
-    rows = [("estimation", result.before, result.after)]
-    if result.before.validation is not None and result.after.validation is not None:
-        rows.append(("validation", result.before.validation, result.after.validation))
-    for name in result.before.rmse:
-        for label, b, a in rows:
-            if name in b.rmse and name in a.rmse:
-                lines.append(f"{name:12s} {label:10s} {b.rmse[name]:12.4g} {a.rmse[name]:12.4g} "
-                             f"{b.fit_percent[name]:13.2f} {a.fit_percent[name]:12.2f}")
-    lines.append(f"{'BIC':23s} {result.before.bic:12.1f} {result.after.bic:12.1f}")
-    for step in result.steps:
-        params = ", ".join(f"{p.name} = {p.value:.4g} ± {p.stderr:.2g}" if p.stderr else f"{p.name} = {p.value:.4g}"
-                           for p in step.parameters)
-        where = step.equation if step.equation.startswith("output") else f"d{step.equation}/dt"
-        lines.append(f"+ {step.effect} in {where}: {step.term}  [{params}]  "
-                     f"explains {100 * step.evidence.explained_variance:.0f} % of the "
-                     f"{'output' if step.evidence.scored_on != 'equations' else 'equation'} residual, "
-                     f"BIC -{step.evidence.bic_drop:.0f}" + ("  (specific to this record)" if step.record_specific else ""))
-    for rej in result.rejected:
-        lines.append(f"- not kept: {rej.effect} ({rej.term}): {rej.reason}: {rej.detail}")
-    return "\n".join(lines)
+def add_output_options(p, what: str, fail_on: bool = True) -> None:
+    """--pretty, --summary, --output (and --fail-on) as every result-making command has them."""
+    p.add_argument("--pretty", action="store_true", help="indent the JSON result")
+    p.add_argument("--summary", action="store_true",
+                   help=f"print a text report of the {what} (parameters, metrics, warnings) instead of the JSON")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="write the JSON result to FILE instead of stdout (with --summary: the report on stdout, "
+                        "the JSON in FILE)")
+    if fail_on:
+        p.add_argument("--fail-on", choices=list(FAIL_ON), default=None,
+                       help="exit 3 when the result's quality is failed (failed), or suspect or failed (suspect); "
+                            "default: exit 0 whatever the quality")
 
 
-def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="greyfit", description=__doc__)
-    sub = parser.add_subparsers(dest="command", required=True)
-    p_fit = sub.add_parser("fit", help="fit one request (JSON file or - for stdin); result JSON on stdout")
-    p_fit.add_argument("request")
-    p_fit.add_argument("--pretty", action="store_true")
+def build_parser() -> argparse.ArgumentParser:
+    from greyfit import __version__
+    parser = argparse.ArgumentParser(prog="greyfit", description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--version", action="version", version=f"greyfit {__version__}",
+                        help="print the version and exit")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
+    p_fit = sub.add_parser("fit", help="fit one request; result JSON (or --summary) on stdout",
+                           description="Fit one FitRequest (or a FrequencyFitRequest: model kind transfer_function "
+                                       "or linearised_ode) and print the FitResult.")
+    p_fit.add_argument("request", help="the request JSON file, or - for stdin")
+    add_output_options(p_fit, "fit")
     p_fit.set_defaults(func=cmd_fit)
-    p_disc = sub.add_parser("discover", help="fit, find missing effects, refit; result JSON on stdout")
-    p_disc.add_argument("request")
-    p_disc.add_argument("--pretty", action="store_true")
-    p_disc.add_argument("--summary", action="store_true", help="also print a before/after table on stderr")
+    p_disc = sub.add_parser("discover", help="fit, find missing effects, refit; result JSON (or --summary) on stdout",
+                            description="Run a DiscoverRequest: fit the declared model, screen the effect library "
+                                        "on its residual, confirm by refits. Progress goes to stderr.")
+    p_disc.add_argument("request", help="the DiscoverRequest JSON file, or - for stdin")
+    add_output_options(p_disc, "discovery and its final fit")
+    p_disc.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p_disc.set_defaults(func=cmd_discover)
     for extra in _extra_commands():
         extra(sub)
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
     from greyfit.solvers.errors import FitError
     try:
         return args.func(args)
@@ -103,7 +129,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
     except FitError as exc:
         print(f"greyfit: {type(exc).__name__}: {exc}", file=sys.stderr)
-    return 2
+    return EXIT_BAD_INPUT
 
 
 def _extra_commands():

@@ -10,9 +10,10 @@ from greyfit.service.task_kinds import JOB_KINDS, KINDS
 
 
 def add_serve(sub) -> None:
-    p = sub.add_parser("serve", help="run the HTTP service (uvicorn)")
-    p.add_argument("--host", default="127.0.0.1")
-    p.add_argument("--port", type=int, default=8000)
+    p = sub.add_parser("serve", help="run the HTTP service (uvicorn)",
+                       description="Run the HTTP service: the /v1 routes, jobs in worker processes, /docs.")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; 0.0.0.0 for all)")
+    p.add_argument("--port", type=int, default=8000, help="TCP port (default 8000)")
     p.add_argument("--workers", type=int, default=None, help="fit worker processes (default: cores)")
     p.add_argument("--data-dir", default=None, help="where the SQLite job store lives (default ./data)")
     p.set_defaults(func=cmd_serve)
@@ -22,6 +23,7 @@ def cmd_serve(args) -> int:
     import gc
 
     import uvicorn
+
     from greyfit.service.app import create_app
     from greyfit.service.settings import Settings
     overrides = {}
@@ -44,10 +46,14 @@ def cmd_serve(args) -> int:
 
 
 def add_batch(sub) -> None:
-    p = sub.add_parser("batch", help="many fits locally in parallel; resumable")
+    p = sub.add_parser("batch", help="many fits locally in parallel; resumable",
+                       description="Fit every line of a JSON-lines file in worker processes; results are "
+                                   "appended to --out as they finish, so an interrupted run resumes.")
     p.add_argument("requests", help="JSON lines, one request (of --kind) per line")
     p.add_argument("--out", required=True, help="JSON lines of results; lines already there are skipped")
-    p.add_argument("--workers", type=int, default=None)
+    p.add_argument("--workers", type=int, default=None, help="worker processes (default: cores)")
+    p.add_argument("--fail-on", choices=["failed", "suspect"], default=None,
+                   help="exit 3 when any result's quality is failed (failed), or suspect or failed (suspect)")
     p.add_argument("--kind", choices=list(JOB_KINDS), default="fit",
                    help="the kind of every request: " + ", ".join(
                        f"{k}: {KINDS[k].request.rpartition(':')[2]}" for k in JOB_KINDS))
@@ -83,7 +89,7 @@ def cmd_batch(args) -> int:
     total = len(todo) + len(bad)
     print(f"greyfit batch: {len(done)} already done, {total} to do", file=sys.stderr)
     pool = LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)
-    finished = succeeded = 0
+    finished = succeeded = flagged = 0
     started = time.monotonic()
     with out_path.open("a") as out:
         for record in bad:
@@ -97,6 +103,7 @@ def cmd_batch(args) -> int:
             for key, outcome in pool.poll():
                 if outcome["status"] == "succeeded":
                     succeeded += 1
+                    flagged += flags_quality(outcome["result_json"], args.fail_on)
                     out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome["result_json"]}}}\n')
                 else:
                     out.write(json.dumps({"line": int(key), **outcome}) + "\n")
@@ -109,7 +116,24 @@ def cmd_batch(args) -> int:
     if total and not succeeded:   # like a job: failed when no task succeeded
         print(f"greyfit batch: all {total} requests failed; see the errors in {out_path}", file=sys.stderr)
         return 1
+    if flagged:
+        print(f"greyfit batch: {flagged} result(s) are {args.fail_on} or worse (--fail-on {args.fail_on})",
+              file=sys.stderr)
+        return 3
     return 0
+
+
+def flags_quality(result_json: str, fail_on: str | None) -> int:
+    """1 when --fail-on names the quality of this result (a fit's, or a discovery's final fit)."""
+    if fail_on is None:
+        return 0
+    from greyfit.service.cli import FAIL_ON
+    result = json.loads(result_json)
+    fit = result.get("fit", result)
+    quality = fit.get("quality", "good")
+    if quality == "good" and fit.get("success") is False:   # as schemas.text_report.effective_quality
+        quality = "failed"
+    return int(quality in FAIL_ON[fail_on])
 
 
 def _progress(done: int, total: int, started: float) -> None:

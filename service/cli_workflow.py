@@ -5,16 +5,32 @@ import json
 import sys
 from pathlib import Path
 
+# what a SimulateRequest takes from a fit (or discover) request given with --result: its records
+SIMULATE_KEYS = ("experiments", "options", "initial_states", "parameters", "horizon", "estimate_window")
+
 
 def _read(path: str) -> dict:
     return json.loads(sys.stdin.read() if path == "-" else Path(path).read_text())
 
 
+def simulate_body(args) -> dict:
+    """The SimulateRequest: the file as it is, or with --result, its records and the result's model."""
+    body = _read(args.request)
+    if not args.result:
+        return body
+    if not isinstance(body, dict):
+        return body   # the schema names what is wrong
+    body = {k: v for k, v in body.items() if k in SIMULATE_KEYS}
+    body["fit_result"] = _read(args.result)
+    return body
+
+
 def cmd_simulate(args) -> int:
     from greyfit.schemas.simulate import SimulateRequest
+    from greyfit.service.cli import emit
     from greyfit.solvers.simulation.simulate import simulate_request
-    result = simulate_request(SimulateRequest.model_validate(_read(args.request)))
-    print(result.model_dump_json(indent=2 if args.pretty else None))
+    result = simulate_request(SimulateRequest.model_validate(simulate_body(args)))
+    emit(result, args)
     return 0
 
 
@@ -36,17 +52,28 @@ def cmd_report(args) -> int:
 
 
 def add_simulate(sub) -> None:
-    p = sub.add_parser("simulate", help="simulate a model on experiments (SimulateRequest JSON); result on stdout")
-    p.add_argument("request")
-    p.add_argument("--pretty", action="store_true")
+    from greyfit.service.cli import add_output_options
+    p = sub.add_parser("simulate", help="simulate a model on experiments; result JSON (or --summary) on stdout",
+                       description="Simulate a SimulateRequest; or, with --result, the records of any request "
+                                   "file (its experiments) with the model and estimates a fit result carries.")
+    p.add_argument("request", help="SimulateRequest JSON (or with --result: any JSON with `experiments`, "
+                                   "e.g. a FitRequest), or - for stdin")
+    p.add_argument("--result", metavar="RESULT",
+                   help="a FitResult or DiscoveryResult JSON: its model, estimates and initial states are used "
+                        "(the request then needs only the records)")
+    add_output_options(p, "simulation", fail_on=False)
     p.set_defaults(func=cmd_simulate)
 
 
 def add_report(sub) -> None:
-    p = sub.add_parser("report", help="figures and one HTML page for a fit or discovery result")
-    p.add_argument("result", help="FitResult or DiscoveryResult JSON")
-    p.add_argument("--request", help="the request of the fit: measured data for the compare figures")
-    p.add_argument("--out", required=True, help="directory for the figures and report.html")
+    p = sub.add_parser("report", help="figures and one HTML page for a fit, frequency-fit or discovery result",
+                       description="Draw the figures of a result and write them with report.html into --out. "
+                                   "The measured data for the compare figures come from --request, else from "
+                                   "the result's traces (return_traces); a frequency fit needs neither.")
+    p.add_argument("result", help="FitResult or DiscoveryResult JSON (as `greyfit fit` or `discover` wrote it)")
+    p.add_argument("--request", help="the request of the fit (FitRequest, DiscoverRequest or FrequencyFitRequest): "
+                                     "its measured data for the compare figures")
+    p.add_argument("--out", required=True, help="directory for the figures and report.html (made if missing)")
     p.add_argument("--formats", default="png,svg", help="figure files to write: png,svg (default both)")
-    p.add_argument("--title")
+    p.add_argument("--title", help="the page's title (default: greyfit fit report / discovery report)")
     p.set_defaults(func=cmd_report)

@@ -172,7 +172,9 @@ class Dispatcher:
                     self._cancel_abandoned()
                     self._fill()          # free workers first: what follows writes to the store
                     if now - last_lease > self.settings.lease_seconds / 3:
-                        self.store.renew(self.owner, self.settings.lease_seconds)
+                        released = self.store.renew(self.owner, self.settings.lease_seconds, self._held())
+                        if released:
+                            log.warning("gave back %d task(s) claimed by a claim whose outcome was lost", released)
                         self.store.requeue_expired()
                         last_lease = now
                     if now - last_cancel_check > 0.25:
@@ -305,6 +307,11 @@ class Dispatcher:
                 self._add_pending(item[1], item[2], outcome)
                 if not self._has_tasks(item[1]):   # perhaps the job's last: its caller waits for it
                     self._flush_now = True
+
+    def _held(self) -> list[tuple[str, int]]:
+        """The job tasks this dispatcher knows it owns: on a worker, claimed ahead, or not yet written."""
+        return ([(item[1], item[2]) for item in self.running.values() if item[0] == "job"]
+                + [(t.job_id, t.idx) for t in self.ready] + [(job_id, idx) for job_id, idx, _ in self.pending])
 
     def _has_tasks(self, job_id: str) -> bool:
         return any(item[0] == "job" and item[1] == job_id for item in self.running.values()) or \

@@ -22,7 +22,7 @@ from fastapi.staticfiles import StaticFiles
 from greyfit.service.openapi_examples import add_examples
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
-from greyfit.service.task_kinds import JOB_KINDS
+from greyfit.service.task_kinds import JOB_KINDS, KINDS
 
 SCHEME = "bearerAuth"
 ANSWERS = {
@@ -40,6 +40,12 @@ ANSWERS = {
 SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits", "/v1/report",
               "/v1/jobs/{job_id}/report")
 PUBLIC = ("/healthz", "/readyz")
+JOB_PATHS = tuple(k.jobs_path for k in KINDS.values() if k.jobs_path)
+IDEMPOTENCY_HEADER = {
+    "name": "Idempotency-Key", "in": "header", "required": False,
+    "schema": {"type": "string", "minLength": 1, "maxLength": 200, "pattern": "^[\\x21-\\x7e]+$"},
+    "description": "makes a retry safe: the same key with the same body returns the job made the first time "
+                   "(never a second one); with another body, 422"}
 
 STATIC = Path(__file__).resolve().parent / "static"
 STATIC_URL = "/static"
@@ -77,6 +83,8 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 codes.append("400")
             if path in SYNC_PATHS:
                 codes.append("504")
+            if method == "post" and path in JOB_PATHS:
+                op.setdefault("parameters", []).append(IDEMPOTENCY_HEADER)
             for code in sorted(set(codes)):
                 responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
     add_examples(spec)

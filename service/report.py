@@ -1,8 +1,10 @@
 """Figures and one self-contained HTML page for a fit or discovery result (matplotlib, Agg).
 
 compare (measured vs simulated, estimation and validation), resid (residual autocorrelation and
-input cross-correlation with the 99 % band), estimates with confidence intervals, the correlation
-matrix, and for discovery the model before/after the added terms.
+input cross-correlation with the family-wise 99 % band), estimates with confidence intervals, the
+correlation matrix; for a frequency fit Bode and Nyquist (`report_frequency`); for discovery the
+model before/after the added terms and the discrepancy d against its variable. The tables (verdict,
+estimates, metrics, warnings, equations) are in `report_html`.
 """
 from __future__ import annotations
 
@@ -16,7 +18,11 @@ import numpy as np
 
 from greyfit.schemas.discovery import DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
+from greyfit.schemas.frequency import FrequencyFitRequest
+from greyfit.schemas.model import Model
 from greyfit.schemas.report import ReportPublic, ReportRequest
+from greyfit.service.report_frequency import frequency_figures
+from greyfit.service.report_html import summary_html
 
 
 class ReportDependencyMissing(ImportError):
@@ -138,9 +144,14 @@ def estimation_series(fit: FitResult, request: FitRequest | None, model) -> tupl
     return est, []
 
 
+def _with_unit(label: str, units: dict[str, str], name: str) -> str:
+    return f"{label} [{units[name]}]" if name in units else label
+
+
 def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
-                   notes: list[str] | None = None) -> Figure:
+                   notes: list[str] | None = None, units: dict[str, str] | None = None) -> Figure:
     notes = [] if notes is None else notes
+    units = units or {}
     records = _shown(records, MAX_RECORDS, "records", f"compare ({kind})", notes)
     outputs = _shown(sorted({o for r in records for o in r.measured}), MAX_OUTPUTS, "outputs",
                      f"compare ({kind})", notes)
@@ -154,14 +165,16 @@ def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
                 y, yh = rec.measured[out], rec.simulated[out]
                 ok = np.isfinite(y) & np.isfinite(yh)
                 fit = 100 * (1 - np.linalg.norm(yh[ok] - y[ok]) / max(np.linalg.norm(y[ok] - y[ok].mean()), 1e-300))
-                ax.plot(rec.time, y, color="0.55", lw=0.9, label="measured")
-                ax.plot(rec.time, yh, color="C0", lw=1.2, label=f"simulated (fit {fit:.1f} %)")
+                # the measured line wide and light, the simulated one narrow and dark on top: at a
+                # 98 % fit both stay visible (the measured one as a halo where they agree)
+                ax.plot(rec.time, y, color="0.72", lw=3.2, solid_capstyle="round", label="measured", zorder=1)
+                ax.plot(rec.time, yh, color="C0", lw=1.0, label=f"simulated (fit {fit:.1f} %)", zorder=2)
                 ax.legend(loc="upper right", fontsize=7, frameon=False)
-            ax.set_ylabel(_short(out))
+            ax.set_ylabel(_with_unit(_short(out), units, out))
             if r == 0:
                 ax.set_title(f"{kind}: {_short(rec.name)}", fontsize=9)
             if r == len(outputs) - 1:
-                ax.set_xlabel("t")
+                ax.set_xlabel(_with_unit("t", units, "t"))
     _grid_layout(fig, len(outputs), cols, hgap=0.25)
     return _save(plt, fig, f"compare_{kind}", f"Measured and simulated outputs ({kind} records)", svg)
 
@@ -181,10 +194,12 @@ def residual_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | N
         lags = np.arange(len(a.autocorrelation))
         # vlines: one collection, where bar() draws a patch per lag (most of this figure's time)
         ax.vlines(lags[1:], 0, a.autocorrelation[1:], lw=2.5, color="C0" if a.whiteness.passed else "C3")
-        ax.axhspan(-a.whiteness.bound, a.whiteness.bound, color="C2", alpha=0.15, label="band: all lags inside 99 %")
+        ax.axhspan(-a.whiteness.bound, a.whiteness.bound, color="C2", alpha=0.15,
+                   label=f"family-wise {100 * (1 - a.whiteness.level):.0f} % band (Šidák, {a.whiteness.lags} lags)")
+        ax.legend(loc="upper right", fontsize=7, frameon=False)
         ax.set_title(f"autocorrelation of e({_short(a.output)}): {'white' if a.whiteness.passed else 'not white'}",
                      fontsize=9)
-        ax.set_xlabel("lag")
+        ax.set_xlabel("lag [samples]")
         for c, u in enumerate(inputs, start=1):
             ax = axes[r][c]
             xc = np.array(a.cross_correlation.get(u, []))
@@ -194,10 +209,11 @@ def residual_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | N
                 ax.vlines(k, 0, xc, lw=2.5, color="C0" if test.passed else "C3")
                 ax.axhspan(-test.bound, test.bound, color="C2", alpha=0.15)
                 ax.set_title(f"cross-correlation e({_short(a.output, 20)}) with {_short(u, 20)}", fontsize=9)
-            ax.set_xlabel("lag")
+            ax.set_xlabel("lag [samples]")
     _grid_layout(fig, len(analyses), 1 + len(inputs), wgap=0.6, hgap=0.8)
-    return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs (bands: a white, "
-                 "independent residual stays inside at every lag with 99 % probability)", svg)
+    return _save(plt, fig, "residuals", "Residual whiteness and independence from the inputs. The bands are "
+                 "family-wise (Šidák-corrected over the lags tested): a white, independent residual stays inside "
+                 "at every lag at once with 99 % probability", svg)
 
 
 def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:
@@ -217,14 +233,17 @@ def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | 
             ax.plot([lo, hi], [i, i], color="C0", marker="|", ms=9, ls="none")
         else:
             ax.plot([0], [i], "o", color="C3")
-        label = f"{_short(name)} = {p.value:.5g}" + (f" ± {p.stderr:.2g}" if p.stderr is not None else " (no CI)")
+        unit = f" {p.unit}" if p.unit else ""
+        label = f"{_short(name)} = {p.value:.5g}{unit}" + (
+            f"  [{p.ci95[0]:.4g}, {p.ci95[1]:.4g}]" if p.ci95 is not None else " (no CI)")
         ax.annotate(label, (0, i), xytext=(8, 6), textcoords="offset points", fontsize=8)
     ax.set_yticks(range(len(free)), [_short(k) for k, _ in free])
     ax.axvline(0, color="0.7", lw=0.8)
-    ax.set_xlabel("95 % confidence interval, % of the estimate")
+    ax.set_xlabel("95 % confidence interval [% of the estimate]")
     ax.invert_yaxis()
     fig.tight_layout()
-    return _save(plt, fig, "parameters", "Estimates with their confidence intervals", svg)
+    return _save(plt, fig, "parameters", "Estimates with their 95 % confidence intervals (bars; the labels give "
+                 "each interval in the parameter's unit; the standard errors are in the table)", svg)
 
 
 def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:
@@ -252,102 +271,57 @@ def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] 
     return _save(plt, fig, "correlation", "Correlation of the estimates", svg)
 
 
-def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) -> tuple[list[Figure], list[str]]:
-    figs, notes = [], []
-    outs = _shown(list(result.before.rmse), 4 * MAX_OUTPUTS, "outputs", "discovery metrics", notes)
-    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
-    x = np.arange(len(outs))
-    for ax, key, label in ((axes[0], "rmse", "RMSE"), (axes[1], "fit_percent", "fit %")):
-        before = [getattr(result.before, key)[o] for o in outs]
-        after = [getattr(result.after, key)[o] for o in outs]
-        ax.bar(x - 0.2, before, 0.4, label="declared model", color="0.6")
-        ax.bar(x + 0.2, after, 0.4, label="with the added terms", color="C0")
-        ax.set_xticks(x, [_short(o, 20) for o in outs])
-        ax.set_title(label, fontsize=9)
-    axes[0].legend(fontsize=7, frameon=False)
-    terms = "; ".join(f"+ {s.term} in d{s.equation}/dt" for s in result.steps) or "nothing added"
-    fig.suptitle(_short(terms, 160), fontsize=8)
-    fig.tight_layout()
-    figs.append(_save(plt, fig, "discovery_metrics", "Before and after discovery", svg))
-    if request is None or not result.steps:
-        if request is None:
-            notes.append("the before/after overlay needs the request (measured data)")
-        return figs, notes
-    from greyfit.solvers.data.preprocess import prepare_request
-    prepared, _ = prepare_request(request)
-    experiments = []
-    for exp in prepared.experiments:
-        extra = result.added_inputs.get(exp.name, {})
-        experiments.append(exp.model_copy(update={"inputs": {**exp.inputs, **extra}}))
-    params = {k: v.value for k, v in result.fit.parameters.items()}
-    after = _simulated_series(result.model, params, experiments, prepared.options, result.fit.initial_states)
-    added = {p.name for s in result.steps for p in s.parameters}
-    without = {k: (0.0 if k.split("[", 1)[0] in added else v) for k, v in params.items()}
-    before = _simulated_series(result.model, without, experiments, prepared.options, result.fit.initial_states)
-    rec_a, rec_b = after[0], before[0]
-    outputs = _shown(list(rec_a.measured), MAX_OUTPUTS, "outputs", "discovery overlay", notes)
-    fig, axes = plt.subplots(len(outputs), 1, figsize=(9, 2.4 * len(outputs) + 0.6), squeeze=False, sharex=True)
-    for r, out in enumerate(outputs):
-        ax = axes[r][0]
-        ax.plot(rec_a.time, rec_a.measured[out], color="0.55", lw=0.9, label="measured")
-        ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=1.0, label="without the added terms")
-        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=1.2, label="with " + _short(terms, 100))
-        ax.set_ylabel(_short(out))
-        ax.legend(fontsize=7, frameon=False, loc="upper right")
-    axes[-1][0].set_xlabel("t")
-    fig.tight_layout()
-    figs.append(_save(plt, fig, "discovery_overlay", f"{rec_a.name}: the final model with and without the added terms",
-                      svg))
-    return figs, notes
+def _report_model(result, request):
+    """The model to simulate: the one the result carries, else the request's (older results)."""
+    fit = result.fit if isinstance(result, DiscoveryResult) else result
+    model = result.model if isinstance(result, DiscoveryResult) else fit.model
+    if model is None and request is not None and not isinstance(request, FrequencyFitRequest):
+        model = request.model
+    return model
+
+
+def _time_domain_figures(plt, report: Report, fit: FitResult, request, model, svg: bool) -> None:
+    if fit.frequency_response is not None:
+        report.figures += frequency_figures(plt, fit.frequency_response, svg, report.notes)
+        return
+    time_request = request if isinstance(request, FitRequest) else None
+    if time_request is not None and not isinstance(model, Model):
+        time_request = None   # nothing to simulate the records with
+    est, val = estimation_series(fit, time_request, model)
+    units = dict(model.units) if isinstance(model, Model) else {}
+    if est:
+        report.figures.append(compare_figure(plt, est, "estimation", svg, report.notes, units))
+    else:
+        report.notes.append("no measured-vs-simulated figure: give the request, or fit with return_traces")
+    if val:
+        report.figures.append(compare_figure(plt, val, "validation", svg, report.notes, units))
 
 
 def build_report(req: ReportRequest, svg: bool = False) -> Report:
     """Render every figure the result (and request) allow, as PNG and, if `svg`, SVG too; notes say
     what could not be drawn."""
+    from greyfit.service.report_discovery import discovery_figures
     plt = _pyplot()
     result, request = req.result, req.request
     discovery = isinstance(result, DiscoveryResult)
     fit = result.fit if discovery else result
-    model = result.model if discovery else (request.model if request is not None else None)
+    model = _report_model(result, request)
     report = Report(title=req.title or ("greyfit discovery report" if discovery else "greyfit fit report"))
-    if discovery and request is not None and result.added_inputs:   # series the augmented model needs
+    if discovery and isinstance(request, FitRequest) and result.added_inputs:   # series the augmented model needs
         request = request.model_copy(update={"experiments": [
             e.model_copy(update={"inputs": {**e.inputs, **result.added_inputs.get(e.name, {})}})
             for e in request.experiments]})
-    est, val = estimation_series(fit, request, model)
-    if est:
-        report.figures.append(compare_figure(plt, est, "estimation", svg, report.notes))
-    else:
-        report.notes.append("no measured-vs-simulated figure: give the request, or fit with return_traces")
-    if val:
-        report.figures.append(compare_figure(plt, val, "validation", svg, report.notes))
+    _time_domain_figures(plt, report, fit, request, model, svg)
     for make in (residual_figure, parameter_figure, correlation_figure):
         figure = make(plt, fit, svg, report.notes)
         if figure is not None:
             report.figures.append(figure)
     if discovery:
-        figs, notes = discovery_figures(plt, result, request, svg)
+        figs, notes = discovery_figures(plt, result, request if isinstance(request, FitRequest) else None, svg)
         report.figures += figs
         report.notes += notes
-    report.summary_html = _summary(fit, result if discovery else None)
+    report.summary_html = summary_html(fit, result if discovery else None, model)
     return report
-
-
-def _summary(fit: FitResult, discovery: DiscoveryResult | None) -> str:
-    rows = "".join(f"<tr><td>{html.escape(o)}</td><td>{fit.metrics.rmse[o]:.4g}</td>"
-                   f"<td>{fit.metrics.fit_percent[o]:.2f}</td>"
-                   + (f"<td>{fit.validation.rmse.get(o, float('nan')):.4g}</td>"
-                      f"<td>{fit.validation.fit_percent.get(o, float('nan')):.2f}</td>" if fit.validation else "")
-                   + "</tr>" for o in fit.metrics.rmse)
-    head = "<tr><th>output</th><th>RMSE</th><th>fit %</th>" + (
-        "<th>validation RMSE</th><th>validation fit %</th>" if fit.validation else "") + "</tr>"
-    text = (f"<p><b>{'converged' if fit.success else 'not converged'}</b>: {html.escape(fit.message)} "
-            f"({fit.solver.method.value}, {fit.solver.iterations} iterations)</p>")
-    if discovery is not None:
-        text += f"<p>discovery: {html.escape(discovery.conclusion)}</p>"
-    if fit.covariance_note:
-        text += f"<p>covariance: {html.escape(fit.covariance_note)}</p>"
-    return text + f"<table>{head}{rows}</table>"
 
 
 def render_html(report: Report) -> str:
@@ -360,7 +334,11 @@ def render_html(report: Report) -> str:
     return f"""<!DOCTYPE html>
 <html lang="en"><head><meta charset="utf-8"><title>{html.escape(report.title)}</title>
 <style>body{{font-family:sans-serif;max-width:1100px;margin:2em auto;color:#222}}
-table{{border-collapse:collapse}}td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}}
+table{{border-collapse:collapse;margin:0.5em 0}}td,th{{border:1px solid #ccc;padding:2px 8px;text-align:right}}
+td:first-child,th:first-child{{text-align:left}}th{{background:#f4f4f4}}h2{{font-size:1.15em;margin-top:1.4em}}
+.verdict{{padding:6px 10px;border-left:5px solid #999}}.quality-good{{border-color:#2a7}}
+.quality-suspect{{border-color:#d90;background:#fff8e6}}.quality-failed{{border-color:#c33;background:#fdecec}}
+.meta{{color:#666;font-size:90%}}pre.equations{{background:#f7f7f7;padding:8px;overflow-x:auto}}
 figure{{margin:1.5em 0}}img{{max-width:100%}}figcaption{{color:#555;font-size:90%}}</style></head>
 <body><h1>{html.escape(report.title)}</h1>
 {report.summary_html}

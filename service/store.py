@@ -22,11 +22,10 @@ from typing import Any, Optional
 
 from sqlalchemy import (
     Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect,
-    select,
-    text, update,
+    select, text, tuple_, update,
 )
 from sqlalchemy.engine import Engine, make_url
-from sqlalchemy.exc import DBAPIError
+from sqlalchemy.exc import DBAPIError, IntegrityError
 
 metadata = MetaData()
 
@@ -65,6 +64,17 @@ task_requests = Table(
     Column("job_id", String(36), primary_key=True),
     Column("idx", Integer, primary_key=True),
     Column("request", Text, nullable=False),
+)
+
+# Idempotency-Key of a job's creation (the IETF httpapi draft's semantics): the same key and body
+# give the job created the first time; written in the job's own transaction, so a job exists with
+# its key or not at all
+idempotency_keys = Table(
+    "idempotency_keys", metadata,
+    Column("key", String(200), primary_key=True),
+    Column("fingerprint", String(64), nullable=False),
+    Column("job_id", String(36), nullable=False),
+    Column("created_at", Float, nullable=False),
 )
 
 # one row per server: readiness writes it to prove that the store accepts writes
@@ -106,6 +116,10 @@ _FINISH = (update(tasks)
 
 class _Raced(Exception):
     """A claim found a task taken by another server between its select and its update."""
+
+
+class IdempotencyKeyReused(Exception):
+    """An Idempotency-Key sent again with another body: answered 422."""
 
 
 class StoreUnavailable(Exception):
@@ -206,6 +220,10 @@ def _add_queue_order(engine: Engine) -> None:
         QUEUE_INDEX.create(conn)
 
 
+def _chunks(items: list, size: int) -> list[list]:
+    return [items[i:i + size] for i in range(0, len(items), size)]
+
+
 def _sqlite_file(engine: Engine) -> Optional[str]:
     url = make_url(str(engine.url))
     if url.get_backend_name() != "sqlite" or not url.database or url.database == ":memory:":
@@ -250,12 +268,45 @@ class JobStore:
                                    f"{str(exc).splitlines()[0][:300]}",
                                    f"the job store does not take writes ({type(exc).__name__})") from exc
 
-    def create_job(self, kind: str, requests: list[dict | str], label: Optional[str]) -> str:
-        """A job of one task per request (a dict, or its JSON text, stored as it is)."""
+    def create_job(self, kind: str, requests: list[dict | str], label: Optional[str],
+                   idempotency: Optional[tuple[str, str]] = None) -> str:
+        """A job of one task per request (a dict, or its JSON text, stored as it is).
+
+        `idempotency`: (key, fingerprint of kind, label and requests). A key already stored with the
+        same fingerprint returns its job, no new one; with another, IdempotencyKeyReused."""
         self.check_file()
+        if idempotency is not None:
+            existing = self._job_of_key(*idempotency)
+            if existing is not None:
+                return existing
+        try:
+            return self._insert_job(kind, requests, label, idempotency)
+        except IntegrityError:
+            if idempotency is None:
+                raise
+            existing = self._job_of_key(*idempotency)   # a concurrent request with the key won the race
+            if existing is None:
+                raise
+            return existing
+
+    def _job_of_key(self, key: str, fingerprint: str) -> Optional[str]:
+        with self.engine.connect() as conn:
+            row = conn.execute(select(idempotency_keys.c.fingerprint, idempotency_keys.c.job_id)
+                               .where(idempotency_keys.c.key == key)).first()
+        if row is None:
+            return None
+        if row.fingerprint != fingerprint:
+            raise IdempotencyKeyReused(key)
+        return row.job_id
+
+    def _insert_job(self, kind: str, requests: list[dict | str], label: Optional[str],
+                    idempotency: Optional[tuple[str, str]]) -> str:
         job_id = str(uuid.uuid4())
         now = time.time()
         with self.engine.begin() as conn:
+            if idempotency is not None:
+                conn.execute(idempotency_keys.insert().values(key=idempotency[0], fingerprint=idempotency[1],
+                                                              job_id=job_id, created_at=now))
             conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
                                               created_at=now, total=len(requests)))
             conn.execute(tasks.insert(), [
@@ -361,10 +412,30 @@ class JobStore:
                      .values(status="failed", finished_at=now, error=json.dumps({"type": "WorkerLost",
                                                                                  "detail": detail})))
 
-    def renew(self, owner: str, lease_seconds: float) -> None:
+    def renew(self, owner: str, lease_seconds: float, held: list[tuple[str, int]]) -> int:
+        """Extend the leases of the tasks `owner` holds; give back the ones it owns but does not hold.
+
+        A claim whose COMMIT's answer was lost (the connection dropped after the database committed)
+        leaves tasks owned by this server that its dispatcher never learned of: renewing every row
+        it owns would keep them running, unrun, for ever. They go back to the queue without an
+        attempt counted (they never started). Returns how many were given back."""
+        now = time.time()
         with self.engine.begin() as conn:
-            conn.execute(update(tasks).where(tasks.c.owner == owner, tasks.c.status == "running")
-                         .values(lease_until=time.time() + lease_seconds))
+            owned = conn.execute(select(tasks.c.job_id, tasks.c.idx)
+                                 .where(tasks.c.owner == owner, tasks.c.status == "running")).all()
+            keep = set(held)
+            unknown = [(r.job_id, r.idx) for r in owned if (r.job_id, r.idx) not in keep]
+            known = [(r.job_id, r.idx) for r in owned if (r.job_id, r.idx) in keep]
+            for chunk in _chunks(known, 500):
+                conn.execute(update(tasks).where(tuple_(tasks.c.job_id, tasks.c.idx).in_(chunk),
+                                                 tasks.c.owner == owner, tasks.c.status == "running")
+                             .values(lease_until=now + lease_seconds))
+            for chunk in _chunks(unknown, 500):
+                conn.execute(update(tasks).where(tuple_(tasks.c.job_id, tasks.c.idx).in_(chunk),
+                                                 tasks.c.owner == owner, tasks.c.status == "running")
+                             .values(status="queued", owner=None, lease_until=None,
+                                     attempts=tasks.c.attempts - 1))
+        return len(unknown)
 
     def requeue_expired(self) -> int:
         """Tasks whose server stopped renewing their lease go back to the queue."""

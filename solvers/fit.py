@@ -29,6 +29,7 @@ from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.methods.batch import BatchFit, Residuals
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
+from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.methods.multistart import draw_starts
 from greyfit.solvers.methods.node_initialisation import node_warnings
 from greyfit.solvers.methods.registry import batch_method, online_method
@@ -71,13 +72,13 @@ def fit_model(request: FitRequest) -> FitResult:
     """
     online = online_method(request.method)
     if online is not None:
-        return online.fit(request)
+        return attach_model(online.fit(request), request.model)
     prepared, preprocessing = prepare_request(request)
     result = _fit_prepared(prepared)
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
-    return result
+    return attach_model(result, request.model)   # units and the model travel with the result
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:

@@ -1,7 +1,9 @@
 """Batch jobs. A job's status is what clients poll, so its answers are made without FastAPI's
 second pass over the returned model (dump, validate, dump again), and results go out as the
 workers wrote them."""
+import hashlib
 import json
+import re
 from typing import Annotated, Any, Callable, Optional
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
@@ -11,7 +13,7 @@ from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic,
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
-from greyfit.service.store import job_status
+from greyfit.service.store import IdempotencyKeyReused, job_status
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
 
@@ -43,6 +45,26 @@ def as_json(model: BaseModel, status_code: int = 200, headers: Optional[dict] = 
     return Response(model.model_dump_json(), status_code=status_code, headers=headers, media_type="application/json")
 
 
+IDEMPOTENCY_KEY = re.compile(r"^[\x21-\x7e]{1,200}$")
+
+
+def idempotency_of(request: Request, kind: str, texts: list, label: Optional[str]) -> Optional[tuple[str, str]]:
+    """(key, fingerprint) of the request's Idempotency-Key header, or None without one.
+
+    The fingerprint covers the kind, the label and each request's JSON text: the same key with the
+    same body is the same job (a retry after a lost answer), with another body an error."""
+    key = request.headers.get("idempotency-key")
+    if key is None:
+        return None
+    key = key.strip().strip('"')   # the draft sends it as a structured-field string: "abc"
+    if not IDEMPOTENCY_KEY.match(key):
+        raise HTTPException(400, "Idempotency-Key must be 1 to 200 printable ASCII characters without spaces")
+    digest = hashlib.sha256(f"{kind}\0{label}".encode())
+    for text in texts:
+        digest.update(b"\0" + (text if isinstance(text, str) else json.dumps(text, sort_keys=True)).encode())
+    return key, digest.hexdigest()
+
+
 def submit_job(request: Request, kind: str, requests: list, label: Optional[str],
                check: Callable = check_limits) -> Response:
     """Store a job of one task per request (each checked against this server's limits by `check`)."""
@@ -53,7 +75,12 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
                             "split the batch")
     for i, req in enumerate(requests):
         check(req, settings, prefix=f"requests[{i}].")
-    job_id = state.store.create_job(kind, request_texts(request, requests), label)
+    texts = request_texts(request, requests)
+    try:
+        job_id = state.store.create_job(kind, texts, label, idempotency_of(request, kind, texts, label))
+    except IdempotencyKeyReused as exc:
+        raise HTTPException(422, f"Idempotency-Key '{exc}' was first sent with another body; a retry must "
+                            "send the same body, a new job a new key") from None
     state.dispatcher.wake()
     return as_json(job_public(state.store.get_job(job_id)), 202, {"Location": f"/v1/jobs/{job_id}"})
 

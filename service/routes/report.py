@@ -5,13 +5,14 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
 from sqlalchemy import and_, select
 
+from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.report import ReportRequest
 from greyfit.service.deps import require_api_key
 from greyfit.service.json_body import StrictJSONRoute
-from greyfit.service.limits import check_limits, data_values
+from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
+from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.routes.sync import run_sync, run_sync_request
 from greyfit.service.settings import Settings
-from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.store import task_requests, tasks
 
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
@@ -27,11 +28,15 @@ async def _page(request: Request, payload: dict | str) -> HTMLResponse:
 
 def _check_report(body: ReportRequest, settings: Settings) -> None:
     """The request that comes with a result is simulated again: the fits' limits apply to it."""
-    if body.request is not None:
+    if isinstance(body.request, FrequencyFitRequest):
+        check_frequency_limits(body.request, settings, "request.")
+    elif body.request is not None:
         check_limits(body.request, settings, "request.")
 
 
 def _report_values(body: ReportRequest) -> int:
+    if isinstance(body.request, FrequencyFitRequest):
+        return frequency_values(body.request)
     return data_values(body.request) if body.request is not None else 0
 
 

@@ -28,6 +28,8 @@ phase for `DiscoveryResult.timings`).
 """
 from __future__ import annotations
 
+from typing import Callable, Optional
+
 import numpy as np
 
 from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
@@ -41,18 +43,30 @@ from greyfit.solvers.model.expressions import compile_expression
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.data.preprocess import prepare_request
 
-__all__ = ["discover", "LoopState", "try_in_rank_order"]
+__all__ = ["discover", "LoopState", "try_in_rank_order", "Progress"]
+
+# progress(phase, candidate, refits used): "base_fit", "screening", "refit" (candidate: the term
+# refitted), "done" (candidate: the conclusion); for a progress line, never for control
+Progress = Callable[[str, str, int], None]
 
 
-def discover(request: DiscoverRequest) -> DiscoveryResult:
-    """Fit, find and add missing effects, refit; see the module docstring for the tests used."""
+def _silent(phase: str, candidate: str, refits: int) -> None:
+    return None
+
+
+def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> DiscoveryResult:
+    """Fit, find and add missing effects, refit; see the module docstring for the tests used.
+
+    `progress(phase, candidate, refits)`, if given, is called as the search moves on."""
     opts = request.discovery
+    tell = progress or _silent
     clock = Clock(opts.time_budget_s)
     check_user_candidates(request)
     # detrend/decimate/window once, for the fits and the screens alike
     request, _ = prepare_request(request)
     fit_req = FitRequest(model=request.model, experiments=request.experiments, method=request.method,
                          options=request.options)
+    tell("base_fit", "", 0)
     with clock.phase("base_fit"):   # always run: the budget bounds the search after it
         base = fit_model(fit_req)
     with clock.phase("validation"):
@@ -66,6 +80,7 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
         why_not = unusable_fit(state.fit)
         if why_not or not clock.allows():
             break
+        tell("screening", f"round {round_no + 1}", opts.max_refits - state.refits_left)
         screening = screen_state(state, opts, state.tried)
         notes += [n for n in screening.notes if n not in notes]
         if round_no == 0:
@@ -73,7 +88,7 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
         why_not = nothing_to_refit(screening)
         if why_not:
             break
-        accepted = try_in_rank_order(request, state, screening)
+        accepted = try_in_rank_order(request, state, screening, tell)
         if not accepted:
             why_not = no_confirmation(state, screening)
             break
@@ -85,6 +100,7 @@ def discover(request: DiscoverRequest) -> DiscoveryResult:
                               "was confirmed")
     conclusion = ("added " + "; ".join(f"{s.effect} ({s.description})" for s in state.steps) if state.steps
                   else why_not or "no significant missing effect")
+    tell("done", conclusion, opts.max_refits - state.refits_left)
     return DiscoveryResult(conclusion=conclusion, before=before, after=summarize(state.fit, state.validation),
                            steps=state.steps, added_inputs=added_inputs(request, state.request),
                            rejected=state.rejected, screened=screened_first, notes=notes, model=state.model,
@@ -161,7 +177,8 @@ def _where_scored(screening: Screening) -> str:
 
 # --- confirming refits ----------------------------------------------------------------------------
 
-def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening) -> bool:
+def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening,
+                      tell: Progress = _silent) -> bool:
     """Refit significant candidates best first until one is confirmed or the budget is spent.
 
     A smoothed switch (a width family) is refitted once, at its widest significant width, and its
@@ -183,6 +200,7 @@ def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Scr
             variants = siblings[:2]
         else:
             variants = [sc]
+        tell("refit", variants[0].candidate.description, request.discovery.max_refits - state.refits_left)
         verdict = confirm_candidate(request, state, variants, screening)
         if verdict is None:
             state.tried.add(fam)

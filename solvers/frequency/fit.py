@@ -19,6 +19,7 @@ from greyfit.solvers.methods.multistart import draw_starts
 from greyfit.solvers.frequency.data import prepare_frequency_data
 from greyfit.solvers.frequency.levy import levy_fit
 from greyfit.solvers.frequency.linearise import compile_linearised_model
+from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
 from greyfit.solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
 from greyfit.solvers.frequency.response import numeric_response
@@ -218,7 +219,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     if cov.matrix is not None:
         covariance = CovariancePublic(names=cov.names, matrix=cov.matrix.tolist())
         correlation = CovariancePublic(names=cov.names, matrix=correlation_from(cov.matrix).tolist())
-    return FitResult(
+    return attach_model(FitResult(
         success=success, status="success" if success else "failed", message=message, parameters=params,
         covariance=covariance, covariance_note="; ".join(notes) or None, correlation=correlation,
         initial_states={s.name: {} for s in sets},
@@ -227,7 +228,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         solver=SolverInfo(method=FitMethod.frequency_response, iterations=outcome.iterations,
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts),
-        frequency_response=response)
+        frequency_response=response), request.model)
 
 
 def _active_stability(fp: FrequencyProblem, w: np.ndarray, margin: float) -> list[str]:

@@ -365,9 +365,11 @@ def simulate_request(request: SimulateRequest) -> SimulateResult:
     fit = request.fit_result.fit if isinstance(request.fit_result, DiscoveryResult) else request.fit_result
     model = request.model
     if model is None:
-        if not isinstance(request.fit_result, DiscoveryResult):
-            raise DataError("give the model (a FitResult does not carry it; a discovery result does)", "model")
-        model = request.fit_result.model
+        carried = request.fit_result.model if request.fit_result is not None else None   # discovery's or a fit's
+        if not isinstance(carried, Model):   # none (an older result), or a transfer function
+            raise DataError("give the model: this fit_result carries no ODE model (results of older versions "
+                            "and transfer-function fits do not)", "model")
+        model = carried
     params = {k: v.value for k, v in fit.parameters.items()} if fit is not None else {}
     params.update(request.parameters)
     states = {k: dict(v) for k, v in fit.initial_states.items()} if fit is not None else {}

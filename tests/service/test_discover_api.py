@@ -64,11 +64,16 @@ def test_discovery_as_a_batch_job(client):
     assert results[1]["result"]["conclusion"].startswith("no significant missing effect")
 
 
-def test_cli_discover_prints_json_and_a_table(tmp_path):
+def test_cli_discover_prints_a_report_the_json_and_its_progress(tmp_path):
     path = tmp_path / "discover.json"
     path.write_text(json.dumps(duffing_body()))
-    proc = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "discover", str(path), "--summary"], cwd=ROOT,
-                          capture_output=True, text=True, timeout=300)
+    proc = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "discover", str(path), "--summary",
+                           "-o", str(tmp_path / "result.json")], cwd=ROOT, capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert json.loads(proc.stdout)["steps"][0]["effect"] == "cubic_stiffness"
-    assert "RMSE before" in proc.stderr and "+ cubic_stiffness in dv/dt" in proc.stderr
+    assert json.loads((tmp_path / "result.json").read_text())["steps"][0]["effect"] == "cubic_stiffness"
+    assert "RMSE before" in proc.stdout and "+ cubic_stiffness in dv/dt" in proc.stdout
+    # the progress lines (stderr is not a terminal here: one line per event)
+    progress = [line for line in proc.stderr.splitlines() if line.startswith("greyfit discover [")]
+    assert "fitting the declared model" in progress[0] and "done: added cubic_stiffness" in progress[-1]
+    assert any("refitting with" in line for line in progress)
+    assert any("screening the effect library (round 1)" in line for line in progress)

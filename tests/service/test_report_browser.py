@@ -87,3 +87,48 @@ def test_report_page_loads_in_headless_chromium_with_every_figure_rendered(repor
     result = chromium(exe, f"--screenshot={shot}", "--window-size=1200,2400", page.as_uri())
     assert result.returncode == 0 and shot.exists(), result.stderr[-2000:]
     assert png_size(shot) == (1200, 2400) and shot.stat().st_size > 50_000
+
+
+@pytest.fixture(scope="module")
+def frequency_report_dir(tmp_path_factory):
+    """`greyfit fit` then `greyfit report --request` on a frequency-response fit of two PI loops
+    (2 % complex noise on the measured responses)."""
+    pytest.importorskip("matplotlib", reason="the report extra is not installed (pip install 'greyfit[report]')")
+    from tests.frequency_systems import TRUTH, frequency_data, seed001_model
+    tmp = tmp_path_factory.mktemp("freq_report")
+    request = {"model": seed001_model({n: 1.5 * v for n, v in TRUTH.items()}),
+               "data": [frequency_data(TRUTH, 1, 1, seed=2, name="pi_1_1"),
+                        frequency_data(TRUTH, 2, 0.5, seed=3, name="pi_2_05")]}
+    (tmp / "request.json").write_text(json.dumps(request))
+    fit = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "fit", str(tmp / "request.json")],
+                         cwd=ROOT, capture_output=True, text=True, check=True)
+    (tmp / "result.json").write_text(fit.stdout)
+    report = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "report", str(tmp / "result.json"),
+                             "--request", str(tmp / "request.json"), "--out", str(tmp / "out"), "--formats", "png"],
+                            cwd=ROOT, capture_output=True, text=True)
+    assert report.returncode == 0, report.stderr   # exited 2 with pydantic union internals before
+    return tmp / "out", json.loads(fit.stdout)
+
+
+def test_frequency_report_has_bode_and_nyquist_in_headless_chromium(frequency_report_dir):
+    out, result = frequency_report_dir
+    assert result["success"] is True and result["frequency_response"]["stable"] is True
+    for name in ("bode", "nyquist"):
+        width, height = png_size(out / f"{name}.png")
+        assert width >= 600 and height >= 300, (name, width, height)   # two loops side by side
+    exe = browser()
+    dom = chromium(exe, "--dump-dom", (out / "report.html").as_uri())
+    assert dom.returncode == 0, dom.stderr[-2000:]
+    html = dom.stdout
+    for name in ("bode", "nyquist", "parameters"):
+        m = re.search(rf'<figure id="fig-{name}"[^>]*>\s*<img[^>]*data-rendered="(\d+)x(\d+)"', html)
+        assert m, f"figure {name} missing or not decoded by the browser"
+        assert int(m.group(1)) >= 600 and int(m.group(2)) >= 300, (name, m.groups())
+    assert 'id="fig-compare_estimation"' not in html   # no time records to compare
+    # the tables: the verdict, each estimate with its value, and the loops' stability
+    assert 'data-quality="good"' in html and 'data-converged="true"' in html
+    for name, p in result["parameters"].items():
+        assert f"<td>{name}</td><td>{p['value']:.6g}</td>" in html
+    for loop in ("pi_1_1", "pi_2_05"):
+        assert f"<td>{loop}</td><td>yes</td>" in html
+    assert "numerator (descending powers of s): b1, 0, b2" in html

@@ -1,0 +1,103 @@
+"""Discovery figures of the report: metrics before/after, the overlay of the model with and
+without the added terms, and the discrepancy dᵢ against the variable it depends on most."""
+from __future__ import annotations
+
+import numpy as np
+
+from greyfit.schemas.discovery import DiscoveryResult
+from greyfit.service.report import MAX_OUTPUTS, Figure, _save, _short, _shown, _simulated_series
+
+MAX_DISCREPANCIES = 4   # equations drawn (the most likely first)
+
+
+def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) -> tuple[list[Figure], list[str]]:
+    figs, notes = [], []
+    outs = _shown(list(result.before.rmse), 4 * MAX_OUTPUTS, "outputs", "discovery metrics", notes)
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
+    x = np.arange(len(outs))
+    for ax, key, label in ((axes[0], "rmse", "RMSE"), (axes[1], "fit_percent", "fit %")):
+        before = [getattr(result.before, key)[o] for o in outs]
+        after = [getattr(result.after, key)[o] for o in outs]
+        ax.bar(x - 0.2, before, 0.4, label="declared model", color="0.6")
+        ax.bar(x + 0.2, after, 0.4, label="with the added terms", color="C0")
+        ax.set_xticks(x, [_short(o, 20) for o in outs])
+        ax.set_title(label, fontsize=9)
+    axes[0].legend(fontsize=7, frameon=False)
+    terms = "; ".join(f"+ {s.term} in d{s.equation}/dt" for s in result.steps) or "nothing added"
+    fig.suptitle(_short(terms, 160), fontsize=8)
+    fig.tight_layout()
+    figs.append(_save(plt, fig, "discovery_metrics", "Before and after discovery", svg))
+    shape = discrepancy_figure(plt, result, svg, notes)
+    if shape is not None:
+        figs.append(shape)
+    if request is None or not result.steps:
+        if request is None:
+            notes.append("the before/after overlay needs the request (measured data)")
+        return figs, notes
+    from greyfit.solvers.data.preprocess import prepare_request
+    prepared, _ = prepare_request(request)
+    experiments = []
+    for exp in prepared.experiments:
+        extra = result.added_inputs.get(exp.name, {})
+        experiments.append(exp.model_copy(update={"inputs": {**exp.inputs, **extra}}))
+    params = {k: v.value for k, v in result.fit.parameters.items()}
+    after = _simulated_series(result.model, params, experiments, prepared.options, result.fit.initial_states)
+    added = {p.name for s in result.steps for p in s.parameters}
+    without = {k: (0.0 if k.split("[", 1)[0] in added else v) for k, v in params.items()}
+    before = _simulated_series(result.model, without, experiments, prepared.options, result.fit.initial_states)
+    rec_a, rec_b = after[0], before[0]
+    outputs = _shown(list(rec_a.measured), MAX_OUTPUTS, "outputs", "discovery overlay", notes)
+    fig, axes = plt.subplots(len(outputs), 1, figsize=(9, 2.4 * len(outputs) + 0.6), squeeze=False, sharex=True)
+    for r, out in enumerate(outputs):
+        ax = axes[r][0]
+        ax.plot(rec_a.time, rec_a.measured[out], color="0.55", lw=0.9, label="measured")
+        ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=1.0, label="without the added terms")
+        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=1.2, label="with " + _short(terms, 100))
+        ax.set_ylabel(_short(out))
+        ax.legend(fontsize=7, frameon=False, loc="upper right")
+    axes[-1][0].set_xlabel("t")
+    fig.tight_layout()
+    figs.append(_save(plt, fig, "discovery_overlay", f"{rec_a.name}: the final model with and without the added terms",
+                      svg))
+    return figs, notes
+
+
+
+
+def _pooled(series: dict) -> np.ndarray:
+    """Per-experiment lists (dict name → values) as one array; nulls as NaN."""
+    parts = [np.array([np.nan if v is None else v for v in values], dtype=float) for values in series.values()]
+    return np.concatenate(parts) if parts else np.array([])
+
+
+def discrepancy_figure(plt, result: DiscoveryResult, svg: bool, notes: list[str]) -> Figure | None:
+    """dᵢ against the variable it depends on most, with the smooth law fitted to it, per equation.
+
+    Drawn from `result.discrepancy` where the discovery returns one; a result without the field
+    (older versions) or without a variable for an equation draws nothing for it."""
+    discrepancy = getattr(result, "discrepancy", None)   # the field is newer than some results
+    equations = [e for e in (getattr(discrepancy, "equations", None) or [])
+                 if getattr(e, "variable", None) and getattr(e, "variable_samples", None)]
+    if not equations:
+        return None
+    equations = _shown(equations, MAX_DISCREPANCIES, "equations", "discrepancy", notes)
+    fig, axes = plt.subplots(1, len(equations), figsize=(4.4 * len(equations), 3.6), squeeze=False)
+    for ax, eq in zip(axes[0], equations):
+        x, d = _pooled(eq.variable_samples), _pooled(eq.samples)
+        n = min(x.size, d.size)
+        ax.plot(x[:n], d[:n], ".", ms=2.5, color="0.45", label="d (estimated)")
+        law = _pooled(getattr(eq, "law_samples", None) or {})
+        if law.size >= n > 0:
+            order = np.argsort(x[:n], kind="stable")
+            ax.plot(x[:n][order], law[:n][order], "-", color="C3", lw=1.4, label="fitted smooth law")
+        share = getattr(eq, "share_explained", None)
+        where = eq.equation if str(eq.equation).startswith("output") else f"d{eq.equation}/dt"
+        ax.set_title(f"{_short(where, 30)}: d against {_short(eq.variable, 30)}"
+                     + (f" ({100 * share:.0f} % explained)" if share is not None else ""), fontsize=9)
+        ax.set_xlabel(_short(eq.variable))
+        ax.set_ylabel(f"d in {_short(where, 30)}")
+        ax.legend(fontsize=7, frameon=False, loc="best")
+    fig.tight_layout()
+    return _save(plt, fig, "discrepancy", "The missing term as the data show it: the disturbance d estimated on "
+                 "each equation, against the variable it depends on most, with the smooth function of that "
+                 "variable fitted to it", svg)

@@ -1,0 +1,89 @@
+"""Figures of a frequency-response fit: Bode magnitude and phase, and Nyquist, of data and model.
+
+Everything comes from the result's `frequency_response` (measured and fitted G(jω) per data set,
+i.e. per closed loop the data were measured on), so no request is needed.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from greyfit.schemas.frequency import DataSetResponse, FrequencyResponseResult
+
+MAX_LOOPS = 4   # columns; the notes say when more data sets were left out
+
+
+def _complex(re: list[float], im: list[float]) -> np.ndarray:
+    return np.asarray(re, dtype=float) + 1j * np.asarray(im, dtype=float)
+
+
+def _phase_deg(g: np.ndarray) -> np.ndarray:
+    """Unwrapped along ω, so a phase that passes -180° is drawn as one curve."""
+    return np.degrees(np.unwrap(np.angle(g)))
+
+
+def _db(g: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore"):
+        return 20 * np.log10(np.abs(g))
+
+
+def _fit_percent(measured: np.ndarray, fitted: np.ndarray) -> float:
+    spread = np.linalg.norm(measured - measured.mean())
+    return float(100 * (1 - np.linalg.norm(fitted - measured) / spread)) if spread > 0 else float("nan")
+
+
+def _bode_column(ax_mag, ax_phase, ds: DataSetResponse, short) -> None:
+    w = np.asarray(ds.omega, dtype=float)
+    g, gh = _complex(ds.measured_real, ds.measured_imag), _complex(ds.fitted_real, ds.fitted_imag)
+    # data as markers, the model as a line: both stay visible where they agree
+    ax_mag.semilogx(w, _db(g), "o", ms=3.5, mfc="none", color="0.35", label="measured")
+    ax_mag.semilogx(w, _db(gh), "-", lw=1.3, color="C0", label=f"model (fit {_fit_percent(g, gh):.1f} %)")
+    ax_phase.semilogx(w, _phase_deg(g), "o", ms=3.5, mfc="none", color="0.35")
+    ax_phase.semilogx(w, _phase_deg(gh), "-", lw=1.3, color="C0")
+    ax_mag.set_title(f"Bode: {short(ds.name)}", fontsize=9)
+    ax_mag.set_ylabel("|G(jω)| [dB]")
+    ax_phase.set_ylabel("∠G(jω) [deg]")
+    ax_phase.set_xlabel("ω [rad/s]")
+    ax_mag.legend(fontsize=7, frameon=False, loc="best")
+    for ax in (ax_mag, ax_phase):
+        ax.grid(True, which="major", lw=0.3, color="0.85")
+
+
+def _nyquist_axes(ax, ds: DataSetResponse, short) -> None:
+    g, gh = _complex(ds.measured_real, ds.measured_imag), _complex(ds.fitted_real, ds.fitted_imag)
+    ax.plot(g.real, g.imag, "o", ms=3.5, mfc="none", color="0.35", label="measured")
+    ax.plot(gh.real, gh.imag, "-", lw=1.3, color="C0", label="model")
+    ax.plot(gh.real[:1], gh.imag[:1], ">", color="C0", ms=5, label=f"model at ω = {ds.omega[0]:.3g} rad/s")
+    ax.axhline(0, color="0.75", lw=0.6)
+    ax.axvline(0, color="0.75", lw=0.6)
+    ax.set_title(f"Nyquist: {short(ds.name)}", fontsize=9)
+    ax.set_xlabel("Re G(jω)")
+    ax.set_ylabel("Im G(jω)")
+    ax.legend(fontsize=7, frameon=False, loc="best")
+
+
+def frequency_figures(plt, response: FrequencyResponseResult, svg: bool, notes: list[str]) -> list:
+    """[Bode figure, Nyquist figure], one column per data set (at most MAX_LOOPS)."""
+    from greyfit.service.report import _grid_layout  # (report imports this)
+    from greyfit.service.report import _save as save
+    from greyfit.service.report import _short as short
+    sets = [d for d in response.data if len(d.omega) > 0]
+    if not sets:
+        notes.append("frequency response: no data set with frequencies to draw")
+        return []
+    if len(sets) > MAX_LOOPS:
+        notes.append(f"frequency response: the first {MAX_LOOPS} of {len(sets)} data sets are drawn")
+        sets = sets[:MAX_LOOPS]
+    n = len(sets)
+    fig, axes = plt.subplots(2, n, figsize=(4.6 * n, 5.4), squeeze=False, sharex="col")
+    for c, ds in enumerate(sets):
+        _bode_column(axes[0][c], axes[1][c], ds, short)
+    _grid_layout(fig, 2, n, left=0.9, bottom=0.55, top=0.3, wgap=0.95, hgap=0.25)
+    figures = [save(plt, fig, "bode", "Bode magnitude and phase of each data set: measured (circles) and the "
+                    "fitted model's closed-loop response (line)", svg)]
+    fig, axes = plt.subplots(1, n, figsize=(4.6 * n, 4.2), squeeze=False)
+    for c, ds in enumerate(sets):
+        _nyquist_axes(axes[0][c], ds, short)
+    _grid_layout(fig, 1, n, left=0.9, bottom=0.55, top=0.3, wgap=0.95)
+    figures.append(save(plt, fig, "nyquist", "Nyquist plot of each data set: measured (circles) and the fitted "
+                        "model (line, arrow at the lowest frequency)", svg))
+    return figures

@@ -73,7 +73,7 @@ def describe(app: FastAPI, settings: Settings) -> dict:
     components["securitySchemes"] = {SCHEME: {"type": "http", "scheme": "bearer",
                                               "description": "GREYFIT_API_KEY, when the server sets one"}}
     for path, ops in spec["paths"].items():
-        for op in ops.values():
+        for method, op in ops.items():
             responses = op.setdefault("responses", {})
             codes = ["500"] if path == "/healthz" else ["500", "503"]
             if path not in PUBLIC:

@@ -8,13 +8,14 @@ from __future__ import annotations
 import math
 from typing import Annotated, Literal, Optional, Union
 
-from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, model_validator
+from pydantic import BaseModel, ConfigDict, Discriminator, Field, Tag, field_validator, model_validator
 
 from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS, MAX_PARAMETERS, MAX_SAMPLES
 from greyfit.schemas.model import RESERVED_NAMES, Expression, FiniteFloat, Model, Name, Parameter
 
 MAX_DEGREE = 40
+DEPRECATED_COSTS = {"seed_log": "log1p_abs_error"}   # old name -> the name that says what it is
 Coefficients = list[Expression]
 
 
@@ -149,11 +150,11 @@ class FrequencyFitOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    cost: Literal["relative_complex", "complex", "log", "seed_log"] = Field(
+    cost: Literal["relative_complex", "complex", "log", "log1p_abs_error"] = Field(
         default="relative_complex",
         description="relative_complex: (Ĝ-G)/|G|; complex: Ĝ-G; log: log|Ĝ/G| and phase of Ĝ/G; "
-                    "seed_log: log(|Ĝ-G|+1) (the cost of the course notes *Parameter estimation from frequency data*, "
-                    "Ohki, 2021)")
+                    "log1p_abs_error: log(|Ĝ-G|+1), the cost of the course notes on parameter estimation "
+                    "from frequency data ('seed_log' is accepted as a deprecated alias)")
     stability: Literal["routh", "penalty", "check", "none"] = Field(
         default="routh", description="routh: Liénard-Chipart (Routh-Hurwitz) conditions of every closed-loop "
         "denominator as constraints >= stability_margin; penalty: their violation as an extra residual; "
@@ -176,6 +177,11 @@ class FrequencyFitOptions(BaseModel):
     tol: float = Field(default=1e-10, gt=0, lt=1, description="Ipopt's convergence tolerance (tol)")
     confidence_level: float = Field(default=0.95, gt=0.5, lt=1,
                                     description="level of the confidence intervals (`ci95`)")
+
+    @field_validator("cost", mode="before")
+    @classmethod
+    def _deprecated_cost_names(cls, value):
+        return DEPRECATED_COSTS.get(value, value) if isinstance(value, str) else value
 
 
 class FrequencyFitRequest(BaseModel):

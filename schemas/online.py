@@ -182,7 +182,7 @@ class TimeVarying(BaseModel):
 
 # --- fit side ------------------------------------------------------------------------------------
 class RlsOptions(BaseModel):
-    """Recursive least squares (the textbook chapter *Model reference adaptive systems*, eqs. 7-38/39, 7-44/45)."""
+    """Recursive least squares (model reference adaptive systems chapter, eqs. 7-38/39 and 7-44/45)."""
 
     model_config = ConfigDict(extra="forbid")
 
@@ -193,7 +193,8 @@ class RlsOptions(BaseModel):
                     "constant_trace: λ1(k) keeps trace P constant (7-45, λ2 = λ1); "
                     "constant_gain: P stays γI (λ1 = 1, λ2 = 0)")
     initial_covariance: float = Field(default=1e4, gt=0, le=1e12,
-                                      description="γ in P₀ = γI (parameters scaled by their guesses)")
+                                      description="γ in P₀ = γI (parameters scaled by their guesses); with "
+                                                  "initialisation 'exact' it serves only the first rows")
     trajectory_every: int = Field(default=1, ge=1, le=100_000,
                                   description="keep every n-th sample of θ(t) in the result")
     noise: Literal["equation", "measurement"] = Field(
@@ -201,27 +202,34 @@ class RlsOptions(BaseModel):
         description="what the ±2σ band assumes: equation: white equation error; measurement: white noise on "
                     "the measured output of a discrete-time model, which makes the equation error a moving "
                     "average (taken from the model at the current estimate)")
+    initialisation: Literal["exact", "prior"] = Field(
+        default="exact",
+        description="exact: once the first rows' information matrix is invertible, start from their "
+                    "weighted least-squares solution and P = (Σ λ^(k-i) ΦᵀΦ)⁻¹, so that λ = 1 gives batch "
+                    "least squares; prior: P₀ = γI around the guess throughout (pulls poorly excited "
+                    "directions towards the guess). Forgetting and decreasing-gain laws only")
 
 
 class MrasOptions(BaseModel):
-    """Model-reference adaptive estimator (*Model reference adaptive systems*, 7.3), PI adaptation law (7-29/30)."""
+    """Model-reference adaptive estimator (model reference adaptive systems chapter, 7.3), PI law (7-29/30)."""
 
     model_config = ConfigDict(extra="forbid")
 
     kp: float = Field(default=0.0, ge=0, description="proportional adaptation gain (>= 0)")
     ki: float = Field(default=1000.0, gt=0, description="integral adaptation gain [1/s] (> 0), on normalised signals")
-    substeps: int = Field(default=1, ge=1, le=100, description="Euler steps of the adjustable model per sample")
+    substeps: int = Field(default=1, ge=1, le=100, description="integrator steps of the adjustable model per sample "
+                                                                    "(RK4 unless options.integrator is cvodes)")
     trajectory_every: int = Field(default=1, ge=1, le=100_000,
                                   description="keep every n-th sample of θ(t) in the result")
 
 
 class Prefilter(BaseModel):
-    """The same stable low-pass on both sides of the equation (a state-variable filter).
+    """The same stable low-pass on both sides of the equation (state-variable filter; Robust parameter
+    estimation by noise reduction).
 
     Continuous-time models: n cascaded first-order filters ω/(s+ω) on states and inputs; the
     derivative of the filtered state comes from the filter itself, ω(F^{n-1}x − F^n x), so no
-    differentiation of noisy data is needed. Discrete-time models: the filter of Aoki & Kawata's
-    *Robust parameter estimation by noise reduction*,
+    differentiation of noisy data is needed. Discrete-time models: the noise-reduction paper's
     H_f = (1−a_f)/(1 − a_f z⁻¹), a_f = exp(−2π f_c Ts), n times, on outputs and inputs.
     The first 5 time constants are dropped (filter start-up).
     """
@@ -241,7 +249,15 @@ class ExcitationReport(BaseModel):
     regressor_rank: int
     regressor_size: int
     regressor_condition: Optional[float] = None
-    persistently_exciting: bool
+    persistently_exciting: bool = Field(description="the regressor has full rank over the window and, for "
+                                        "models linear in states and inputs, the inputs' PE order reaches "
+                                        "required_order")
+    required_order: Optional[int] = Field(
+        default=None, description="PE order the model needs: the most coefficients one equation estimates "
+                                  "(an n-th order plant: 2n, i.e. n frequencies); null for nonlinear regressors")
+    available_order: Optional[int] = Field(
+        default=None, description="PE order the inputs give the regression over the window (plus one for an "
+                                  "offset term)")
 
 
 class ParameterTrajectory(BaseModel):
@@ -259,3 +275,7 @@ class ParameterTrajectory(BaseModel):
         default=None, description="coefficient -> its expression in the physical parameters")
     excitation: Optional[ExcitationReport] = None
     note: Optional[str] = None
+    outside_bounds: Optional[dict[str, list[bool]]] = Field(
+        default=None, description="online estimators, per parameter with declared bounds and per sample of "
+                                  "`time`: true where the estimate is outside them (no physical pre-image, "
+                                  "e.g. R < 0)")

@@ -27,6 +27,7 @@ from greyfit.solvers.inference.covariance import correlation_from, estimate_cova
 from greyfit.solvers.inference.profile import check_profile_names, run_profiles
 from greyfit.solvers.inference.statistics import information_criteria
 from greyfit.solvers.methods.batch import BatchFit, Residuals
+from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warnings
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
 from greyfit.solvers.model.carried import attach_model
@@ -116,6 +117,8 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     x0s = problem.x0_of(outcome.w)
     jp = built.jacobian(theta_s, outcome.w, x0s)
     keep = np.array([b is None for b in bounds] + [True] * jp.n_extra)
+    if built.eep is not None:   # noise in the regressors biases equation error: an instrumental-variable check
+        before = before + equation_error_bias_warnings(built.eep, cm, data, layout, outcome.w, keep[:layout.size], opts)
     ndata, nvarys = jp.res.size, int(keep.sum())
     cost = 0.5 * float(jp.res @ jp.res)
     channels = built.channels(theta, x0s, jp.res)

@@ -101,3 +101,78 @@ def rl_continuous_model(R: float = 1.0, L: float = 1.0) -> dict:
             "parameters": [{"name": "R", "value": R, "lower": 0, "unit": "ohm"},
                            {"name": "L", "value": L, "lower": 0, "unit": "H"}],
             "equations": {"i": "(-R*i + u)/L"}}
+
+
+RLC_TRUTH = {"R": 2.0, "L": 0.5, "C": 0.02}
+
+
+def simulate_rlc(u: np.ndarray, noise: float = 1e-4, seed: int = 0, ar: float = 0.0) -> np.ndarray:
+    """Series RLC (L di/dt = u − R i − v_C, C dv_C/dt = i), voltage held between samples, exact ZOH
+    response sampled every 1 ms, plus measurement noise (AR(1) with pole `ar`: coloured when > 0)."""
+    p = RLC_TRUTH
+    a = np.array([[-p["R"] / p["L"], -1 / p["L"]], [1 / p["C"], 0.0]])
+    b = np.array([[1 / p["L"]], [0.0]])
+    ad, bd, *_ = signal.cont2discrete((a, b, np.array([[1.0, 0.0]]), np.zeros((1, 1))), RL_T, "zoh")
+    x, out = np.zeros(2), np.empty(u.size)
+    for k, uk in enumerate(u):
+        out[k] = x[0]
+        x = ad @ x + bd[:, 0] * uk
+    white = np.random.default_rng(seed).standard_normal(u.size)
+    coloured = signal.lfilter([np.sqrt(1 - ar * ar)], [1.0, -ar], white)
+    return out + noise * coloured
+
+
+def rlc_model(guess=(1.0, 1.0, 0.01)) -> dict:
+    """The RLC circuit's Euler difference equation in R, L, C (the model reference adaptive systems
+    chapter, example 7-6): i[k+1] = (2 − TR/L) i + (TR/L − 1 − T²/(LC)) i[k−1] + T/L (u − u[k−1])."""
+    return {"name": "rlc_circuit", "states": ["i", "i_1", "u_1"], "inputs": ["u"], "constants": {"T": RL_T},
+            "parameters": [{"name": "R", "value": guess[0], "lower": 0, "unit": "ohm"},
+                           {"name": "L", "value": guess[1], "lower": 0, "unit": "H"},
+                           {"name": "C", "value": guess[2], "lower": 0, "unit": "F"}],
+            "equations": {"i": "(2 - T*R/L)*i + (T*R/L - 1 - T^2/(L*C))*i_1 + T/L*u - T/L*u_1",
+                          "i_1": "i", "u_1": "u"},
+            "outputs": {"i": "i"}, "discrete": {"sample_time": RL_T}}
+
+
+MOTOR = {"tau_r": 0.1, "M": 0.5, "I": 10.0, "omega_s": 2 * np.pi * 50}
+
+
+def induction_motor_model(omega_r_guess: float = 100.0) -> dict:
+    """Rotor flux of an induction machine in stator coordinates (the model reference adaptive systems
+    chapter, example 7-4): the speed ω_r is estimated from the measured fluxes and stator currents."""
+    return {"name": "induction_motor", "states": ["psa", "psb"], "inputs": ["isa", "isb"],
+            "constants": {"tau_r": MOTOR["tau_r"], "M": MOTOR["M"]},
+            "parameters": [{"name": "wr", "value": omega_r_guess, "lower": 0, "unit": "rad/s"}],
+            "equations": {"psa": "-psa/tau_r - wr*psb + M/tau_r*isa",
+                          "psb": "wr*psa - psb/tau_r + M/tau_r*isb"}}
+
+
+def simulate_induction_motor(omega_r: float, duration: float = 1.0, ts: float = 1e-3, noise: float = 0.0,
+                             seed: int = 0, ripple: float = 0.0):
+    """(t, i_sα, i_sβ, ψ_rα, ψ_rβ): sinusoidal stator currents at 50 Hz (plus a 5th-harmonic `ripple`),
+    fluxes from solve_ivp (DOP853, rtol 1e-11) from rest, sampled every `ts`, noise relative to |ψ|."""
+    from scipy.integrate import solve_ivp
+    m = MOTOR
+    w5 = -5 * m["omega_s"]
+
+    def currents(t):
+        return (m["I"] * (np.cos(m["omega_s"] * t) + ripple * np.cos(w5 * t)),
+                m["I"] * (np.sin(m["omega_s"] * t) + ripple * np.sin(w5 * t)))
+
+    def rhs(t, x):
+        ia, ib = currents(t)
+        return [-x[0] / m["tau_r"] - omega_r * x[1] + m["M"] / m["tau_r"] * ia,
+                omega_r * x[0] - x[1] / m["tau_r"] + m["M"] / m["tau_r"] * ib]
+
+    t = np.arange(int(round(duration / ts)) + 1) * ts
+    sol = solve_ivp(rhs, (0, t[-1]), [0.0, 0.0], t_eval=t, method="DOP853", rtol=1e-11, atol=1e-12)
+    ia, ib = currents(t)
+    rng = np.random.default_rng(seed)
+    size = float(np.sqrt(np.mean(sol.y ** 2)))
+    psa, psb = (y + noise * size * rng.standard_normal(t.size) for y in sol.y)
+    return t, ia, ib, psa, psb
+
+
+def induction_motor_experiment(t, ia, ib, psa, psb) -> dict:
+    return {"name": "motor", "time": t.tolist(), "inputs": {"isa": ia.tolist(), "isb": ib.tolist()},
+            "outputs": {"psa": psa.tolist(), "psb": psb.tolist()}}

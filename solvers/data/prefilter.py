@@ -1,10 +1,11 @@
-"""Prefilters against measurement noise (seed 004): the same stable low-pass on both sides.
+"""Prefilters against measurement noise: the same stable low-pass on both sides of the equation.
 
-Equation error and ARX are biased when the regressors carry measurement noise (seed 004). A
-low-pass F applied to outputs *and* inputs keeps the input-output relation of a linear model
-(F commutes with it) while the noise above the cut-off is removed from the regressors.
+Equation error and ARX are biased when the regressors carry measurement noise (Robust parameter
+estimation by noise reduction, Aoki and Kawata). A low-pass F applied to outputs *and* inputs keeps
+the input-output relation of a linear model (F commutes with it) while the noise above the cut-off
+is removed from the regressors.
 
-* Discrete-time models: seed 004's first-order H_f(z) = (1 − a_f)/(1 − a_f z⁻¹),
+* Discrete-time models: the noise-reduction paper's first-order H_f(z) = (1 − a_f)/(1 − a_f z⁻¹),
   a_f = exp(−2π f_c Ts), applied `order` times (unit DC gain; the gain cancels anyway).
 * Continuous-time models (state-variable filter): `order` cascaded ω/(s + ω), ω = 2π f_c,
   integrated exactly for inputs linear between samples. The derivative of the filtered state is

@@ -7,26 +7,37 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import (
-    CovariancePublic, FitMethod, FitMetrics, FitOptions, FitResult, ParameterEstimate, SolverInfo,
+    CovariancePublic,
+    FitMethod,
+    FitMetrics,
+    FitOptions,
+    FitResult,
+    ParameterEstimate,
+    SolverInfo,
 )
 from greyfit.schemas.frequency import (
-    DataSetResponse, FrequencyFitRequest, FrequencyResponseResult, LinearisedOdeModel, LoopStability,
+    DataSetResponse,
+    FrequencyFitRequest,
+    FrequencyResponseResult,
+    LinearisedOdeModel,
+    LoopStability,
 )
-from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.fit import _at_bound, _message
-from greyfit.solvers.methods.multistart import draw_starts
+from greyfit.solvers.frequency.checks import assess_frequency_fit
 from greyfit.solvers.frequency.data import prepare_frequency_data
 from greyfit.solvers.frequency.levy import levy_fit
 from greyfit.solvers.frequency.linearise import compile_linearised_model
-from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
 from greyfit.solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
 from greyfit.solvers.frequency.response import numeric_response
 from greyfit.solvers.frequency.stability import poles, routh_first_column
-from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
-from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.statistics import information_criteria
+from greyfit.solvers.methods.multistart import draw_starts
+from greyfit.solvers.model.carried import attach_model
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
 
 FEASIBILITY_TOLERANCE = 1e-7
 
@@ -158,7 +169,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     levy_theta = None
     if opts.levy_start:
         # unconstrained: a constrained Levy step lands on a bound far from the truth and SK cannot
-        # leave it (seen on seed 001's structure); bounds and constraints act in the fit proper
+        # leave it (seen on the frequency-data course notes' structure); bounds and constraints act in the fit proper
         levy = levy_fit(loops, sets, layout, iterations=opts.sk_iterations,
                         data_weights=data_weights(sets, opts.cost), constrained=False, options=engine_opts)
         if np.all(np.isfinite(levy.theta)) and levy.status in SUCCESS_STATUSES:   # else it is just the start
@@ -210,7 +221,6 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         rmse[d.name] = float(np.sqrt(np.mean(np.abs(err) ** 2)))
         spread = np.linalg.norm(meas - meas.mean())
         fitp[d.name] = float(100 * (1 - np.linalg.norm(err) / spread)) if spread > 0 else float("nan")
-    success = outcome.success and (response.stable or opts.stability == "none")
     message = _message(outcome.status)
     if not response.stable:
         bad = [lp.setting for lp in response.loops if not lp.stable]
@@ -219,8 +229,8 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     if cov.matrix is not None:
         covariance = CovariancePublic(names=cov.names, matrix=cov.matrix.tolist())
         correlation = CovariancePublic(names=cov.names, matrix=correlation_from(cov.matrix).tolist())
-    return attach_model(FitResult(
-        success=success, status="success" if success else "failed", message=message, parameters=params,
+    result = attach_model(FitResult(
+        success=outcome.success, status="success" if outcome.success else "failed", message=message, parameters=params,
         covariance=covariance, covariance_note="; ".join(notes) or None, correlation=correlation,
         initial_states={s.name: {} for s in sets},
         metrics=FitMetrics(cost=cost, ndata=ndata, nfree=ndata - nvarys, nvarys=nvarys, rmse=rmse,
@@ -229,6 +239,9 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts),
         frequency_response=response), request.model)
+    return assess_frequency_fit(result, sets=sets, layout=layout, theta_s=theta_s, converged=outcome.success,
+                                status=outcome.status, nlp_cost=outcome.cost, covariance=cov, jac=jac, keep=keep,
+                                stability_enforced=opts.stability in ("routh", "penalty"))
 
 
 def _active_stability(fp: FrequencyProblem, w: np.ndarray, margin: float) -> list[str]:

@@ -30,7 +30,7 @@ class FrequencyProblem:
 def data_weights(sets: list[FrequencySet], cost: str) -> list[np.ndarray]:
     """Per-frequency weight of the complex error: 1/|G| (relative) or one common 1/rms|G|.
 
-    The common factor of `complex` and `seed_log` only scales the cost (not its minimiser) so that
+    The common factor of `complex` and `log1p_abs_error` only scales the cost (not its minimiser) so that
     Ipopt's tolerances see an O(1) problem.
     """
     if cost == "relative_complex":
@@ -48,7 +48,7 @@ def cost_residual(re, im, g: np.ndarray, weight: np.ndarray, cost: str):
         qi = (im * gr - re * gi) / mag2
         return ca.vertcat(0.5 * ca.log(qr * qr + qi * qi), ca.atan2(qi, qr))
     dr, di = re - gr, im - gi
-    if cost == "seed_log":
+    if cost == "log1p_abs_error":
         # the row pair (dr, di) * log(1+|d|)/|d| has squared norm log(1+|d|)^2 exactly, but is smooth at
         # d = 0, and its Gauss-Newton Hessian keeps the curvature across d that a scalar |d| row loses
         tiny = (1e-12 / weight[0]) ** 2

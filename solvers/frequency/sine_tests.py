@@ -1,4 +1,5 @@
-"""Frequency response from raw sine-test records: least squares on sin/cos components (seed 001).
+"""Frequency response from raw sine-test records: least squares on sin/cos components (the course notes
+on parameter estimation from frequency data).
 
 With ``u(t) = Σ Im(U_i e^{jω_i t})`` and ``y(t) = Σ Im(Y_i e^{jω_i t})`` in steady state,
 ``Y_i = G(jω_i) U_i``. Regressing u and y on ``[sin ω_i t, cos ω_i t, 1]`` gives

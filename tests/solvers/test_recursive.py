@@ -74,3 +74,4 @@ def test_unexciting_input_is_reported():
         i[k + 1] = np.exp(-0.004) * i[k] + (1 - np.exp(-0.004)) / 2 * u[k]
     res = rls_fit(t, u, i + 1e-3 * np.random.default_rng(0).standard_normal(u.size), forgetting=0.98)
     assert res.trajectory.excitation.input_order["u"] == 1
+    assert not res.success and res.quality == "suspect"           # was success true before issue 22

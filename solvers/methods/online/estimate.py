@@ -9,25 +9,33 @@ from __future__ import annotations
 
 import time
 
+import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import (
-    CovariancePublic, FitMethod, FitMetrics, FitRequest, FitResult, ParameterEstimate, SolverInfo,
+    CovariancePublic,
+    FitMethod,
+    FitMetrics,
+    FitRequest,
+    FitResult,
+    ParameterEstimate,
+    SolverInfo,
 )
 from greyfit.schemas.online import ParameterTrajectory
-from greyfit.solvers.inference.covariance import correlation_from
-from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.checks.diagnostics import residual_analysis
-from greyfit.solvers.model.discrete import check_sample_time, is_discrete
-from greyfit.solvers.methods.equation_error import build_equation_error
-from greyfit.solvers.errors import DataError
-from greyfit.solvers.model.compiler import compile_model
-from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.prefilter import apply_prefilter
-from greyfit.solvers.methods.online.recursive import OnlineRun, excitation_report, recursive_least_squares
-from greyfit.solvers.model.reparametrize import LinearForm, linear_form, to_physical
-from greyfit.solvers.methods.online.rls_noise import measurement_noise
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.inference.covariance import correlation_from
 from greyfit.solvers.inference.statistics import information_criteria, student_t_quantile
+from greyfit.solvers.methods.equation_error import build_equation_error
+from greyfit.solvers.methods.online.checks import apply_verdict, bound_warnings, excitation_warnings, outside_bounds
+from greyfit.solvers.methods.online.recursive import OnlineRun, excitation_report, recursive_least_squares
+from greyfit.solvers.methods.online.rls_noise import measurement_noise
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.discrete import check_sample_time, is_discrete
+from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.model.reparametrize import LinearForm, linear_form, to_physical
 
 
 def _check_request(request: FitRequest) -> None:
@@ -75,12 +83,25 @@ def fit_online(request: FitRequest) -> FitResult:
         every = opts.rls.trajectory_every
     else:
         from greyfit.solvers.methods.online.mras import model_reference_adaptive
-        run = model_reference_adaptive(form, data[0], ed, eep.equations, eta0, opts.mras)
+        run = model_reference_adaptive(form, data[0], ed, eep.equations, eta0, opts.mras, opts)
         every = opts.mras.trajectory_every
     d = data[0]
-    excitation = excitation_report(phi, run, {u: d.u[k, ed.rows] for k, u in enumerate(cm.inputs)})
+    excitation = excitation_report(phi, run, {u: d.u[k, ed.rows] for k, u in enumerate(cm.inputs)},
+                                   linear_regressor=form.mapped or _linear_in_signals(form, equations))
     filt = "; ".join(x for x in (eep.derivative_filter, note) if x) or None
     return _result(request, cm, layout, form, run, eep, d, excitation, every, filt, started)
+
+
+def _linear_in_signals(form: LinearForm, equations: list[int]) -> bool:
+    """Whether the estimated equations are linear in states and inputs (then the regressor is a
+    linear filter of the inputs and the PE-order rule applies)."""
+    cm = form.cm
+    x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
+    eta = ca.SX.sym("eta", form.layout.size)
+    p = ca.DM(form.layout.offset) + ca.DM(form.layout.matrix[0]) @ eta
+    z = ca.vertcat(x, u)
+    jz = ca.jacobian(cm.rhs(x, u, p, t)[equations], z)
+    return not ca.depends_on(jz, ca.vertcat(z, t))
 
 
 def _physical(form: LinearForm, layout, run: OnlineRun, every: int):
@@ -155,6 +176,8 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
 
     t_rows = d.t[ed.rows][keep]
     names = list(layout.labels)
+    marks = outside_bounds(traj, layout)
+    bounded = [k for k in range(len(names)) if np.isfinite(layout.lower[k]) or np.isfinite(layout.upper[k])]
     trajectory = ParameterTrajectory(
         estimator=run.label, time=t_rows.tolist(),
         values={nm: _floats(traj[:, k]) for k, nm in enumerate(names)},
@@ -164,14 +187,13 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
                        for k, nm in enumerate(form.layout.labels)} if form.mapped else None),
         mapping=form.descriptions if form.mapped else None,
         excitation=excitation,
+        outside_bounds={names[k]: marks[:, k].tolist() for k in bounded} or None,
         note=("physical parameters mapped from the estimated coefficients by weighted Gauss-Newton; "
               "band by the delta method" if form.mapped else None))
     message = (f"{run.label}: {m} updates"
-               + ("" if excitation.persistently_exciting else
-                  f"; regressor not persistently exciting (rank {excitation.regressor_rank} of "
-                  f"{excitation.regressor_size})")
+               + ("" if excitation.persistently_exciting else "; not persistently exciting (see warnings)")
                + "; bounds and constraints are not enforced by online estimators")
-    return FitResult(
+    result = FitResult(
         success=bool(np.all(np.isfinite(theta))), status="success" if np.all(np.isfinite(theta)) else "failed",
         message=message, parameters=params, covariance=covariance, covariance_note=cov_note,
         correlation=correlation,
@@ -182,3 +204,4 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
                           return_status="Online_Estimate", derivative_filter=filt,
                           linear_in_parameters=not form.mapped),
         residual_analysis=analyses, trajectory=trajectory)
+    return apply_verdict(result, excitation_warnings(excitation) + bound_warnings(theta, layout, marks))

@@ -1,4 +1,4 @@
-"""Recursive least squares (seed 003, 7.4) and the persistent-excitation report.
+"""Recursive least squares (model reference adaptive systems chapter, 7.4) and the persistent-excitation report.
 
 The regression y_k = Φ_k η + e_k comes from equation error's sample Jacobian (one block of rows per
 sample: one row per equation with a free parameter), so continuous-time models with estimated
@@ -20,7 +20,7 @@ constant-trace and constant-gain laws, so no band is given there.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -30,6 +30,7 @@ from greyfit.solvers.methods.online.rls_noise import MeasurementNoise, NoiseCova
 PE_RELATIVE_EIGENVALUE = 1e-10
 RANK_RELATIVE_EIGENVALUE = 1e-10
 PE_MAX_ORDER = 40
+EXACT_START_EIGENVALUE = 1e-12   # equilibrated information matrix: invertible enough to start from
 
 
 @dataclass
@@ -46,6 +47,47 @@ class OnlineRun:
     residual_weighted: bool = True       # innovations carry equation error's weights
 
 
+@dataclass
+class _ExactStart:
+    """Weighted sums of the first rows, kept until their information matrix is invertible.
+
+    Then the estimate and P are set to the weighted least-squares solution of those rows,
+    θ̂ = (Σ λ^{k−i} ΦᵢᵀΦᵢ)⁻¹ Σ λ^{k−i} Φᵢᵀyᵢ and P = (Σ λ^{k−i} ΦᵢᵀΦᵢ)⁻¹: the recursion starts at
+    k = n as the RLS derivation of the model reference adaptive systems chapter prescribes, so for
+    λ = 1 every later θ̂_k equals batch least squares on the rows so far. P₀ = γI instead adds the prior
+    ‖θ − θ₋₁‖²/γ, which on closely sampled, collinear regressors moves the answer by tens of percent.
+    """
+
+    n: int
+    lam: float
+    info: np.ndarray = field(init=False)
+    rhs: np.ndarray = field(init=False)
+    yy: float = 0.0
+
+    def __post_init__(self):
+        self.info, self.rhs = np.zeros((self.n, self.n)), np.zeros(self.n)
+
+    def add(self, f: np.ndarray, y: np.ndarray) -> None:
+        lam = self.lam
+        self.info = lam * self.info + f.T @ f
+        self.rhs = lam * self.rhs + f.T @ y
+        self.yy = lam * self.yy + float(y @ y)
+
+    def solve(self) -> tuple[np.ndarray, np.ndarray, float] | None:
+        """(θ̂, P, weighted residual sum) once the equilibrated information matrix has full rank."""
+        d = np.sqrt(np.diag(self.info))
+        if np.any(d <= 0) or not np.all(np.isfinite(d)):
+            return None
+        scaled = self.info / np.outer(d, d)
+        ev = np.linalg.eigvalsh(scaled)
+        if ev[0] <= EXACT_START_EIGENVALUE * ev[-1]:
+            return None
+        p = np.linalg.inv(scaled) / np.outer(d, d)
+        eta = p @ self.rhs
+        ss = max(self.yy - float(eta @ self.rhs), 0.0)
+        return eta, 0.5 * (p + p.T), ss
+
+
 def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, opts: RlsOptions,
                             noise: MeasurementNoise | None = None) -> OnlineRun:
     """Run RLS over the rows; y (M, neq), phi (M, neq, nη), eta0 (nη,) initial estimate.
@@ -54,7 +96,9 @@ def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, op
     ----------
     y, phi : measurements and regressors of the M updates (a block of neq rows per sample).
     eta0 : initial estimate θ̂₋₁ (scaled units; the guess).
-    opts : forgetting factor, gain law, initial covariance γ (P₀ = γI).
+    opts : forgetting factor, gain law, initial covariance γ (P₀ = γI), initialisation. With
+        ``initialisation="exact"`` (the forgetting and decreasing-gain laws) γI only serves the first
+        rows, until their information matrix is invertible; from there θ̂ is weighted least squares.
     noise : measurement noise map (`solvers.rls_noise`); None: white equation error.
     """
     m, neq, n = phi.shape
@@ -66,6 +110,7 @@ def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, op
     eye = np.eye(neq)
     estimates = np.empty((m, n))
     covs = np.empty((m, n, n)) if law in ("forgetting", "decreasing_gain") else None
+    exact = _ExactStart(n, lam) if covs is not None and opts.initialisation == "exact" else None
     innovations = np.empty((m, neq))
     ss, dof = 0.0, 0.0
     q = np.zeros((n, n))       # Σ λ^{2(k−i)} ΦᵢᵀΦᵢ: the information the noise brings (sandwich)
@@ -86,6 +131,12 @@ def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, op
         post = y[k] - f @ eta
         ss = lam * ss + float(post @ post)
         dof = lam * dof + neq
+        if exact is not None:
+            exact.add(f, y[k])
+            start = exact.solve()
+            if start is not None:
+                eta, p, ss = start
+                exact = None
         estimates[k] = eta
         innovations[k] = e
         if covs is not None:
@@ -110,7 +161,8 @@ def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
 
     Full rank: the smallest eigenvalue of its Gram matrix above 1e-10 of the largest
     (fast sampling makes neighbouring samples nearly collinear, hence the small threshold). A constant has
-    order 1, a sinusoid 2, n sinusoids 2n (seed 003: an n-th order plant needs n frequencies).
+    order 1, a sinusoid 2, n sinusoids 2n (the model reference adaptive systems chapter: an n-th order
+    plant needs n frequencies).
     """
     u = np.asarray(u, dtype=float)
     n_max = min(max_order, u.size // 2)
@@ -125,10 +177,40 @@ def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
     return order
 
 
-def excitation_report(phi: np.ndarray, run: OnlineRun, inputs: dict[str, np.ndarray]) -> ExcitationReport:
+def required_order(phi: np.ndarray) -> int:
+    """Persistent-excitation order the regression needs: the most coefficients one equation has.
+
+    A regressor that is a linear filter of the inputs has rank at most the inputs' PE order, so an
+    equation with n coefficients needs input of order n (an n-th order ARX model 2n: n frequencies).
+    """
+    used = np.any(phi != 0, axis=0)                  # (neq, nη): which coefficients each equation has
+    return int(np.max(np.sum(used, axis=1))) if used.size else 0
+
+
+def _available_order(phi: np.ndarray, inputs: dict[str, np.ndarray], window: int) -> tuple[dict[str, int], int]:
+    """(PE order of each input over the window, the order they give the regression together).
+
+    A constant regressor column (an offset term) adds one; the inputs are then counted without
+    their mean, so that a DC input and the offset are not counted twice.
+    """
+    m = phi.shape[0]
+    tail = phi[m - window:]
+    constant = bool(np.any(np.all(tail == tail[:1], axis=0) & (tail[0] != 0)))
+    orders = {name: pe_order(series[m - window:]) for name, series in inputs.items()}
+    if not constant:
+        return orders, sum(orders.values())
+    centred = sum(pe_order(series[m - window:] - np.mean(series[m - window:])) for series in inputs.values())
+    return orders, centred + 1
+
+
+def excitation_report(phi: np.ndarray, run: OnlineRun, inputs: dict[str, np.ndarray],
+                      linear_regressor: bool = True) -> ExcitationReport:
     """PE order of each input and rank/condition of the regressor over the estimator's window.
 
-    `inputs` are the input series at the updates (aligned with the rows of `phi`).
+    `inputs` are the input series at the updates (aligned with the rows of `phi`). When the
+    regressor is a linear function of states and inputs (`linear_regressor`), the inputs' PE
+    order is also compared with the order the model needs (`required_order`): a noisy regressor
+    can have full rank from noise alone while the input cannot determine the coefficients.
     """
     m, _, n = phi.shape
     weights = run.memory ** np.arange(m - 1, -1, -1, dtype=float)
@@ -138,6 +220,9 @@ def excitation_report(phi: np.ndarray, run: OnlineRun, inputs: dict[str, np.ndar
     rank = int(np.sum(ev > RANK_RELATIVE_EIGENVALUE * ev[-1])) if ev[-1] > 0 else 0
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else None
     window = min(run.window, m)
-    orders = {name: pe_order(series[m - window:]) for name, series in inputs.items()}
+    orders, available = _available_order(phi, inputs, window)
+    needed = required_order(phi) if linear_regressor and inputs else None
+    enough = needed is None or available >= needed
     return ExcitationReport(window_samples=window, input_order=orders, regressor_rank=rank, regressor_size=n,
-                            regressor_condition=cond, persistently_exciting=rank == n)
+                            regressor_condition=cond, persistently_exciting=rank == n and enough,
+                            required_order=needed, available_order=available if needed is not None else None)

@@ -1,6 +1,7 @@
 """Measurement noise in recursive least squares: the colour it gives the equation error.
 
-RLS regresses x[k+1] on Φ_k η. When the noise is on the *measured signal* v (seed 003's RL circuit:
+RLS regresses x[k+1] on Φ_k η. When the noise is on the *measured signal* v (the RL circuit of the
+model reference adaptive systems chapter:
 i is measured, the equation is exact), the equation error is not white but the moving average
 
     e_k = v_{k+1} − Σ_j (∂f/∂x_j) v_{k−lag_j},
@@ -24,8 +25,8 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.model.discrete import delay_sources
 from greyfit.solvers.errors import DataError
+from greyfit.solvers.model.discrete import delay_sources
 from greyfit.solvers.model.reparametrize import LinearForm
 
 

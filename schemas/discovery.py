@@ -34,10 +34,11 @@ class CustomCandidate(BaseModel):
 class DiscoveryOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
-    max_terms: int = Field(default=3, ge=1, le=10)
+    max_terms: int = Field(default=3, ge=1, le=10, description="effects added at most (one per round)")
     effects: list[Effect] = Field(default_factory=lambda: list(ALL_EFFECTS),
                                   description="which library effects to try")
-    candidates: list[CustomCandidate] = Field(default_factory=list)
+    candidates: list[CustomCandidate] = Field(
+        default_factory=list, description="your own candidate terms, scored beside the library's effects")
     significance: float = Field(default=0.01, gt=0, lt=0.5,
                                 description="family-wise level of the screening F-test (Bonferroni over candidates)")
     min_explained: float = Field(default=0.05, ge=0, lt=1,
@@ -62,6 +63,8 @@ class DiscoveryOptions(BaseModel):
 
 
 class DiscoverRequest(FitRequest):
+    """A fit request plus `discovery`: fit, find the effect the model lacks, add it, refit."""
+
     discovery: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
 
 
@@ -185,6 +188,8 @@ class RejectedCandidate(BaseModel):
 
 
 class DiscoveryResult(BaseModel):
+    """Before and after, each effect added with its evidence, the candidates rejected, the final fit and model."""
+
     def report(self) -> str:
         """A text report for people (`greyfit ... --summary` prints it)."""
         from greyfit.schemas.text_report import discovery_report

@@ -18,11 +18,14 @@ class Experiment(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: Name = "experiment"
-    time: list[float] = Field(min_length=2, max_length=MAX_SAMPLES)
-    inputs: dict[Name, Series] = Field(default_factory=dict)
-    outputs: dict[Name, Series] = Field(default_factory=dict)
-    initial_state: dict[Name, float] = Field(default_factory=dict)
-    derivatives: dict[Name, Series] = Field(default_factory=dict)
+    name: Name = Field(default="experiment", description="names the record in results")
+    time: list[float] = Field(min_length=2, max_length=MAX_SAMPLES, description="sample times, strictly increasing")
+    inputs: dict[Name, Series] = Field(default_factory=dict, description="every input's series, complete")
+    outputs: dict[Name, Series] = Field(
+        default_factory=dict, description="measured outputs; null marks a missing sample (not fitted)")
+    initial_state: dict[Name, float] = Field(
+        default_factory=dict, description="known initial states; the others are estimated")
+    derivatives: dict[Name, Series] = Field(
+        default_factory=dict, description="measured dx/dt per state, used by equation error as given")
     preprocess: Optional[Preprocess] = Field(
         default=None, description="window, detrend, decimate: applied to every series before use")

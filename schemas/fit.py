@@ -35,7 +35,9 @@ class FitOptions(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    integrator: Literal["rk4", "cvodes"] = "rk4"
+    integrator: Literal["rk4", "cvodes"] = Field(
+        default="rk4", description="rk4: fixed-step Runge-Kutta, `substeps` per sample interval; "
+                                   "cvodes: adaptive implicit (BDF) integrator for stiff models")
     substeps: int = Field(
         default=1, ge=1, le=100,
         description="RK4 steps per sample interval; when not given, fits choose it from the model's "
@@ -47,10 +49,15 @@ class FitOptions(BaseModel):
                                     "controller's output), linear where it is smooth")
     shooting_interval: int = Field(
         default=1, ge=1, le=10_000, description="samples per multiple-shooting interval")
-    hessian: Literal["gauss_newton", "exact"] = "gauss_newton"
-    max_iter: int = Field(default=200, ge=1, le=10_000)
-    max_cpu_time: float = Field(default=120.0, gt=0, le=86_400)
-    tol: float = Field(default=1e-8, gt=0, lt=1)
+    hessian: Literal["gauss_newton", "exact"] = Field(
+        default="gauss_newton",
+        description="Hessian Ipopt uses: gauss_newton (JᵀJ of the residuals, fast for least squares) or exact")
+    max_iter: int = Field(default=200, ge=1, le=10_000, description="Ipopt iterations per start at most")
+    max_cpu_time: float = Field(
+        default=120.0, gt=0, le=86_400,
+        description="CPU seconds for the whole fit; a further multistart start is begun only if it is "
+                    "expected to end inside it")
+    tol: float = Field(default=1e-8, gt=0, lt=1, description="Ipopt's convergence tolerance (tol)")
     multistart: int = Field(default=1, ge=1, le=100, description="starts drawn inside the bounds; best kept")
     seed: int = Field(default=0, ge=0, le=2**63 - 1,
                       description="random seed for multistart (a non-negative integer)")
@@ -62,7 +69,9 @@ class FitOptions(BaseModel):
         description="Savitzky-Golay window (odd, samples) for derivatives estimated by equation error")
     derivative_order: int = Field(default=3, ge=2, le=6, description="Savitzky-Golay polynomial order")
     return_traces: bool = Field(default=False, description="include simulated outputs and residuals")
-    confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
+    confidence_level: float = Field(
+        default=0.95, gt=0.5, lt=1,
+        description="level of the confidence intervals (`ci95`) and of the profile-likelihood intervals")
     robust_covariance: Literal["auto", "always", "never"] = Field(
         default="auto",
         description="HAC (Newey-West) covariance: when the whiteness test fails (auto), always, never")
@@ -111,12 +120,17 @@ class FitOptions(BaseModel):
 
 
 class FitRequest(BaseModel):
+    """A model, the records to fit it to, the method and its options (POST /v1/fits, `greyfit fit`)."""
+
     model_config = ConfigDict(extra="forbid")
 
-    model: Model
-    experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
-    method: FitMethod = FitMethod.multiple_shooting
-    options: FitOptions = Field(default_factory=FitOptions)
+    model: Model = Field(description="states, inputs, parameters with bounds, equations and outputs")
+    experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS,
+                                          description="the records fitted; they share the parameters")
+    method: FitMethod = Field(default=FitMethod.multiple_shooting,
+                              description="what is minimised: equation_error, single_shooting, multiple_shooting, "
+                                          "or an online estimator (recursive_least_squares, mras)")
+    options: FitOptions = Field(default_factory=FitOptions, description="solver options, each with a default")
     validation: list[Experiment] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
         description="records not used to fit; the result's `validation` has their simulation metrics")

@@ -161,19 +161,22 @@ class FrequencyFitOptions(BaseModel):
         "check: poles reported only")
     stability_margin: float = Field(default=1e-6, ge=0, le=1,
                                     description="margin of each normalised Hurwitz condition")
-    penalty_weight: float = Field(default=1e3, gt=0)
+    penalty_weight: float = Field(default=1e3, gt=0,
+                                  description="weight of the stability violation residuals (stability: penalty)")
     also_stable_with: list[dict[Name, FiniteFloat]] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
         description="further constant settings (e.g. other controller gains) whose closed loop must be stable")
     levy_start: bool = Field(default=True, description="start from a Levy / Sanathanan-Koerner fit")
     sk_iterations: int = Field(default=5, ge=0, le=50, description="Sanathanan-Koerner reweightings")
     multistart: int = Field(default=1, ge=1, le=100, description="further starts drawn inside the bounds")
-    seed: int = 0
-    hessian: Literal["gauss_newton", "exact"] = "gauss_newton"
-    max_iter: int = Field(default=500, ge=1, le=10_000)
-    max_cpu_time: float = Field(default=120.0, gt=0, le=86_400)
-    tol: float = Field(default=1e-10, gt=0, lt=1)
-    confidence_level: float = Field(default=0.95, gt=0.5, lt=1)
+    seed: int = Field(default=0, description="random seed for the multistart draws")
+    hessian: Literal["gauss_newton", "exact"] = Field(
+        default="gauss_newton", description="Hessian Ipopt uses: gauss_newton (JᵀJ) or exact")
+    max_iter: int = Field(default=500, ge=1, le=10_000, description="Ipopt iterations per start at most")
+    max_cpu_time: float = Field(default=120.0, gt=0, le=86_400, description="CPU seconds for the whole fit")
+    tol: float = Field(default=1e-10, gt=0, lt=1, description="Ipopt's convergence tolerance (tol)")
+    confidence_level: float = Field(default=0.95, gt=0.5, lt=1,
+                                    description="level of the confidence intervals (`ci95`)")
 
     @field_validator("cost", mode="before")
     @classmethod
@@ -182,6 +185,8 @@ class FrequencyFitOptions(BaseModel):
 
 
 class FrequencyFitRequest(BaseModel):
+    """A transfer-function (or linearised ODE) model and measured frequency responses (POST /v1/frequency-fits)."""
+
     model_config = ConfigDict(extra="forbid")
 
     model: FrequencyModel

@@ -26,13 +26,16 @@ class Parameter(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: Name
-    value: float = Field(allow_inf_nan=False)
-    lower: Optional[float] = Field(default=None, allow_inf_nan=True)
-    upper: Optional[float] = Field(default=None, allow_inf_nan=True)
-    fixed: bool = False
-    per_experiment: bool = False
-    unit: Optional[str] = Field(default=None, max_length=32)
+    name: Name = Field(description="the name the expressions use")
+    value: float = Field(allow_inf_nan=False,
+                         description="the initial guess (the value, when fixed); inside the bounds")
+    lower: Optional[float] = Field(default=None, allow_inf_nan=True, description="lower bound; omit for none")
+    upper: Optional[float] = Field(default=None, allow_inf_nan=True, description="upper bound; omit for none")
+    fixed: bool = Field(default=False, description="keep at `value` instead of estimating it")
+    per_experiment: bool = Field(
+        default=False, description="one copy per experiment, reported as name[experiment]")
+    unit: Optional[str] = Field(default=None, max_length=32,
+                                description="unit, e.g. \"N s/m\", shown with the estimate")
     time_varying: Optional[TimeVarying] = Field(
         default=None, description="estimate θ(t) (piecewise constant/linear) in batch fits")
 
@@ -56,15 +59,19 @@ class Model(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    name: Name = "model"
-    states: list[Name] = Field(min_length=1, max_length=MAX_STATES)
-    inputs: list[Name] = Field(default_factory=list, max_length=MAX_STATES)
-    parameters: list[Parameter] = Field(default_factory=list, max_length=MAX_PARAMETERS)
-    constants: dict[Name, float] = Field(default_factory=dict)
-    definitions: dict[Name, Expression] = Field(default_factory=dict)
-    equations: dict[Name, Expression]
-    outputs: Optional[dict[Name, Expression]] = None
-    constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS)
+    name: Name = Field(default="model", description="a label for the model")
+    states: list[Name] = Field(min_length=1, max_length=MAX_STATES, description="state names")
+    inputs: list[Name] = Field(default_factory=list, max_length=MAX_STATES, description="input names (may be empty)")
+    parameters: list[Parameter] = Field(default_factory=list, max_length=MAX_PARAMETERS,
+                                        description="the unknowns (and fixed values), with bounds")
+    constants: dict[Name, float] = Field(default_factory=dict, description="named numbers")
+    definitions: dict[Name, Expression] = Field(
+        default_factory=dict, description="intermediate quantities, in order; usable by later expressions")
+    equations: dict[Name, Expression] = Field(description="dx/dt of every state (x[k+1] when discrete)")
+    outputs: Optional[dict[Name, Expression]] = Field(
+        default=None, description="what each measured series is; default: every state measured as itself")
+    constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS,
+                                          description="inequalities on parameters, e.g. \"a1*a2 - a3 >= 0\"")
     linear_state_space: Optional[LinearStateSpace] = Field(
         default=None, description="ẋ = Ax + Bu, y = Cx + Du with entries numbers, parameter names or "
                                   "expressions; expanded into equations and outputs")

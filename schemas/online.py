@@ -219,7 +219,8 @@ class MrasOptions(BaseModel):
     ki: float = Field(default=1000.0, gt=0, description="integral adaptation gain [1/s] (> 0), on normalised signals")
     substeps: int = Field(default=1, ge=1, le=100, description="integrator steps of the adjustable model per sample "
                                                                     "(RK4 unless options.integrator is cvodes)")
-    trajectory_every: int = Field(default=1, ge=1, le=100_000)
+    trajectory_every: int = Field(default=1, ge=1, le=100_000,
+                                  description="keep every n-th sample of θ(t) in the result")
 
 
 class Prefilter(BaseModel):
@@ -235,9 +236,9 @@ class Prefilter(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["lowpass"] = "lowpass"
+    kind: Literal["lowpass"] = Field(default="lowpass", description="the filter: a low-pass (the only kind)")
     cutoff_hz: float = Field(gt=0, description="cut-off frequency f_c [Hz]")
-    order: int = Field(default=1, ge=1, le=4)
+    order: int = Field(default=1, ge=1, le=4, description="number of cascaded first-order filters")
 
 
 class ExcitationReport(BaseModel):

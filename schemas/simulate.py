@@ -54,6 +54,8 @@ class SimulateRequest(BaseModel):
 
 
 class SimulateResult(BaseModel):
+    """Simulated states and outputs per record, the parameters used, and metrics where outputs were given."""
+
     def report(self) -> str:
         """A text report for people (`greyfit ... --summary` prints it)."""
         from greyfit.schemas.text_report import simulate_report

@@ -1,12 +1,16 @@
 #!/usr/bin/env bash
-# Set up .venv with greyfit and its test and report extras, then run the whole test suite.
+# Set up .venv with greyfit and its test, report and docs extras, build the docs site in strict mode,
+# then run the whole test suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh test,report
+bash scripts/install.sh test,report,docs
 # The report test opens the HTML page in a real headless browser: Chromium from the distribution,
 # installed when missing and we can (root with apt-get); otherwise that test skips and says why.
 if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then
     (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
         || echo "scripts/test.sh: could not install chromium; the browser test will skip" >&2
 fi
+# The docs site (mkdocs.yml) in strict mode: a broken link, a page left out of the navigation or an
+# option table that no longer builds from the schemas fails the run. No network needed.
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet
 exec .venv/bin/python -m pytest -q "$@"

@@ -19,7 +19,7 @@ from greyfit.service.executors import make_executor
 from greyfit.service.json_body import BodyParser, body_model
 from greyfit.service.logs import REQUEST_ID, configure_logging
 from greyfit.service.metrics import Metrics
-from greyfit.service.openapi import install_openapi
+from greyfit.service.openapi import install_docs, install_openapi
 from greyfit.service.problems import install_handlers
 from greyfit.service.routes import health, jobs, ops
 from greyfit.service.routes import report as report_routes, simulate as simulate_routes
@@ -97,7 +97,8 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
             dispatcher.stop()
             store.engine.dispose()
 
-    app = FastAPI(title="greyfit", version="0.1.0", lifespan=lifespan,
+    # docs_url/redoc_url None: install_docs serves both pages with local assets instead of a CDN's
+    app = FastAPI(title="greyfit", version="0.1.0", lifespan=lifespan, docs_url=None, redoc_url=None,
                   description="Fit the physical parameters of ODE models to measured data.")
     app.state.settings = settings
     app.state.metrics = Metrics()
@@ -113,6 +114,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
                            if m is not None and m.__module__.startswith("greyfit.schemas.")})
 
     install_openapi(app, settings)
+    install_docs(app)
 
     # outermost last: count -> key and rate limit -> body budget -> the app; no body byte is read
     # before the key is checked and the body admitted

@@ -1,14 +1,25 @@
-"""The OpenAPI description says what the service really sends: problem+json errors and the key.
+"""The OpenAPI description says what the service really sends, and the pages that show it offline.
 
 FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
-problem+json answers the middleware and handlers give (400, 401, 404, 413, 415, 422, 429, 500, 503, and
-504 for synchronous fits) and the bearer security scheme.
+problem+json answers the middleware and handlers give (400, 401, 404, 413, 415, 422, 429, 500, 503,
+and 504 for synchronous fits) and the bearer security scheme, and real example requests
+(service/openapi_examples.py) where FastAPI would generate junk, so "Try it out" sends a fit that
+works.
+
+`/docs` (Swagger UI) and `/redoc` (ReDoc) load their scripts from `service/static/`, served by the
+service itself: FastAPI's defaults load them from a CDN and stay blank on a machine without network.
 """
 from __future__ import annotations
 
-from fastapi import FastAPI
-from fastapi.openapi.utils import get_openapi
+from pathlib import Path
 
+from fastapi import FastAPI, Request
+from fastapi.openapi.docs import get_redoc_html, get_swagger_ui_html
+from fastapi.openapi.utils import get_openapi
+from fastapi.responses import HTMLResponse
+from fastapi.staticfiles import StaticFiles
+
+from greyfit.service.openapi_examples import add_examples
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
 from greyfit.service.task_kinds import JOB_KINDS, KINDS
@@ -36,6 +47,9 @@ IDEMPOTENCY_HEADER = {
     "schema": {"type": "string", "minLength": 1, "maxLength": 200, "pattern": "^[\\x21-\\x7e]+$"},
     "description": "makes a retry safe: the same key with the same body returns the job made the first time "
                    "(never a second one); with another body, 422"}
+
+STATIC = Path(__file__).resolve().parent / "static"
+STATIC_URL = "/static"
 
 
 def _problem_response(description: str, headers: bool) -> dict:
@@ -74,6 +88,7 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 op.setdefault("parameters", []).append(IDEMPOTENCY_HEADER)
             for code in sorted(set(codes)):
                 responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
+    add_examples(spec)
     return spec
 
 
@@ -84,3 +99,29 @@ def install_openapi(app: FastAPI, settings: Settings) -> None:
         return app.openapi_schema
 
     app.openapi = openapi
+
+
+def install_docs(app: FastAPI) -> None:
+    """Serve /docs (Swagger UI) and /redoc (ReDoc) with assets from service/static/, no network needed."""
+    app.mount(STATIC_URL, StaticFiles(directory=STATIC), name="static")
+
+    def url(request: Request, path: str) -> str:
+        # behind a proxy that strips a prefix, the browser must ask for the prefixed path
+        return request.scope.get("root_path", "").rstrip("/") + path
+
+    @app.get("/docs", include_in_schema=False)
+    async def swagger_ui(request: Request) -> HTMLResponse:
+        return get_swagger_ui_html(
+            openapi_url=url(request, app.openapi_url), title=f"{app.title} - Swagger UI",
+            swagger_js_url=url(request, f"{STATIC_URL}/swagger-ui/swagger-ui-bundle.js"),
+            swagger_css_url=url(request, f"{STATIC_URL}/swagger-ui/swagger-ui.css"),
+            swagger_favicon_url=url(request, f"{STATIC_URL}/swagger-ui/favicon-32x32.png"),
+            swagger_ui_parameters={"validatorUrl": None})   # no badge fetched from the validator's site
+
+    @app.get("/redoc", include_in_schema=False)
+    async def redoc(request: Request) -> HTMLResponse:
+        return get_redoc_html(
+            openapi_url=url(request, app.openapi_url), title=f"{app.title} - ReDoc",
+            redoc_js_url=url(request, f"{STATIC_URL}/redoc/redoc.standalone.js"),
+            redoc_favicon_url=url(request, f"{STATIC_URL}/swagger-ui/favicon-32x32.png"),
+            with_google_fonts=False)

@@ -17,18 +17,18 @@ class Settings(BaseSettings):
     database_url: Optional[str] = Field(
         default=None, description="SQLAlchemy URL; default sqlite:///<data_dir>/greyfit.db; "
                                   "postgresql+psycopg://... for several replicas")
-    executor: Literal["local", "dask"] = "local"
+    executor: Literal["local", "dask"] = Field(default="local", description="local worker processes, or a Dask cluster")
     workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1, le=256,
                          description="local worker processes")
     dask_scheduler: Optional[str] = Field(default=None, description="e.g. tcp://10.0.0.5:8786")
     api_key: Optional[str] = Field(default=None, description="if set, every endpoint but health "
                                                             "requires 'Authorization: Bearer <key>'")
-    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024)
-    max_samples_per_experiment: int = Field(default=200_000, ge=2)
-    max_experiments: int = Field(default=50, ge=1)
-    max_parameters: int = Field(default=200, ge=1)
-    max_expression_length: int = Field(default=4000, ge=10)
-    max_batch_requests: int = Field(default=1000, ge=1)
+    max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024, description="larger request bodies get 413")
+    max_samples_per_experiment: int = Field(default=200_000, ge=2, description="samples in one record")
+    max_experiments: int = Field(default=50, ge=1, description="records in one request")
+    max_parameters: int = Field(default=200, ge=1, description="parameters in one model")
+    max_expression_length: int = Field(default=4000, ge=10, description="characters in one expression")
+    max_batch_requests: int = Field(default=1000, ge=1, description="requests in one job")
     sync_max_values: int = Field(default=50_000, ge=1, description="numbers in a synchronous fit's data; "
                                                                   "larger requests go to /v1/jobs")
     task_cpu_seconds: float = Field(default=600.0, gt=0, description="CPU-time limit of one fit")

@@ -109,7 +109,31 @@ def _check_finite_loops(loops: list[ClosedLoop], extra: list[ClosedLoop], layout
 
 
 def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
-    """Fit a transfer-function model to measured frequency responses; see `schemas.fit.FitResult`."""
+    """Fit a transfer-function (or linearised ODE) model to measured frequency responses.
+
+    A Levy start refined by Sanathanan-Koerner reweightings, then Ipopt on the chosen cost, with
+    the closed loops' stability constrained (Routh-Hurwitz), penalised or only checked.
+
+    Parameters
+    ----------
+    request : FrequencyFitRequest
+        The model (`kind: "transfer_function"` or `"linearised_ode"`, optionally inside a known
+        feedback loop), the data sets (complex, gain/phase or raw sine-test records) and the
+        options.
+
+    Returns
+    -------
+    FitResult
+        The estimates with their covariance and metrics, plus `frequency_response`: measured and
+        fitted responses per data set, zeros, and per loop the poles and a stability verdict.
+        A fit that does not converge, or ends with an unstable loop, is a result with
+        `success: false`.
+
+    Raises
+    ------
+    ModelDefinitionError, DataError
+        The model does not compile, or the data do not fit it; `field` names where the fix goes.
+    """
     started = time.perf_counter()
     opts = request.options
     engine_opts = _engine_options(request)

@@ -335,8 +335,32 @@ __all__ = ["simulate_experiments", "validation_metrics", "simulate_arrays", "val
 
 
 def simulate_request(request: SimulateRequest) -> SimulateResult:
-    """Run a `schemas.simulate.SimulateRequest`: parameter values and initial states from the model,
-    then a previous result (`fit_result`), then the request's own `parameters`/`initial_states`."""
+    """Simulate a model on records, with given parameters or those of a previous result.
+
+    Parameter values and initial states are taken from the model's declared values, then from
+    the previous result (`fit_result`), then from the request's own `parameters` and
+    `initial_states`, each overriding the one before.
+
+    Parameters
+    ----------
+    request : SimulateRequest
+        The model (optional when `fit_result` is a discovery result, which carries its model),
+        the records (outputs optional), and the fit's `options` (integrator and input
+        interpolation), so that a simulation of a fitted model reproduces its traces.
+
+    Returns
+    -------
+    SimulateResult
+        States and outputs on each record's time grid, where each initial state came from,
+        k-step-ahead predictions when `horizon` is set, and validation metrics for the records
+        that have outputs.
+
+    Raises
+    ------
+    ModelDefinitionError, DataError
+        The model does not compile, or the records or parameters do not fit it; `field` names
+        where the fix goes.
+    """
     import time
 
     from greyfit.schemas.discovery import DiscoveryResult

@@ -5,7 +5,8 @@ long records, equation error — each against the obvious peer in the same run.
 
 Every row runs in a fresh process (its peak memory is its own) with an empty compile cache, so
 "cold" includes generating and compiling C; "warm" is the median of three or more fits of the same
-model structure in that process (up to 30 while they take less than a second in all), what a service worker sees from its second request on. Times are wall clock on a
+model structure in that process (up to 30 while they take less than a second in all), what a service worker sees from
+its second request on. Times are wall clock on a
 quiet machine; CPU time is printed beside them because this machine is often shared.
 
 Peers: greyfit's generic CasADi graph (what multiple shooting was before the structured NLP,
@@ -29,7 +30,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from bench.bench_methods import in_fresh_process, run_scipy, start_guess  # noqa: E402
 from tests.systems import (  # noqa: E402
-    MSD_TRUTH, SEAT_TRUTH, msd_experiment, msd_model, seat_experiment, seat_model, simulate_msd, simulate_seat,
+    MSD_TRUTH,
+    SEAT_TRUTH,
+    msd_experiment,
+    msd_model,
+    seat_experiment,
+    seat_model,
+    simulate_msd,
+    simulate_seat,
 )
 
 
@@ -115,7 +123,7 @@ def main() -> None:
 
     print(f"{'case':44s} {'cold s':>7s} {'warm s':>7s} {'warm cpu':>8s} {'us/sample':>9s} {'max err':>8s} "
           f"{'iter':>4s} {'C':>5s} {'peak MB':>7s}")
-    for name, (cw, cc, ww, wc, err, it, is_c, mem), n in rows:
+    for name, (cw, _cc, ww, wc, err, it, is_c, mem), n in rows:
         print(f"{name:44s} {cw:7.3f} {ww:7.3f} {wc:8.3f} {1e6 * ww / n:9.1f} {err:8.1e} {it:4d} {str(is_c):>5s} "
               f"{mem:7.0f}")
     if scipy is not None:

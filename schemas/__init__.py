@@ -1,18 +1,18 @@
 """Public contract of greyfit: pydantic models only (no numerics, no I/O)."""
-from greyfit.schemas.model import Model, Parameter
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.fit import (
     CovariancePublic,
+    ExperimentTrace,
     FitMethod,
+    FitMetrics,
     FitOptions,
     FitRequest,
     FitResult,
     ParameterEstimate,
-    FitMetrics,
-    SolverInfo,
-    ExperimentTrace,
     ResidualAnalysis,
+    SolverInfo,
 )
+from greyfit.schemas.model import Model, Parameter
 from greyfit.schemas.preprocess import Preprocess
 from greyfit.schemas.simulate import SimulateRequest, SimulateResult
 from greyfit.schemas.validation import ValidationResult

@@ -12,13 +12,12 @@ from greyfit.schemas.frequency import FrequencyResponseResult, LinearisedOdeMode
 from greyfit.schemas.jobs import job_create
 from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
+from greyfit.schemas.online import MrasOptions, ParameterTrajectory, Prefilter, RlsOptions
 from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.schemas.validation import ValidationResult
 
-
 # A weight squared times the data squared must stay far from overflow (1e308).
 MIN_OUTPUT_WEIGHT, MAX_OUTPUT_WEIGHT = 1e-100, 1e100
-from greyfit.schemas.online import MrasOptions, ParameterTrajectory, Prefilter, RlsOptions
 
 
 class FitMethod(str, Enum):

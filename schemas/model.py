@@ -6,13 +6,22 @@ from typing import Annotated, Optional, Union
 
 from pydantic import BaseModel, ConfigDict, Discriminator, Field, StringConstraints, Tag, model_validator
 
-from greyfit.schemas.templates import LinearStateSpace, expand_linear_state_space
 from greyfit.schemas.limits import (
-    MAX_EXPRESSION_LENGTH, MAX_NAME_LENGTH, MAX_PARAMETERS, MAX_STATES, NAME_PATTERN,
+    MAX_EXPRESSION_LENGTH,
+    MAX_NAME_LENGTH,
+    MAX_PARAMETERS,
+    MAX_STATES,
+    NAME_PATTERN,
 )
 from greyfit.schemas.online import (
-    ArmaxTemplate, ArxTemplate, DiscreteTime, TimeVarying, expand_arx_template, template_kind,
+    ArmaxTemplate,
+    ArxTemplate,
+    DiscreteTime,
+    TimeVarying,
+    expand_arx_template,
+    template_kind,
 )
+from greyfit.schemas.templates import LinearStateSpace, expand_linear_state_space
 
 Name = Annotated[str, StringConstraints(pattern=NAME_PATTERN, max_length=MAX_NAME_LENGTH)]
 Expression = Annotated[str, StringConstraints(min_length=1, max_length=MAX_EXPRESSION_LENGTH)]

@@ -12,6 +12,7 @@ from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
 from greyfit.schemas.validation import InitialStateSource, ValidationResult
 
+
 class SimulatedExperiment(BaseModel):
     name: str
     time: list[float]

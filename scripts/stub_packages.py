@@ -1,6 +1,7 @@
 """Empty package folders for every package pyproject.toml lists: the container image installs the
 dependencies on these stubs first, so that layer survives changes to the source."""
 import pathlib
+
 import tomllib
 
 setuptools = tomllib.loads(pathlib.Path("pyproject.toml").read_text())["tool"]["setuptools"]

@@ -22,7 +22,8 @@ from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import install_docs, install_openapi
 from greyfit.service.problems import install_handlers
 from greyfit.service.routes import health, jobs, ops
-from greyfit.service.routes import report as report_routes, simulate as simulate_routes
+from greyfit.service.routes import report as report_routes
+from greyfit.service.routes import simulate as simulate_routes
 from greyfit.service.routes.tasks import task_routers
 from greyfit.service.settings import Settings, get_settings
 from greyfit.service.store import JobStore, check_data_dir, make_engine

@@ -72,7 +72,8 @@ _FREQ_LIMITS = "greyfit.service.limits:check_frequency_limits"
 
 KINDS: dict[str, TaskKind] = {k.name: k for k in (
     TaskKind("fit", "greyfit.schemas.fit:FitRequest", "greyfit.schemas.fit:FitResult",
-             "greyfit.solvers.fit:fit_model", sync_path="/v1/fits", jobs_path="/v1/jobs", job_body="greyfit.schemas.fit:JobCreate",
+             "greyfit.solvers.fit:fit_model", sync_path="/v1/fits", jobs_path="/v1/jobs",
+             job_body="greyfit.schemas.fit:JobCreate",
              summary="Run one fit synchronously (small problems); larger ones belong in /v1/jobs.",
              job_summary="Accept a batch of fits; each request becomes a task. Poll the Location header.",
              elsewhere='Submit it as a batch job: POST /v1/jobs {"requests": [<this body>]}',
@@ -87,7 +88,8 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              operation="create_discovery", job_operation="create_discovery_job", tag="discovery"),
     TaskKind("frequency_fit", "greyfit.schemas.frequency:FrequencyFitRequest", "greyfit.schemas.fit:FitResult",
              "greyfit.solvers.frequency:fit_frequency_response", sync_path="/v1/frequency-fits",
-             jobs_path="/v1/frequency-fits/jobs", job_body="greyfit.schemas.frequency:FrequencyJobCreate", limits=_FREQ_LIMITS,
+             jobs_path="/v1/frequency-fits/jobs", job_body="greyfit.schemas.frequency:FrequencyJobCreate",
+             limits=_FREQ_LIMITS,
              values="greyfit.service.limits:frequency_values",
              summary="Fit a transfer-function model (optionally in a known feedback loop) to frequency "
                      "responses.",

@@ -13,11 +13,21 @@ from typing import Literal
 import numpy as np
 
 from greyfit.schemas.fit import (
-    CovariancePublic, ExperimentTrace, FitMetrics, FitRequest, FitResult, ParameterEstimate, SolverInfo,
+    CovariancePublic,
+    ExperimentTrace,
+    FitMetrics,
+    FitRequest,
+    FitResult,
+    ParameterEstimate,
+    SolverInfo,
 )
 from greyfit.solvers.checks.diagnostics import residual_analyses
 from greyfit.solvers.checks.fit_checks import (
-    active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
+    active_constraints,
+    fastest_rate_warning,
+    pre_fit_warnings,
+    row_keys,
+    state_peaks,
 )
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
 from greyfit.solvers.checks.step_choice import choose_substeps, substeps_retry
@@ -32,12 +42,15 @@ from greyfit.solvers.methods.batch import BatchFit, Residuals
 from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warnings
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
-from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.methods.multistart import (
-    MULTISTART_CPU_STATUS, draw_starts, multistart_agreement, multistart_warnings,
+    MULTISTART_CPU_STATUS,
+    draw_starts,
+    multistart_agreement,
+    multistart_warnings,
 )
 from greyfit.solvers.methods.node_initialisation import node_warnings
 from greyfit.solvers.methods.registry import batch_method, online_method
+from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.model.compiler import compile_model, guard_notes
 from greyfit.solvers.model.parameters import ParameterLayout, build_layout
 from greyfit.solvers.nlp.solver import NlpOutcome

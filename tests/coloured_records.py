@@ -58,7 +58,7 @@ def _simulate_held(rhs, t: np.ndarray, x0, u_samples: np.ndarray) -> np.ndarray:
     x = np.empty((len(x0), t.size))
     x[:, 0] = x0
     for k in range(t.size - 1):
-        sol = solve_ivp(lambda tt, s: rhs(tt, s, u_samples[k]), (t[k], t[k + 1]), x[:, k], method="DOP853",
+        sol = solve_ivp(lambda tt, s, uk=u_samples[k]: rhs(tt, s, uk), (t[k], t[k + 1]), x[:, k], method="DOP853",
                         rtol=1e-10, atol=1e-12)
         x[:, k + 1] = sol.y[:, -1]
     return x

@@ -9,8 +9,8 @@ from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.report import ReportRequest
 from greyfit.service.deps import require_api_key
 from greyfit.service.json_body import StrictJSONRoute
-from greyfit.service.problems import PROBLEM
 from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
+from greyfit.service.problems import PROBLEM
 from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.routes.sync import run_sync, run_sync_request
 from greyfit.service.settings import Settings

@@ -7,6 +7,7 @@ new kind needs no route code of its own.
 from __future__ import annotations
 
 from fastapi import APIRouter, Request, Response
+
 from greyfit.schemas.jobs import JobPublic
 from greyfit.service.json_body import StrictJSONRoute
 from greyfit.service.routes.jobs import submit_job

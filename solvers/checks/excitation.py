@@ -6,9 +6,9 @@ import functools
 import numpy as np
 
 from greyfit.schemas.fit import FitWarning
-from greyfit.solvers.inference.covariance import null_directions
-from greyfit.solvers.errors import DataError
 from greyfit.solvers.dynamics.integration import INTEGRATORS
+from greyfit.solvers.errors import DataError
+from greyfit.solvers.inference.covariance import null_directions
 
 START_CONDITION_LIMIT = 1e10   # at the initial guess; noise-free data give ~1e-16 exact nulls
 PE_MAX_ORDER = 8

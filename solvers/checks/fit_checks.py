@@ -6,15 +6,15 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import FitOptions, FitWarning
-from greyfit.solvers.dynamics.columns import Columns
-from greyfit.solvers.data.experiments import ExperimentData
-from greyfit.solvers.methods.equation_error import EquationErrorProblem
 from greyfit.solvers.checks.excitation import information_warnings, input_warnings, step_size_warning
-from greyfit.solvers.model.compiler import CompiledModel
-from greyfit.solvers.methods.node_initialisation import DIVERGED
-from greyfit.solvers.model.parameters import ParameterLayout
-from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.dynamics.integration import integrator_of
+from greyfit.solvers.methods.equation_error import EquationErrorProblem
+from greyfit.solvers.methods.node_initialisation import DIVERGED
+from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
+from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.model.parameters import ParameterLayout
 
 ACTIVE_TOLERANCE = 1e-6
 
@@ -121,7 +121,8 @@ def active_constraints(cm: CompiledModel, layout: ParameterLayout, theta_s: np.n
     for e in range(len(layout.matrix)):
         g = np.array(cm.constraint(layout.full(e, theta_s))).ravel()
         for i, value in enumerate(g):
-            if not cm.constraint_equality[i] and abs(value) <= ACTIVE_TOLERANCE * max(1.0, _size(cm, layout, e, theta_s)):
+            size = max(1.0, _size(cm, layout, e, theta_s))
+            if not cm.constraint_equality[i] and abs(value) <= ACTIVE_TOLERANCE * size:
                 active.add(i)
     return [texts[i] for i in sorted(active)]
 

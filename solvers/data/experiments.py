@@ -11,7 +11,6 @@ from greyfit.schemas.online import measured_output_inputs
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.model.compiler import CompiledModel
 
-
 # Beyond this, squares and sums of squares overflow double precision.
 MAX_ABS_VALUE = 1e100
 

@@ -17,9 +17,9 @@ from greyfit.schemas.fit import FitOptions
 from greyfit.solvers.frequency.data import FrequencySet
 from greyfit.solvers.frequency.polynomials import ClosedLoop
 from greyfit.solvers.frequency.response import evaluate_polynomial
-from greyfit.solvers.nlp.solver import LeastSquaresSolver, solve_linear_least_squares
 from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
+from greyfit.solvers.nlp.solver import LeastSquaresSolver, solve_linear_least_squares
 
 
 @dataclass

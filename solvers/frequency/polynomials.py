@@ -11,8 +11,8 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.frequency import TransferFunctionModel
-from greyfit.solvers.model.constraints import compile_constraints
 from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.model.constraints import compile_constraints
 from greyfit.solvers.model.expressions import compile_expression
 
 Poly = list  # list of SX scalars, descending powers of s

@@ -16,7 +16,10 @@ from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.methods.equation_error import EquationErrorProblem, build_equation_error
 from greyfit.solvers.methods.multistart import MultistartRun, exact_form, solve_from_starts
 from greyfit.solvers.methods.shooting import (
-    OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
+    OutputErrorModel,
+    build_multiple_shooting,
+    build_single_shooting,
+    sensitivity_jacobian,
 )
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout

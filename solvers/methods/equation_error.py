@@ -7,12 +7,12 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import FitOptions
-from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.data.derivatives import kernel_averages, smooth_and_differentiate, trapezoid_correction
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
-from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.nlp.problem import LeastSquaresProblem, parameter_constraints, theta_bounds
 
 

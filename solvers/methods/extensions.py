@@ -9,13 +9,13 @@ import numpy as np
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.data.experiments import ExperimentData
-from greyfit.solvers.model.discrete import armax_start, check_sample_time, is_discrete
-from greyfit.solvers.errors import DataError
-from greyfit.solvers.model.compiler import CompiledModel
-from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.data.prefilter import apply_prefilter
-from greyfit.solvers.model.time_varying import IRLS_STATUS, TimeVaryingExpansion, expand_time_varying
+from greyfit.solvers.errors import DataError
 from greyfit.solvers.methods.registry import simulates_outputs
+from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.model.discrete import armax_start, check_sample_time, is_discrete
+from greyfit.solvers.model.parameters import ParameterLayout
+from greyfit.solvers.model.time_varying import IRLS_STATUS, TimeVaryingExpansion, expand_time_varying
 
 
 @dataclass

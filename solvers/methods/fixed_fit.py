@@ -6,13 +6,13 @@ import time
 import numpy as np
 
 from greyfit.schemas.fit import ExperimentTrace, FitMetrics, FitRequest, FitResult, ParameterEstimate, SolverInfo
-from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.checks.diagnostics import residual_analysis
+from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.inference.statistics import information_criteria
+from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
-from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.simulation.simulate import estimate_initial_state
-from greyfit.solvers.inference.statistics import information_criteria
 
 
 def fixed_parameter_result(request: FitRequest, cm: CompiledModel, data: list[ExperimentData],

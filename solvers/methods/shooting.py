@@ -8,19 +8,22 @@ import numpy as np
 
 from greyfit.schemas.fit import FitOptions
 from greyfit.solvers.data.experiments import ExperimentData, fill_missing
-from greyfit.solvers.dynamics.integration import integrator_of, make_step
-from greyfit.solvers.methods import shooting_structured
 from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.dynamics.compiled import compiled
 from greyfit.solvers.dynamics.function_cache import FunctionCache
+from greyfit.solvers.dynamics.integration import integrator_of, make_step
+from greyfit.solvers.methods import shooting_structured
+from greyfit.solvers.methods.node_initialisation import node_states
+from greyfit.solvers.methods.shooting_curvature import GapCurvature
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
-from greyfit.solvers.methods.node_initialisation import node_states
 from greyfit.solvers.nlp.problem import (
-    LeastSquaresProblem, output_weights, parameter_constraints, state_scales, theta_bounds,
+    LeastSquaresProblem,
+    output_weights,
+    parameter_constraints,
+    state_scales,
+    theta_bounds,
 )
-from greyfit.solvers.methods.shooting_curvature import GapCurvature
-
 
 # "serial": measured faster than "thread" on 2 cores for per-sample intervals (thread start-up
 # outweighs the tiny per-interval work), and it leaves the other core to a second worker.

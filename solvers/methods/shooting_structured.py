@@ -25,8 +25,8 @@ import numpy as np
 
 from greyfit.solvers.dynamics.columns import evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
-from greyfit.solvers.nlp.problem import LeastSquaresProblem
 from greyfit.solvers.dynamics.integration import integrator_of
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
 EXPECTED_ITERATIONS = 20
 SOLVER_CACHE_SIZE = 16

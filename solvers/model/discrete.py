@@ -13,8 +13,8 @@ import numpy as np
 
 from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.errors import DataError
-from greyfit.solvers.model.expressions import parse
 from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.model.expressions import parse
 
 SAMPLE_TIME_RTOL = 1e-6
 

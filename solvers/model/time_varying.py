@@ -115,7 +115,7 @@ class TimeVaryingExpansion:
         jtj, jtr = jac.T @ jac, jac.T @ r0
         ridge = 1e-14 * float(np.mean(np.diag(jtj))) * np.eye(layout.size)
         theta = np.linalg.lstsq(jac, -r0, rcond=None)[0]
-        for it in range(1, max_iter + 1):
+        for it in range(1, max_iter + 1):  # noqa: B007  (it is the count reported after the loop)
             wts = c / np.sqrt((d @ theta) ** 2 + TV_EPSILON ** 2)
             new = np.linalg.solve(jtj + d.T @ (wts[:, None] * d) + ridge, -jtr)
             done = np.max(np.abs(new - theta)) <= 1e-10 * max(1.0, np.max(np.abs(new)))

@@ -14,7 +14,6 @@ from greyfit.solvers.errors import DataError
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
 
-
 # weighted residuals beyond this overflow when squared and summed
 WEIGHTED_LIMIT = 1e100
 

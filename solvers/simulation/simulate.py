@@ -16,9 +16,9 @@ from greyfit.schemas.simulate import SimulatedExperiment, SimulateRequest, Simul
 from greyfit.schemas.validation import ExperimentValidation, InitialStateSource, OutputMetrics, ValidationResult
 from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
 from greyfit.solvers.errors import DataError
+from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
 from greyfit.solvers.model.parameters import ParameterLayout
-from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 
 MAX_LM_ITERATIONS = 50
 

@@ -13,9 +13,9 @@ from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.validation import ValidationResult
 from greyfit.solvers.dynamics.integration import make_step
+from greyfit.solvers.methods.registry import simulates_outputs
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
 from greyfit.solvers.simulation.simulate import parameter_vector, simulate_arrays, validation_from
-from greyfit.solvers.methods.registry import simulates_outputs
 
 CONTIGUITY_TOLERANCE = 1e-6   # relative to the estimation record's last time step
 

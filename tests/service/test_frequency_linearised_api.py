@@ -3,14 +3,17 @@ import json
 
 import numpy as np
 import pytest
-
-from greyfit.service.cli import main as cli_main
-from tests.linearised_systems import (
-    PENDULUM_TRUTH, pendulum_equilibrium, pendulum_model, pendulum_response, response_data,
-)
 from fastapi.testclient import TestClient
 
 from greyfit.service.app import create_app
+from greyfit.service.cli import main as cli_main
+from tests.linearised_systems import (
+    PENDULUM_TRUTH,
+    pendulum_equilibrium,
+    pendulum_model,
+    pendulum_response,
+    response_data,
+)
 from tests.service.conftest import assert_problem, make_settings
 
 OMEGA = np.logspace(-1, 2, 41)

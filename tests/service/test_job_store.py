@@ -120,7 +120,7 @@ def test_concurrent_claims_take_every_task_exactly_once(store):
 def test_lost_worker_is_retried_then_fails_with_the_count(store):
     job = store.create_job("fit", requests(1), None)
     lost = {"type": "WorkerLost", "field": None, "retry": True, "detail": "the worker process died (signal SIGKILL)"}
-    for attempt in (1, 2):
+    for _ in (1, 2):
         assert claim_and_start(store, "o").idx == 0
         assert store.release(job, 0, "o", 3, lost) == "queued"
     assert claim_and_start(store, "o").idx == 0

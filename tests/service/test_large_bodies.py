@@ -70,8 +70,7 @@ def test_a_large_body_with_a_duplicate_key_is_refused(large):
 def test_a_duplicate_key_deep_in_a_job_body_is_found_where_the_numbers_are():
     """Valid bodies take pydantic's JSON parser, which keeps the last of two equal keys: the
     duplicate check must still see a key twice beside arrays of numbers and inside any request."""
-    from greyfit.schemas.fit import FitRequest
-    from greyfit.schemas.fit import JobCreate
+    from greyfit.schemas.fit import FitRequest, JobCreate
     fit = json.dumps(msd_request(0, n=41))
     x = fit.index('"x": [', fit.index('"outputs"'))
     doubled = fit[:x] + '"x": [1.0, 2e-3, -3.5], ' + fit[x:]             # outputs.x twice

@@ -24,7 +24,13 @@ import pytest
 from greyfit.schemas import FitRequest
 from greyfit.service.json_parsing import parse_and_validate
 from tests.servers import (  # noqa: F401  (re-exported for the tests that import them from here)
-    free_port, large_fit_request, msd_request, probe_healthz, start_server, stop_server, wait_until_finished,
+    free_port,
+    large_fit_request,
+    msd_request,
+    probe_healthz,
+    start_server,
+    stop_server,
+    wait_until_finished,
 )
 
 BODY_MEGABYTES = 20

@@ -131,6 +131,7 @@ def test_compare_keeps_both_lines_visible_at_a_98_percent_fit():
     pytest.importorskip("matplotlib")
     import matplotlib.image as mpimg
     import matplotlib.pyplot as plt
+
     from greyfit.service.report import Series, compare_figure
     t = np.linspace(0, 10, 201)
     simulated = np.sin(t)

@@ -122,6 +122,7 @@ def test_columns_in_c_equal_casadis_map_and_mapaccum(cache, monkeypatch):
     per-sample and shared inputs, a sparse output, accumulation; the function is named `step`,
     as glibc's legacy regexp function is, which the library must not call instead of its own."""
     import casadi as ca
+
     from greyfit.solvers.dynamics.columns import Columns
     monkeypatch.setenv("GREYFIT_COMPILE", "always")
     x, p, u = ca.SX.sym("x", 3), ca.SX.sym("p", 2), ca.SX.sym("u")

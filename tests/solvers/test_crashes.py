@@ -10,8 +10,8 @@ from pydantic import ValidationError
 
 from greyfit.schemas import FitRequest
 from greyfit.solvers.errors import DataError, ModelDefinitionError
-from greyfit.solvers.model.expressions import compile_expression, parse, unparse
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.model.expressions import compile_expression, parse, unparse
 from tests.systems import msd_experiment, msd_model, simulate_msd
 
 T = np.linspace(0, 5, 101)

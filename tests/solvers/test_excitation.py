@@ -4,8 +4,8 @@ import pytest
 from scipy.integrate import solve_ivp
 
 from greyfit.schemas import FitRequest
-from greyfit.solvers.errors import DataError
 from greyfit.solvers.checks.excitation import persistent_excitation_order
+from greyfit.solvers.errors import DataError
 from greyfit.solvers.fit import fit_model
 from tests.systems import MOTOR_A, MOTOR_B, motor_model
 

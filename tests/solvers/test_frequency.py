@@ -12,7 +12,14 @@ from greyfit.solvers.frequency.sine_tests import response_from_sine_tests
 from greyfit.solvers.frequency.stability import routh_first_column
 from greyfit.solvers.model.parameters import build_layout
 from tests.frequency_systems import (
-    NAMES, OMEGA, TRUTH, closed_loop, frequency_data, response, seed001_model, sine_records,
+    NAMES,
+    OMEGA,
+    TRUTH,
+    closed_loop,
+    frequency_data,
+    response,
+    seed001_model,
+    sine_records,
 )
 
 GUESS = {n: 1.5 * v for n, v in TRUTH.items()}

@@ -11,8 +11,16 @@ from greyfit.solvers.frequency import fit_frequency_response
 from greyfit.solvers.frequency.linearise import characteristic_polynomial, transfer_polynomials
 from tests.frequency_systems import NAMES, TRUTH, frequency_data, seed001_model
 from tests.linearised_systems import (
-    PENDULUM_TRUTH, TANK_INFLOW, TANK_TRUTH, pendulum_equilibrium, pendulum_model, pendulum_response,
-    response_data, seed001_ode_model, tank_model, tank_response,
+    PENDULUM_TRUTH,
+    TANK_INFLOW,
+    TANK_TRUTH,
+    pendulum_equilibrium,
+    pendulum_model,
+    pendulum_response,
+    response_data,
+    seed001_ode_model,
+    tank_model,
+    tank_response,
 )
 
 GUESS = {n: 1.5 * v for n, v in TRUTH.items()}

@@ -5,8 +5,18 @@ import pytest
 from greyfit.schemas import FitRequest
 from greyfit.solvers.fit import fit_model
 from tests.systems import (
-    MSD_TRUTH, SEAT_TRUTH, motor_inputs, motor_model, motor_truth, msd_experiment, msd_model,
-    seat_experiment, seat_model, simulate_motor, simulate_msd, simulate_seat,
+    MSD_TRUTH,
+    SEAT_TRUTH,
+    motor_inputs,
+    motor_model,
+    motor_truth,
+    msd_experiment,
+    msd_model,
+    seat_experiment,
+    seat_model,
+    simulate_motor,
+    simulate_msd,
+    simulate_seat,
 )
 
 METHODS = ["equation_error", "single_shooting", "multiple_shooting"]

@@ -7,9 +7,9 @@ from scipy.integrate import solve_ivp
 from greyfit.schemas.fit import FitRequest
 from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
-from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting
 
 T = np.linspace(0, 10, 201)
 
@@ -41,7 +41,7 @@ def test_unmeasured_nodes_follow_a_simulation_at_each_start():
     for a in (-0.5, -3.0):
         w0 = problem.initial_guess(np.array([a, 1.0]))
         x1_nodes = w0[2::2][:T.size] * oem.xscale[0]
-        sol = solve_ivp(lambda t, x: [a * x[0] + np.interp(t, T, u_of(T))], (0, T[-1]), [0.0], t_eval=T,
+        sol = solve_ivp(lambda t, x, a=a: [a * x[0] + np.interp(t, T, u_of(T))], (0, T[-1]), [0.0], t_eval=T,
                         rtol=1e-9, atol=1e-11, max_step=0.01)
         assert np.max(np.abs(x1_nodes - sol.y[0])) < 1e-3 * np.max(np.abs(sol.y[0]))   # RK4 vs scipy
         assert np.allclose(w0[3::2] * oem.xscale[1], data[0].y[0])   # measured: the data

@@ -11,7 +11,12 @@ import pytest
 from greyfit.schemas import FitRequest
 from greyfit.solvers.fit import fit_model
 from tests.online_systems import (
-    FIRST_ORDER, SECOND_ORDER, first_order_model, second_order_model, seed004_experiment, simulate_seed004,
+    FIRST_ORDER,
+    SECOND_ORDER,
+    first_order_model,
+    second_order_model,
+    seed004_experiment,
+    simulate_seed004,
 )
 
 CASES = {"first_order": (FIRST_ORDER, first_order_model, {"ap": 100.0, "bp": 200.0}),

@@ -3,8 +3,8 @@ import numpy as np
 import scipy.signal as ss
 
 from greyfit.schemas import Experiment, FitRequest
-from greyfit.solvers.fit import fit_model
 from greyfit.solvers.data.preprocess import anti_alias_taps, preprocess_experiment, zero_phase_filter
+from greyfit.solvers.fit import fit_model
 from tests.systems import msd_input, msd_model, simulate_msd
 
 

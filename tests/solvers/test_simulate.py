@@ -6,7 +6,14 @@ from greyfit.schemas import Experiment, FitOptions, FitRequest, Model
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.simulation.simulate import simulate_experiments, validation_metrics
 from tests.systems import (
-    SEAT_TRUTH, msd_experiment, msd_input, msd_model, seat_model, seat_rhs, simulate_msd, simulate_seat,
+    SEAT_TRUTH,
+    msd_experiment,
+    msd_input,
+    msd_model,
+    seat_model,
+    seat_rhs,
+    simulate_msd,
+    simulate_seat,
 )
 
 

@@ -13,9 +13,9 @@ import pytest
 
 from greyfit.schemas.fit import FitRequest
 from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting, build_single_shooting
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
-from greyfit.solvers.methods.shooting import OutputErrorModel, build_multiple_shooting, build_single_shooting
 
 
 def _body(method: str, output_gain: bool) -> dict:

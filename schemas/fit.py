@@ -179,6 +179,9 @@ class SolverInfo(BaseModel):
     compiled: Optional[bool] = Field(
         default=None, description="whether the per-sample model functions ran as compiled C (true) or "
         "in CasADi's interpreter (false); null where the method has no such functions")
+    starts_at_best: Optional[int] = Field(
+        default=None, description="multistart: how many starts reached the best cost (relative 1e-6); "
+        "null for a single start")
 
 
 class ResidualTest(BaseModel):
@@ -243,6 +246,14 @@ ResultModel = Annotated[Union[Annotated[Model, Tag("ode")],
                         Discriminator(_result_model_kind)]
 
 
+class AlternativeOptimum(BaseModel):
+    """A converged multistart optimum whose cost the data cannot tell from the best one."""
+
+    parameters: dict[str, float] = Field(description="the free parameters' values there")
+    cost: float = Field(description="0.5 * sum of weighted squared residuals (the optimiser's objective)")
+    starts: int = Field(description="how many starts converged to it (within 1 % in every parameter)")
+
+
 class FitResult(BaseModel):
     """Outcome of one fit; `success: false` is a result, not an error."""
 
@@ -280,6 +291,10 @@ class FitResult(BaseModel):
         default=None, description="the model that was fitted (an ODE model, or the frequency fit's "
         "transfer function or linearised model): with `parameters` it is what `simulate` and `report` need "
         "to simulate again, so they do not need the request")
+    alternative_optima: Optional[list[AlternativeOptimum]] = Field(
+        default=None, description="multistart: the distinct converged optima (best first) whose cost "
+        "exceeds the best by less than the profile-interval threshold ½ t²(ν) σ²; more than one makes "
+        "the result suspect (warning multiple_optima); null for a single start")
 
     def report(self, *, min_correlation: float = 0.9) -> str:
         """A text report for people, like lmfit's `fit_report()`."""

@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import logging
 import os
+import re
 import uuid
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -16,6 +17,7 @@ from greyfit.service.auth import ApiKeyGate
 from greyfit.service.dispatcher import Dispatcher
 from greyfit.service.executors import make_executor
 from greyfit.service.json_body import BodyParser, body_model
+from greyfit.service.logs import REQUEST_ID, configure_logging
 from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import install_openapi
 from greyfit.service.problems import install_handlers
@@ -23,13 +25,14 @@ from greyfit.service.routes import health, jobs, ops
 from greyfit.service.routes import report as report_routes, simulate as simulate_routes
 from greyfit.service.routes.tasks import task_routers
 from greyfit.service.settings import Settings, get_settings
-from greyfit.service.store import JobStore, make_engine
+from greyfit.service.store import JobStore, check_data_dir, make_engine
 
 log = logging.getLogger("greyfit.service")
 
 
 class CountRequests:
-    """Counts requests and gives each an id (X-Request-ID, echoed), which a logged 500 names.
+    """Counts requests and gives each an id (X-Request-ID, echoed; the caller's own if it sent a plain
+    one), which every log line about the request and every error body name.
 
     Pure ASGI middleware (not BaseHTTPMiddleware, which wraps errors raised while reading the body)."""
 
@@ -40,8 +43,9 @@ class CountRequests:
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
         status = [500]
-        request_id = uuid.uuid4().hex[:16]
+        request_id = _request_id(scope)
         scope["greyfit.request_id"] = request_id
+        REQUEST_ID.set(request_id)   # for the log lines and error bodies of this request (its own task)
 
         async def send_wrapper(message) -> None:
             if message["type"] == "http.response.start":
@@ -56,11 +60,27 @@ class CountRequests:
             self.metrics.count_request(scope["method"], getattr(route, "path", "unmatched"), status[0])
 
 
+# a caller's own X-Request-ID is kept when it is a plain token (it then names the request in both logs)
+_CALLER_ID = re.compile(rb"^[A-Za-z0-9._:-]{1,64}$")
+
+
+def _request_id(scope: Scope) -> str:
+    for name, value in scope.get("headers", ()):
+        if name == b"x-request-id" and _CALLER_ID.match(value):
+            return value.decode("ascii")
+    return uuid.uuid4().hex[:16]
+
+
 def create_app(settings: Optional[Settings] = None) -> FastAPI:
     settings = settings or get_settings()
+    configure_logging(settings.log_format, settings.log_level)
+    # refuse to start on a data directory that cannot be written, in one line (not a traceback of
+    # the first SQLite write)
+    check_data_dir(settings.data_dir, None if settings.database_url else settings.data_dir / "greyfit.db")
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
+        configure_logging(settings.log_format, settings.log_level)   # again: a server may have set its own
         # compiled model functions live beside the job store; workers spawned below inherit this
         os.environ.setdefault("GREYFIT_CACHE_DIR", str(Path(settings.data_dir).resolve() / "cache"))
         store = JobStore(make_engine(settings.resolved_database_url()))

@@ -18,16 +18,14 @@ FAIL_ON = {"failed": ("failed",), "suspect": ("suspect", "failed")}
 
 
 def _read_json(path: str) -> dict:
+    from greyfit.service.json_parsing import loads_strict  # a key twice is an error, as over HTTP
     text = sys.stdin.read() if path == "-" else Path(path).read_text()
-    return json.loads(text)
+    return loads_strict(text)
 
 
 def _validation_message(exc: ValidationError) -> str:
-    lines = []
-    for err in exc.errors():
-        loc = ".".join(str(p) for p in err["loc"])
-        lines.append(f"{loc}: {err['msg']}")
-    return "\n".join(lines)
+    from greyfit.service.error_text import error_lines  # experiments[0].time, as over HTTP
+    return error_lines(exc)
 
 
 def emit(result, args) -> None:
@@ -52,15 +50,16 @@ def quality_exit(fit, args) -> int:
 
 def cmd_fit(args) -> int:
     from greyfit.schemas import FitRequest
+    from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.fit import fit_model
     body = _read_json(args.request)
     if isinstance(body, dict) and isinstance(body.get("model"), dict) and \
             body["model"].get("kind") in ("transfer_function", "linearised_ode"):   # a frequency-response fit
         from greyfit.schemas.frequency import FrequencyFitRequest
         from greyfit.solvers.frequency import fit_frequency_response
-        result = fit_frequency_response(FrequencyFitRequest.model_validate(body))
+        result = fit_frequency_response(validate_strict(FrequencyFitRequest, body))
     else:
-        result = fit_model(FitRequest.model_validate(body))
+        result = fit_model(validate_strict(FitRequest, body))
     emit(result, args)
     return quality_exit(result, args)
 
@@ -68,8 +67,9 @@ def cmd_fit(args) -> int:
 def cmd_discover(args) -> int:
     from greyfit.schemas.discovery import DiscoverRequest
     from greyfit.service.cli_progress import DiscoveryProgress
+    from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.discovery import discover
-    request = DiscoverRequest.model_validate(_read_json(args.request))
+    request = validate_strict(DiscoverRequest, _read_json(args.request))
     progress = DiscoveryProgress(sys.stderr, quiet=args.quiet)
     result = discover(request, progress=progress)
     progress.close()
@@ -93,8 +93,9 @@ def add_output_options(p, what: str, fail_on: bool = True) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     from greyfit import __version__
-    parser = argparse.ArgumentParser(prog="greyfit", description=__doc__,
-                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    from greyfit.service.cli_suggest import SuggestingArgumentParser  # "did you mean" for options
+    parser = SuggestingArgumentParser(prog="greyfit", description=__doc__,
+                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--version", action="version", version=f"greyfit {__version__}",
                         help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")

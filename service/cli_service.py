@@ -26,20 +26,26 @@ def cmd_serve(args) -> int:
 
     from greyfit.service.app import create_app
     from greyfit.service.settings import Settings
+    from greyfit.service.store import DataDirNotWritable
     overrides = {}
     if args.workers:
         overrides["workers"] = args.workers
     if args.data_dir:
         overrides["data_dir"] = Path(args.data_dir)
     settings = Settings(**overrides)
-    app = create_app(settings)
+    try:
+        app = create_app(settings)
+    except DataDirNotWritable as exc:   # one line, not the traceback of the first SQLite write
+        print(f"greyfit serve: {exc}", file=sys.stderr)
+        return 2
     # what is loaded by now lives as long as the server: keep it out of the collector's full passes,
     # which would otherwise stall the event loop ~0.1 s each (longer on a busy machine)
     gc.collect()
     gc.freeze()
     # httptools (a dependency): h11, uvicorn's pure-Python fallback, would hold the interpreter for
     # every chunk of a large body and stall /healthz during uploads
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info", http="httptools")
+    # log_config=None: uvicorn's lines go through greyfit's JSON handler (service.logs), not its own
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info", http="httptools", log_config=None)
     return 0
 
 
@@ -63,7 +69,9 @@ def add_batch(sub) -> None:
 def cmd_batch(args) -> int:
     from pydantic import ValidationError
 
+    from greyfit.service.error_text import error_lines
     from greyfit.service.executors import LocalWorkerPool
+    from greyfit.service.json_parsing import loads_strict, validate_strict
     from greyfit.service.settings import Settings
     settings = Settings(**({"workers": args.workers} if args.workers else {}))
     schema = KINDS[args.kind].request_schema()
@@ -81,11 +89,12 @@ def cmd_batch(args) -> int:
         if not line.strip() or i in done:
             continue
         try:
-            body = json.loads(line)
-            schema.model_validate(body)     # a bad line fails here, named, not in a worker
+            body = loads_strict(line)
+            validate_strict(schema, body)     # a bad line fails here, named, not in a worker
             todo.append((i, body))
         except (json.JSONDecodeError, ValidationError) as exc:
-            bad.append({"line": i, "status": "failed", "error": {"type": type(exc).__name__, "detail": str(exc)}})
+            detail = error_lines(exc) if isinstance(exc, ValidationError) else str(exc)   # experiments[0].time
+            bad.append({"line": i, "status": "failed", "error": {"type": type(exc).__name__, "detail": detail}})
     total = len(todo) + len(bad)
     print(f"greyfit batch: {len(done)} already done, {total} to do", file=sys.stderr)
     pool = LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)

@@ -1,7 +1,6 @@
 """`greyfit simulate` and `greyfit report`."""
 from __future__ import annotations
 
-import json
 import sys
 from pathlib import Path
 
@@ -10,7 +9,8 @@ SIMULATE_KEYS = ("experiments", "options", "initial_states", "parameters", "hori
 
 
 def _read(path: str) -> dict:
-    return json.loads(sys.stdin.read() if path == "-" else Path(path).read_text())
+    from greyfit.service.json_parsing import loads_strict  # a key twice is an error, as over HTTP
+    return loads_strict(sys.stdin.read() if path == "-" else Path(path).read_text())
 
 
 def simulate_body(args) -> dict:
@@ -28,20 +28,22 @@ def simulate_body(args) -> dict:
 def cmd_simulate(args) -> int:
     from greyfit.schemas.simulate import SimulateRequest
     from greyfit.service.cli import emit
+    from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.simulation.simulate import simulate_request
-    result = simulate_request(SimulateRequest.model_validate(simulate_body(args)))
+    result = simulate_request(validate_strict(SimulateRequest, simulate_body(args)))
     emit(result, args)
     return 0
 
 
 def cmd_report(args) -> int:
     from greyfit.schemas.report import ReportRequest
+    from greyfit.service.json_parsing import validate_strict
     from greyfit.service.report import ReportDependencyMissing, write_report
     body = {"result": _read(args.result), "title": args.title}
     if args.request:
         body["request"] = _read(args.request)
     try:
-        paths = write_report(ReportRequest.model_validate(body), Path(args.out),
+        paths = write_report(validate_strict(ReportRequest, body), Path(args.out),
                              tuple(args.formats.split(",")))
     except ReportDependencyMissing as exc:
         print(f"greyfit: {exc}", file=sys.stderr)

@@ -93,7 +93,7 @@ class Dispatcher:
             try:
                 self.executor.submit(key, kind, request)
             except OSError:   # the worker has just died: the next poll fails the fit (WorkerLost, 503)
-                log.warning("synchronous fit %s: its worker was gone", key)
+                log.warning("synchronous fit %s: its worker was gone", key, extra={"task_id": key})
         finally:
             self._lock.release()
         return True   # no wake-up: the dispatcher waits on idle workers too (LocalWorkerPool.wait)
@@ -297,7 +297,7 @@ class Dispatcher:
             error = outcome.get("error") or {}
             if error.get("type") == "InternalError":
                 log.error("task %s (%s) failed with an internal error: %s\n%s", key, kind,
-                          error.get("detail"), error.get("trace", ""))
+                          error.get("detail"), error.get("trace", ""), extra={"task_id": key})
             if item[0] == "sync":
                 if not item[1].done():
                     item[1].set_result(outcome)
@@ -337,7 +337,8 @@ class Dispatcher:
             if outcome["status"] == "failed" and error and error.get("retry"):
                 status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, error)
                 if status == "queued":
-                    log.warning("task %s:%s re-queued: %s", job_id, idx, error.get("detail"))
+                    log.warning("task %s:%s re-queued: %s", job_id, idx, error.get("detail"),
+                                extra={"task_id": f"{job_id}:{idx}"})
                 self.pending.remove((job_id, idx, outcome))
             else:
                 finished.append((job_id, idx, outcome))

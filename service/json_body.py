@@ -1,7 +1,10 @@
 """JSON bodies parsed strictly, and large ones parsed and validated outside the web process.
 
+- A body must come as JSON (Content-Type application/json or */*+json): anything else is a 415
+  that says so, not a 422 about a body that "should be a valid dictionary".
 - A key twice in one object is an error (service.json_parsing.loads_strict).
-- A valid body is validated straight from its JSON text (service.json_parsing.validate_fast) and
+- A valid body is validated straight from its JSON text (service.json_parsing.validate_json, strictly:
+  a string or a boolean is not a number) and
   the route receives the model; any other body is parsed and validated as before, with its errors.
   The text it was validated from stays with the request (`validated_text`): a worker validates
   that text again, which costs less than dumping the model to a dict, pickling the dict and
@@ -27,10 +30,18 @@ from typing import Any, Callable, Optional
 
 import anyio
 from fastapi import HTTPException, Request, Response
+from fastapi.params import Form
 from fastapi.routing import APIRoute
 from pydantic import BaseModel
 
-from greyfit.service.json_parsing import exit_with_parent, loads_strict, parse_and_validate, validate_fast, warm_up
+from greyfit.service.json_parsing import (
+    exit_with_parent,
+    has_duplicate_keys,
+    loads_strict,
+    parse_and_validate,
+    validate_json,
+    warm_up,
+)
 
 LARGE_BODY_BYTES = 1 << 20
 
@@ -44,6 +55,15 @@ class InvalidBody(HTTPException):
     def __init__(self, errors: list[dict], body: bytes):
         super().__init__(422, "invalid request")
         self.errors, self.body = errors, body
+
+
+class NotJSON(HTTPException):
+    """A body sent without a JSON media type: 415, saying what to send."""
+
+    def __init__(self, content_type: Optional[str]):
+        sent = f"'{content_type}'" if content_type else "no Content-Type"
+        super().__init__(415, f"the body must be JSON, sent with 'Content-Type: application/json' ({sent} was "
+                         "sent); e.g. curl -H 'Content-Type: application/json' --data @request.json")
 
 
 class BodyParser:
@@ -116,11 +136,22 @@ class StrictJSONRequest(Request):
                 if texts is not None:
                     self.state.request_texts = texts   # see request_texts()
             else:
-                fast = validate_fast(self.body_model, body) if self.body_model is not None else None
-                if fast is not None:
-                    self.scope["greyfit.validated_body"] = (fast, body)
-                self._json = fast if fast is not None else loads_strict(body)
+                self._json = self._parse_small(body)
         return self._json
+
+    def _parse_small(self, body: bytes) -> Any:
+        """The validated model, else the parsed JSON (JSON errors and duplicate keys raise first),
+        else the strict validation errors as InvalidBody (FastAPI would validate the parsed dict
+        laxly: "500" as a number)."""
+        model = self.body_model
+        instance, errors = validate_json(model, body) if model is not None else (None, None)
+        if instance is not None and not has_duplicate_keys(body):
+            self.scope["greyfit.validated_body"] = (instance, body)
+            return instance
+        data = loads_strict(body)
+        if errors is not None:
+            raise InvalidBody([{**e, "loc": ("body", *e["loc"])} for e in errors], body)
+        return data
 
 
 def validated_text(request: Request, instance: BaseModel) -> str | dict:
@@ -170,9 +201,31 @@ class StrictJSONRoute(APIRoute):
         handler = super().get_route_handler()
         model = _body_model(self)
 
+        takes_json = bool(self.dependant.body_params) and not _is_form(self)
+
         async def strict_handler(request: Request) -> Response:
+            if takes_json and _has_body(request) and not _is_json(request.headers.get("content-type")):
+                raise NotJSON(request.headers.get("content-type"))
             strict = StrictJSONRequest(request.scope, request.receive)
             strict.body_model = model
             return await handler(strict)
 
         return strict_handler
+
+
+def _is_form(route: APIRoute) -> bool:
+    return any(isinstance(p.field_info, Form) for p in route.dependant.body_params)
+
+
+def _has_body(request: Request) -> bool:
+    """Whether the request carries a body (an empty one is FastAPI's to answer: body required)."""
+    headers = request.headers
+    return "transfer-encoding" in headers or headers.get("content-length", "0").strip() not in ("", "0")
+
+
+def _is_json(content_type: Optional[str]) -> bool:
+    """application/json or application/<something>+json, any parameters (as FastAPI reads JSON)."""
+    if not content_type:
+        return False
+    media = content_type.split(";", 1)[0].strip().lower()
+    return media == "application/json" or (media.startswith("application/") and media.endswith("+json"))

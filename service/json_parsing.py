@@ -50,7 +50,7 @@ def loads_strict(body: bytes) -> Any:
 _NUMBER_ARRAY = re.compile(rb"\[[-+0-9.eE,\s]*\]")
 
 
-def _has_duplicate_keys(body: bytes) -> bool:
+def has_duplicate_keys(body: bytes) -> bool:
     """Whether loads_strict would find a key twice in one object (or cannot tell).
 
     It looks at the body with its arrays of numbers emptied: the keys are all there, and parsing
@@ -62,15 +62,30 @@ def _has_duplicate_keys(body: bytes) -> bool:
     return False
 
 
-def validate_fast(model: type[BaseModel], body: bytes) -> Optional[BaseModel]:
-    """The valid body validated by pydantic's own JSON parser (several times faster than json.loads
-    and validating its output); None for anything else, which is then parsed and validated as
-    before, for the same errors in the same words."""
+def validate_json(model: type[BaseModel], body: bytes | str) -> tuple[Optional[BaseModel], Optional[list[dict]]]:
+    """(instance, None) for a valid body, (None, errors) for one pydantic's JSON parser read but that
+    is invalid, (None, None) when that parser could not read it (json.loads may: it is the judge).
+
+    Strict: a string is not a number and a boolean is not a number ("500", true for a float), as
+    in the JSON schema the service publishes; an integer is a number. Validating the JSON text
+    (not the parsed dict) is what makes strict mode right for JSON: enum values, tuples from
+    arrays and the like are accepted there as JSON has them. The errors leave out their input: it
+    may be megabytes, and an answer never shows it."""
     try:
-        instance = model.model_validate_json(body)
-    except (ValidationError, ValueError, RecursionError):
-        return None
-    return None if _has_duplicate_keys(body) else instance
+        return model.model_validate_json(body, strict=True), None
+    except ValidationError as exc:
+        errors = exc.errors(include_url=False, include_input=False, include_context=False)
+        if any(e["type"] == "json_invalid" for e in errors):
+            return None, None
+        return None, [{"type": e["type"], "loc": tuple(e["loc"]), "msg": e["msg"]} for e in errors]
+    except (ValueError, RecursionError):
+        return None, None
+
+
+def validate_strict(model: type[BaseModel], data: Any) -> BaseModel:
+    """`model` validated from parsed JSON (a dict) as strictly as the service validates a body:
+    for the command line, which reads files with loads_strict. Raises pydantic's ValidationError."""
+    return model.model_validate_json(json.dumps(data), strict=True)
 
 
 def warm_up(modules: list[str]) -> None:
@@ -90,8 +105,8 @@ def parse_and_validate(model: Optional[type[BaseModel]], body: bytes) -> tuple[s
     `request_texts`: for a job body (a model with a list `requests`), the JSON text of each request,
     made here so that the web process only stores it (serialising holds the interpreter lock too).
     """
-    instance = validate_fast(model, body) if model is not None else None
-    if instance is not None:
+    instance, errors = validate_json(model, body) if model is not None else (None, None)
+    if instance is not None and not has_duplicate_keys(body):
         return "ok", (instance, _request_texts(instance))
     try:
         data = loads_strict(body)
@@ -101,7 +116,9 @@ def parse_and_validate(model: Optional[type[BaseModel]], body: bytes) -> tuple[s
         return "unparsable", None
     if model is None:
         return "ok", (data, None)
-    try:
+    if errors is not None:
+        return "invalid", errors
+    try:   # pydantic's parser could not read what json.loads did: validated as before
         instance = model.model_validate(data)
     except ValidationError as exc:
         # the input of each error is left out: it may be megabytes, and the answer never shows it

@@ -1,7 +1,7 @@
 """The OpenAPI description says what the service really sends: problem+json errors and the key.
 
 FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
-problem+json answers the middleware and handlers give (400, 401, 404, 413, 422, 429, 500, 503, and
+problem+json answers the middleware and handlers give (400, 401, 404, 413, 415, 422, 429, 500, 503, and
 504 for synchronous fits) and the bearer security scheme.
 """
 from __future__ import annotations
@@ -19,6 +19,7 @@ ANSWERS = {
     "401": "missing or wrong API key (only when GREYFIT_API_KEY is set)",
     "404": "no such job or route",
     "413": "the body (or, for synchronous fits, its data) is larger than this server takes",
+    "415": "the body was not sent as JSON: send it with 'Content-Type: application/json'",
     "422": "invalid request: `errors` lists each location (e.g. experiments[0].outputs.x) and what to fix",
     "429": "more requests a minute than GREYFIT_RATE_LIMIT_PER_MINUTE allows; see Retry-After",
     "500": "a bug in the server; logged under `request_id`",
@@ -66,7 +67,7 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 codes += ["401", "404", "413", "422", "429"]
                 op["security"] = [{SCHEME: []}] if settings.api_key else [{}, {SCHEME: []}]
             if "requestBody" in op:
-                codes.append("400")
+                codes += ["400", "415"]
             if path in SYNC_PATHS:
                 codes.append("504")
             if method == "post" and path in JOB_PATHS:

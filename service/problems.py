@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import logging
-from typing import Optional
+from typing import Any, Optional, Sequence
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -12,7 +12,9 @@ from sqlalchemy.exc import InterfaceError, InternalError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
-from greyfit.service.json_body import InvalidBody
+from greyfit.service.error_text import describe
+from greyfit.service.json_body import InvalidBody, body_model
+from greyfit.service.logs import REQUEST_ID
 from greyfit.service.store import StoreUnavailable
 from greyfit.solvers.errors import DataError, FitError, ModelDefinitionError
 
@@ -34,7 +36,8 @@ class Problem(BaseModel):
     status: int
     detail: str
     errors: Optional[list[ProblemError]] = Field(default=None, description="validation errors, by location")
-    request_id: Optional[str] = Field(default=None, description="for 500s: the id in the server's log")
+    request_id: Optional[str] = Field(default=None, description="the id of the request (also its X-Request-ID "
+                                      "header), which the server's log lines about it carry")
 
 
 class Overloaded(Exception):
@@ -57,18 +60,10 @@ class LimitExceeded(Exception):
 
 
 def problem(status: int, title: str, detail: str, kind: str, **extra) -> JSONResponse:
-    body = {"type": TYPE_BASE + kind, "title": title, "status": status, "detail": detail, **extra}
+    """The problem+json answer; it carries the request's id (as its X-Request-ID header does)."""
+    body = {"type": TYPE_BASE + kind, "title": title, "status": status, "detail": detail,
+            "request_id": REQUEST_ID.get(), **extra}
     return JSONResponse(body, status_code=status, media_type=PROBLEM)
-
-
-def _loc(loc) -> str:
-    parts = [str(p) for p in loc]
-    if parts and parts[0] == "body":
-        parts = parts[1:]
-    out = ""
-    for p in parts:
-        out += f"[{p}]" if p.isdigit() else (f".{p}" if out else p)
-    return out or "body"
 
 
 def _json_position(doc, pos) -> str:
@@ -80,16 +75,18 @@ def _json_position(doc, pos) -> str:
     return f" at line {line} column {column} (character {pos})"
 
 
-def validation_errors(errors, body=None) -> list[dict]:
+def validation_errors(errors, body=None, model: Optional[type[BaseModel]] = None) -> list[dict]:
+    """Errors by location in one syntax (`experiments[0].time`), in words (service.error_text);
+    `model`, the route's body model, finds the field meant by a misspelt one."""
     out = []
     for e in errors:
-        msg = e.get("msg", "invalid")
         if e.get("type") == "json_invalid":   # FastAPI puts the character offset into loc: say it in words
             pos = (e.get("loc") or (None, None))[-1]
-            msg = f"malformed JSON: {e.get('ctx', {}).get('error', msg)}{_json_position(body, pos)}"
+            msg = f"malformed JSON: {e.get('ctx', {}).get('error', e.get('msg'))}{_json_position(body, pos)}"
             out.append({"loc": "body", "msg": msg})
             continue
-        out.append({"loc": _loc(e.get("loc", ())), "msg": msg})
+        body_error = tuple(e.get("loc", ()))[:1] == ("body",)
+        out.extend(describe([e], model if body_error else None))
     return out
 
 
@@ -108,18 +105,18 @@ def store_error_detail(exc: Exception) -> str:
 
 
 def install_handlers(app: FastAPI) -> None:
-    def invalid_request(errors: list[dict], body) -> JSONResponse:
-        errors = validation_errors(errors, body)
+    def invalid_request(errors: Sequence[Any], body, model: Optional[type[BaseModel]] = None) -> JSONResponse:
+        errors = validation_errors(errors, body, model)
         detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
         return problem(422, "Invalid request", detail, "validation-error", errors=errors)
 
     @app.exception_handler(RequestValidationError)
-    async def _validation(_: Request, exc: RequestValidationError):
-        return invalid_request(exc.errors(), exc.body)
+    async def _validation(request: Request, exc: RequestValidationError):
+        return invalid_request(exc.errors(), exc.body, body_model(request.scope.get("route")))
 
-    @app.exception_handler(InvalidBody)       # the same, for a body validated in a parser process
-    async def _invalid_body(_: Request, exc: InvalidBody):
-        return invalid_request(exc.errors, exc.body)
+    @app.exception_handler(InvalidBody)       # the same, for a body validated strictly or in a parser process
+    async def _invalid_body(request: Request, exc: InvalidBody):
+        return invalid_request(exc.errors, exc.body, body_model(request.scope.get("route")))
 
     # the solver's error tree: one problem type per class, 422 for all (the input must change)
     kinds = {ModelDefinitionError: ("Invalid model", "model-definition-error", "model"),
@@ -138,7 +135,8 @@ def install_handlers(app: FastAPI) -> None:
 
     @app.exception_handler(Overloaded)
     async def _overloaded(request: Request, exc: Overloaded):
-        return retry_later(503, "Unavailable", exc.detail, "unavailable", request.app.state.settings.retry_after_seconds)
+        return retry_later(503, "Unavailable", exc.detail, "unavailable",
+                           request.app.state.settings.retry_after_seconds)
 
     # a store that cannot be written is the server's state, not the request's fault: 503, retry
     # (read-only is InternalError on PostgreSQL, OperationalError on SQLite; unreachable is either)
@@ -163,7 +161,8 @@ def install_handlers(app: FastAPI) -> None:
         if exc.status_code == 400 and detail == "There was an error parsing the body":
             detail = "the body could not be parsed: it must be UTF-8 JSON, nested at most ~1000 levels deep"
         titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
-                  413: "Request too large", 429: "Too many requests", 503: "Unavailable", 504: "Timeout"}
+                  413: "Request too large", 415: "Unsupported media type", 429: "Too many requests",
+                  503: "Unavailable", 504: "Timeout"}
         resp = problem(exc.status_code, titles.get(exc.status_code, "Error"), detail,
                        titles.get(exc.status_code, "error").lower().replace(" ", "-"))
         for k, v in (exc.headers or {}).items():

@@ -55,6 +55,11 @@ class Settings(BaseSettings):
                                      "progress under synchronous load (at most workers - 1; with one "
                                      "worker, jobs and synchronous fits alternate)")
     retry_after_seconds: int = Field(default=2, ge=1, description="the Retry-After of 503 and 429 answers")
+    log_format: Literal["json", "text"] = Field(
+        default="json", description="log lines on stderr: json (one object a line: time, level, logger, message, "
+                                    "request_id, task_id) or text")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
+        default="INFO", description="level of greyfit's own loggers (other libraries log at WARNING and above)")
 
     def resolved_database_url(self) -> str:
         if self.database_url:

@@ -18,6 +18,7 @@ import os
 import time
 import uuid
 from dataclasses import dataclass
+from pathlib import Path
 from typing import Any, Optional
 
 from sqlalchemy import (
@@ -130,6 +131,37 @@ class StoreUnavailable(Exception):
     def __init__(self, detail: str, public: str = "the job store does not take writes"):
         super().__init__(detail)
         self.public = public
+
+
+class DataDirNotWritable(RuntimeError):
+    """The data directory (SQLite store, compiled-model cache) cannot be written: the server must
+    not start. The message is one line that says which folder, as whom, and what to do."""
+
+
+def check_data_dir(data_dir: Path, database_file: Optional[Path] = None) -> None:
+    """Raise DataDirNotWritable unless a file can be created in `data_dir` (made if missing) and
+    `database_file`, if it exists, opened for writing.
+
+    It tries: os.access answers from the permission bits, which root passes on any folder, also
+    one on a read-only file system."""
+    who = f"uid {os.geteuid()}" if hasattr(os, "geteuid") else "this user"
+    fix = ("make it writable for that user (a host folder mounted on it: chown it to that uid) "
+           "or point GREYFIT_DATA_DIR at a folder it can write")
+    try:
+        data_dir.mkdir(parents=True, exist_ok=True)
+        probe = data_dir / f".greyfit-write-check-{os.getpid()}-{uuid.uuid4().hex[:8]}"
+        fd = os.open(probe, os.O_CREAT | os.O_EXCL | os.O_WRONLY, 0o600)
+        os.close(fd)
+        probe.unlink()
+        if database_file is not None and database_file.exists():
+            with open(database_file, "ab"):
+                pass
+    except OSError as exc:
+        reason = exc.strerror or type(exc).__name__
+        # the probe's own name says nothing: name the folder, or the database file that refused
+        place = f" on {exc.filename}" if exc.filename and ".greyfit-write-check-" not in str(exc.filename) else ""
+        raise DataDirNotWritable(f"the data directory {data_dir.resolve()} is not writable by {who} "
+                                 f"({reason}{place}): {fix}") from None
 
 
 @dataclass

@@ -31,10 +31,12 @@ from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warn
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
 from greyfit.solvers.model.carried import attach_model
-from greyfit.solvers.methods.multistart import draw_starts
+from greyfit.solvers.methods.multistart import (
+    MULTISTART_CPU_STATUS, draw_starts, multistart_agreement, multistart_warnings,
+)
 from greyfit.solvers.methods.node_initialisation import node_warnings
 from greyfit.solvers.methods.registry import batch_method, online_method
-from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.compiler import compile_model, guard_notes
 from greyfit.solvers.model.parameters import ParameterLayout, build_layout
 from greyfit.solvers.nlp.solver import NlpOutcome
 from greyfit.solvers.simulation.validate import validate_fit
@@ -105,7 +107,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     ext.attach(problem, layout)
     if built.eep is not None:
         built.affine_solve = ext.solve_affine
-    before = pre_fit_warnings(cm, data, layout, opts, problem, built.eep, built.oem)
+    before = pre_fit_warnings(cm, data, layout, opts, problem, built.eep, built.oem) + guard_notes(cm)
     # solve over the starts
     outcome, n_starts, is_c = built.solve(starts, opts, cpu0)
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
@@ -129,9 +131,14 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     cov = estimate_covariance(jp.jac, jp.res, jp.labels, jp.values, jp.scale, keep, layout.size,
                               opts.confidence_level, groups=jp.groups, sample_keys=sample_keys,
                               experiment_keys=experiment_keys, robust=robust)
+    agree = multistart_agreement(built.run, layout, ndata, nvarys, opts.confidence_level)
+    before = before + multistart_warnings(built.run, agree)   # multiple_optima: not `good`
     result = _result(request, built, outcome, layout, theta, bounds, cov, channels, analyses,
                      x0s, cost, ndata, nvarys, n_starts, is_c, started)
     result.active_constraints = active_constraints(cm, layout, theta_s)
+    if agree is not None:
+        result.solver.starts_at_best = agree.starts_at_best
+        result.alternative_optima = agree.optima or None
     # checks
     result.profile = run_profiles(problem, opts, outcome, layout, ndata, nvarys, cov)
     result = ext.finish(result, layout, theta, cov)
@@ -226,5 +233,8 @@ def _message(status: str) -> str:
         "Linear_Least_Squares": "solved in closed form (residual affine in the parameters, no active bound)",
         "Maximum_Iterations_Exceeded": "Ipopt stopped at max_iter; raise options.max_iter or improve the guess",
         "Maximum_CpuTime_Exceeded": "Ipopt stopped at max_cpu_time; raise options.max_cpu_time",
+        MULTISTART_CPU_STATUS: "max_cpu_time ran out before every start ran; the best start so far is "
+                               "reported, not the multistart's answer; raise options.max_cpu_time or "
+                               "lower options.multistart",
         "Infeasible_Problem_Detected": "the bounds and constraints cannot all hold",
     }.get(status, f"Ipopt returned {status}")

@@ -16,13 +16,16 @@ from greyfit.solvers.methods.registry import method_family
 
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
-                 "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation"}
+                 "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation",
+                 "multiple_optima"}   # multiple_optima: solvers/methods/multistart.py
 # online, frequency and equation-error checks (solvers/methods/online/checks.py, solvers/frequency/checks.py,
 # solvers/methods/equation_error_bias.py) whose warnings count against `good`
 SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "input_faster_than_sampling", "integration_step_coarse", "initial_simulation_diverged",
-              "robust_covariance", "poor_excitation_at_start"}
+              "robust_covariance", "poor_excitation_at_start",
+              "singular_derivative_guarded",     # solvers/model/compiler.py
+              "polished_with_exact_hessian"}     # solvers/methods/multistart.py
 
 NOISE_FLOOR_RATIO = 5.0      # rmse this many times the data's own noise estimate ...
 NOISE_FLOOR_POINTS = 20.0    # ... and the fit % this many points below what that noise allows

@@ -1,6 +1,7 @@
 """`fit_frequency_response`: Levy/SK start, Ipopt fit with stability constraints, covariance, report."""
 from __future__ import annotations
 
+import dataclasses
 import time
 
 import casadi as ca
@@ -34,7 +35,7 @@ from greyfit.solvers.frequency.response import numeric_response
 from greyfit.solvers.frequency.stability import poles, routh_first_column
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.statistics import information_criteria
-from greyfit.solvers.methods.multistart import draw_starts
+from greyfit.solvers.methods.multistart import MULTISTART_CPU_STATUS, draw_starts
 from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.model.parameters import build_layout
 from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
@@ -70,6 +71,8 @@ def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: F
     used = 0
     for theta0 in starts:
         if best is not None and time.process_time() - cpu0 > options.max_cpu_time:
+            # the safety net cuts the multistart off, and says so: not the answer of all starts
+            best = dataclasses.replace(best, status=MULTISTART_CPU_STATUS, success=False)
             break
         out = solver.solve(fp.problem.initial_guess(theta0))
         used += 1

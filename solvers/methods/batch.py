@@ -14,7 +14,7 @@ import numpy as np
 from greyfit.schemas.fit import FitOptions
 from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.methods.equation_error import EquationErrorProblem, build_equation_error
-from greyfit.solvers.methods.multistart import solve_from_starts
+from greyfit.solvers.methods.multistart import MultistartRun, exact_form, solve_from_starts
 from greyfit.solvers.methods.shooting import (
     OutputErrorModel, build_multiple_shooting, build_single_shooting, sensitivity_jacobian,
 )
@@ -54,6 +54,7 @@ class BatchFit(Protocol):
     affine_solve: Callable | None       # equation error with a TV penalty: IRLS (batch extensions)
     eep: EquationErrorProblem | None    # set by equation error (checks read its rows)
     oem: OutputErrorModel | None        # set by output error (checks read its simulations)
+    run: MultistartRun | None           # set by `solve` when it solved over the starts
 
     def solve(self, starts: list[np.ndarray], options: FitOptions,
               cpu0: float) -> tuple[NlpOutcome, int, bool | None]:
@@ -78,6 +79,7 @@ class EquationErrorFit:
     """Residual ẋ_measured − f(x, u, θ) on measured (or smoothed) states and derivatives."""
 
     oem: OutputErrorModel | None = None
+    run: MultistartRun | None = None
 
     def __init__(self, eep: EquationErrorProblem, data: list[ExperimentData], cm: CompiledModel,
                  layout: ParameterLayout):
@@ -94,8 +96,9 @@ class EquationErrorFit:
             affine = self.affine_solve(self.problem, self.layout, self.eep.linear)
             if affine:
                 return (*affine, None)
-        outcome, used, is_c = solve_from_starts(self.problem, options, starts,
-                                                self.eep.linear and self.problem.penalty is None, cpu0)
+        self.run = solve_from_starts(self.problem, options, starts,
+                                     self.eep.linear and self.problem.penalty is None, cpu0)
+        outcome, used, is_c = self.run.best, self.run.used, self.run.compiled
         if outcome.status == "Linear_Least_Squares":   # the per-sample Jacobian was all that ran
             is_c = self.eep.sample.compiled
         return outcome, used, is_c
@@ -138,19 +141,24 @@ class OutputErrorFit:
 
     eep: EquationErrorProblem | None = None
     affine_solve: Callable | None = None
+    run: MultistartRun | None = None
 
-    def __init__(self, oem: OutputErrorModel, problem: LeastSquaresProblem):
-        self.oem, self.problem, self.data = oem, problem, oem.data
+    def __init__(self, oem: OutputErrorModel, problem: LeastSquaresProblem,
+                 builder: Callable[[OutputErrorModel], LeastSquaresProblem]):
+        self.oem, self.problem, self.data, self.builder = oem, problem, oem.data, builder
 
     @classmethod
     def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
               options: FitOptions, shooting: Literal["single", "multiple"]) -> "OutputErrorFit":
         oem = OutputErrorModel(cm, data, layout, options)
         builder = build_single_shooting if shooting == "single" else build_multiple_shooting
-        return cls(oem, builder(oem))
+        return cls(oem, builder(oem), builder)
 
     def solve(self, starts, options, cpu0):
-        return solve_from_starts(self.problem, options, starts, False, cpu0)
+        # the exact form: the polish of a fit Gauss-Newton did not converge (multistart.py)
+        self.run = solve_from_starts(self.problem, options, starts, False, cpu0,
+                                     exact_form(self.builder, self.oem, self.problem))
+        return self.run.best, self.run.used, self.run.compiled
 
     def jacobian(self, theta_s, w, x0s):
         """Sensitivities of the simulated outputs at the solution: for multiple shooting the nodes

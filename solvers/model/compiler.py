@@ -7,10 +7,11 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
+from greyfit.schemas.fit import FitWarning
 from greyfit.schemas.model import Model
-from greyfit.solvers.model.constraints import compile_constraints
 from greyfit.solvers.errors import ModelDefinitionError
-from greyfit.solvers.model.expressions import compile_expression, parse, to_casadi
+from greyfit.solvers.model.constraints import compile_constraints
+from greyfit.solvers.model.expressions import GUARD_EPSILON, compile_expression, parse, to_casadi
 
 
 @dataclass
@@ -28,6 +29,9 @@ class CompiledModel:
     constraint: ca.Function | None  # (p) -> g, with g >= 0 (or g == 0 where marked)
     constraint_equality: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     direct_outputs: dict[str, str] = field(default_factory=dict)  # output name -> state it measures
+    # "<field>: <sub-expression>" of each root or logarithm compiled with its guard near 0
+    # (expressions.GUARD_EPSILON); reported by `guard_notes`
+    guarded: list[str] = field(default_factory=list)
     # Functions derived from this model (integrator steps by their options, ∂f/∂x, ...), built once;
     # init=False: dataclasses.replace gives a changed model a fresh, empty cache
     derived: dict[tuple, object] = field(default_factory=dict, init=False, repr=False, compare=False)
@@ -68,6 +72,18 @@ class CompiledModel:
         return deps
 
 
+def guard_notes(cm: CompiledModel) -> list[FitWarning]:
+    """The info warning that roots and logarithms were guarded near 0 (none if there are none)."""
+    if not cm.guarded:
+        return []
+    return [FitWarning(
+        code="singular_derivative_guarded",
+        message=f"{'; '.join(cm.guarded)}: exact for arguments ≥ {GUARD_EPSILON:g}; below, a C¹ "
+                "polynomial (roots) or the tangent (logarithms) with a finite derivative, also for "
+                "negative arguments, so a trajectory that touches 0 does not end the fit with NaN",
+        detail={"expressions": list(cm.guarded), "epsilon": GUARD_EPSILON})]
+
+
 def _symbols(cm: "CompiledModel"):
     return (ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t"))
 
@@ -104,10 +120,11 @@ def _compile(model: Model) -> CompiledModel:
     env.update({n: u[i] for i, n in enumerate(model.inputs)})
     env.update({n: p[i] for i, n in enumerate(params)})
     env.update(model.constants)
+    guarded: list[str] = []
     for name, text in model.definitions.items():
-        env[name] = compile_expression(text, env, f"definitions.{name}")
+        env[name] = compile_expression(text, env, f"definitions.{name}", guarded)
 
-    dx = ca.vertcat(*[compile_expression(model.equations[s], env, f"equations.{s}")
+    dx = ca.vertcat(*[compile_expression(model.equations[s], env, f"equations.{s}", guarded)
                       for s in model.states])
     outputs = model.measured_outputs()
     if not outputs:
@@ -118,7 +135,7 @@ def _compile(model: Model) -> CompiledModel:
         node = parse(text, f"outputs.{name}")
         if node[0] == "name" and node[1] in model.states:
             direct[name] = node[1]
-        y_list.append(to_casadi(node, env, f"outputs.{name}"))
+        y_list.append(to_casadi(node, env, f"outputs.{name}", guarded))
     y = ca.vertcat(*y_list)
 
     constraint = None
@@ -138,4 +155,4 @@ def _compile(model: Model) -> CompiledModel:
         model=model, states=list(model.states), inputs=list(model.inputs), parameters=params,
         outputs=list(outputs), output_expressions=outputs, rhs=rhs, output=out,
         constraint=constraint, constraint_equality=equality,
-        direct_outputs=direct)
+        direct_outputs=direct, guarded=guarded)

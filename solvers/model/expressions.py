@@ -290,10 +290,48 @@ def _fold(node: Node, args: list, where: str) -> float:
     return value
 
 
-def to_casadi(node: Node, env: Mapping[str, object], where: str):
+# Below this argument a root or logarithm is continued by a C¹ polynomial (see `_guarded`)
+GUARD_EPSILON = 1e-9
+
+
+def _root_guard(z, power: float):
+    """z^p (0 < p < 1) exact for z ≥ ε; below, A z + B max(z, 0)² with the value and slope of z^p
+    at ε and 0 at 0, so the derivative stays finite (A = (2 − p) ε^(p−1)) and z < 0 is no NaN."""
+    eps = GUARD_EPSILON
+    a, b = (2.0 - power) * eps ** (power - 1.0), (power - 1.0) * eps ** (power - 2.0)
+    exact = ca.sqrt(ca.fmax(z, eps)) if power == 0.5 else ca.fmax(z, eps) ** power
+    return ca.if_else(z >= eps, exact, a * z + b * ca.fmax(z, 0.0) ** 2)
+
+
+def _log_guard(z):
+    """log z exact for z ≥ ε, its tangent at ε below (finite, no NaN for z ≤ 0)."""
+    eps = GUARD_EPSILON
+    return ca.if_else(z >= eps, ca.log(ca.fmax(z, eps)), math.log(eps) + (z - eps) / eps)
+
+
+def _guarded(node: Node, args: list):
+    """(guarded expression, what was guarded) for sqrt, log, log10 and z^p with a constant
+    0 < p < 1, whose derivative is infinite at 0 and whose value is NaN below; else (None, None).
+
+    Why: the derivative of sqrt(max(h, 0)) at h = 0 is infinite, and the first Jacobian of a fit
+    whose unmeasured level starts at 0 ended the fit with Invalid_Number_Detected.
+    """
+    if node[0] == "call" and node[1] == "sqrt":
+        return _root_guard(args[0], 0.5), "sqrt"
+    if node[0] == "call" and node[1] in ("log", "log10"):
+        guarded = _log_guard(args[0])
+        return (guarded if node[1] == "log" else guarded / math.log(10.0)), node[1]
+    if node[0] == "bin" and node[1] == "^" and _is_number(args[1]) and 0.0 < args[1] < 1.0:
+        return _root_guard(args[0], float(args[1])), "power"
+    return None, None
+
+
+def to_casadi(node: Node, env: Mapping[str, object], where: str, guards: list[str] | None = None):
     """Build the CasADi expression of `node` with names looked up in `env`.
 
     Sub-expressions of numbers only are folded to numbers (and refused if not finite and real).
+    With a list `guards`, roots and logarithms of non-constant arguments are guarded near 0
+    (`_guarded`) and each is recorded there as "<where>: <sub-expression>".
     """
     def combine(current: Node, args: list):
         kind = current[0]
@@ -308,14 +346,19 @@ def to_casadi(node: Node, env: Mapping[str, object], where: str):
             raise ModelDefinitionError(f"unknown name '{name}' at column {current[2]}", where)
         if all(_is_number(a) for a in args):
             return _fold(current, args, where)
+        if guards is not None:
+            guarded, _ = _guarded(current, args)
+            if guarded is not None:
+                guards.append(f"{where}: {unparse(current)}")
+                return guarded
         return _apply(current, args)
 
     return _postorder(node, combine)
 
 
-def compile_expression(text: str, env: Mapping[str, object], where: str):
+def compile_expression(text: str, env: Mapping[str, object], where: str, guards: list[str] | None = None):
     """Parse and compile in one go."""
-    return to_casadi(parse(text, where), env, where)
+    return to_casadi(parse(text, where), env, where, guards)
 
 
 _PRECEDENCE = {"cmp": 1, "+": 2, "-": 2, "*": 3, "/": 3, "neg": 4, "^": 5}

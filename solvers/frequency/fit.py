@@ -66,7 +66,8 @@ def _interior(theta: np.ndarray, layout) -> np.ndarray:
 
 def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: FitOptions):
     solver = LeastSquaresSolver(fp.problem, options)
-    best: tuple[tuple[bool, bool, float], NlpOutcome] | None = None   # (ranking key, outcome)
+    best: NlpOutcome | None = None
+    best_key: tuple[bool, bool, float] | None = None   # set together with best
     cpu0 = time.process_time()
     used = 0
     for theta0 in starts:
@@ -77,9 +78,9 @@ def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: F
         out = solver.solve(fp.problem.initial_guess(theta0))
         used += 1
         key = (out.success and _feasible(fp, out.w), _feasible(fp, out.w), -out.cost)
-        if best is None or key > best[0]:
-            best = (key, out)
-    return (None if best is None else best[1]), used
+        if best_key is None or key > best_key:
+            best, best_key = out, key
+    return best, used
 
 
 def _loop_report(loop: ClosedLoop, p: np.ndarray) -> LoopStability:

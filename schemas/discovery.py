@@ -1,7 +1,7 @@
 """Discovery: fit, trace the residual to a missing physical effect, add it, refit, report."""
 from __future__ import annotations
 
-from typing import Literal, Optional
+from typing import Literal, Optional, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -9,13 +9,13 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.jobs import job_create
 from greyfit.schemas.model import Expression, Model, Name
 
-Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "saturation",
-                 "parameter_step", "parameter_drift", "state_dependent", "input_delay",
-                 "output_offset", "output_gain", "output_abs", "output_saturation"]
-ALL_EFFECTS: tuple[str, ...] = ("coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
-                                "saturation", "parameter_step", "parameter_drift", "state_dependent",
-                                "input_delay", "output_offset", "output_gain", "output_abs",
-                                "output_saturation")
+# the families of solvers/discovery/families, in the registry's order (schemas do not import
+# solvers: tests/solvers/test_discovery_families.py checks the two agree)
+Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "radiation",
+                 "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
+                 "output_saturation", "power_law", "parameter_law", "parameter_step",
+                 "parameter_drift", "state_dependent", "input_delay"]
+ALL_EFFECTS: tuple[Effect, ...] = get_args(Effect)
 
 
 class CustomCandidate(BaseModel):
@@ -47,8 +47,9 @@ class DiscoveryOptions(BaseModel):
     coulomb_epsilon: Optional[float] = Field(
         default=None, gt=0, description="tanh(v/ε) smoothing of sign(v); default: the refit chooses among "
                                         "0.1, 0.3, 1 and 3 % of the RMS of v")
-    max_refits: int = Field(default=8, ge=1, le=50,
-                            description="budget of confirming refits: rejected candidates count too")
+    max_refits: int = Field(default=12, ge=1, le=50,
+                            description="budget of confirming refits: rejected candidates and the contenders "
+                                        "refitted against each other count too")
     time_budget_s: float = Field(
         default=300.0, gt=0, le=86_400,
         description="wall-time budget of the search (the base fit always runs): no screen or refit starts "
@@ -131,6 +132,20 @@ class NewParameter(BaseModel):
     ci95: Optional[tuple[float, float]] = None
 
 
+class RunnerUp(BaseModel):
+    """A contender of the chosen effect, refitted against it on the same data."""
+
+    effect: str
+    equation: str
+    term: str
+    delta_bic: Optional[float] = Field(
+        description="its BIC minus the chosen one's, both output residuals whitened by one AR noise model "
+                    "(coloured noise is not evidence); null when its refit did not pass the evidence gates")
+    validation_nrmse: Optional[float] = Field(
+        default=None, description="mean NRMSE over the outputs of the validation records; null without them")
+    outcome: str = Field(description="why it was not chosen")
+
+
 class DiscoveryStep(BaseModel):
     effect: str
     equation: str
@@ -141,17 +156,31 @@ class DiscoveryStep(BaseModel):
     after: FitSummary
     record_specific: bool = Field(default=False, description="a change in time found in this record "
                                                              "(step, drift): it does not carry over to new data")
+    verdict: Literal["identified", "ambiguous", "approximates"] = Field(
+        default="identified",
+        description="identified: better than every contender by refit (whitened BIC and validation); "
+                    "ambiguous: a contender of another family explains these data as well (`runners_up`), "
+                    "`separate_by` says what data would tell them apart; approximates: it moved the declared "
+                    "parameters far outside their intervals before it, a stand-in (approximates; not identified)")
+    runners_up: list[RunnerUp] = Field(default_factory=list,
+                                       description="the contenders refitted against it, best first")
+    separate_by: Optional[str] = Field(default=None, description="for an ambiguous step: what would separate it "
+                                                                 "from its runner-up")
 
 
 class RejectedCandidate(BaseModel):
     effect: str
     equation: str
     term: str
-    reason: Literal["evidence", "validation", "cpu_limit", "solver_failed", "refit_error", "superseded"] = Field(
+    reason: Literal["evidence", "validation", "cpu_limit", "solver_failed", "refit_error", "superseded",
+                    "parsimony"] = Field(
         description="evidence: the refit did not confirm it (BIC, t-value); validation: it made the "
                     "validation records worse; cpu_limit: the refit ran out of time (no verdict); "
                     "solver_failed / refit_error: the refit did not converge or could not be built; "
-                    "superseded: kept at first, then explained by an effect added later and dropped")
+                    "superseded: kept at first, then explained by an effect added later and dropped; "
+                    "parsimony: a catch-all (switch, step, drift, delay) that a named law explains as well, "
+                    "that does not improve the validation records, that would pile a small coefficient onto an "
+                    "accepted effect, or that moves the declared parameters far outside their intervals")
     detail: str
 
 
@@ -186,6 +215,8 @@ class DiscoveryResult(BaseModel):
     budget_exhausted: bool = Field(
         default=False, description="the search stopped because `discovery.time_budget_s` was spent; what was "
                                    "found until then is reported")
+    ambiguous: bool = Field(default=False, description="some step is `ambiguous`: another law explains these "
+                                                      "data as well; see its runners_up and separate_by")
 
 
 DiscoverJobCreate = job_create("DiscoverJobCreate", DiscoverRequest, "A batch of discovery requests "

@@ -15,21 +15,27 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from greyfit.schemas.discovery import (
-    DiscoverRequest, DiscoveryOptions, DiscoveryStep, Evidence, NewParameter, RejectedCandidate, ValidationSummary,
+    DiscoverRequest,
+    DiscoveryOptions,
+    DiscoveryStep,
+    Evidence,
+    NewParameter,
+    RejectedCandidate,
+    ValidationSummary,
 )
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.effects import Candidate
-from greyfit.solvers.discovery.screening import Scored, Screening, screen
 from greyfit.solvers.discovery.refit_test import output_residual, refit_likelihood_ratio
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
+from greyfit.solvers.discovery.screening import Scored, Screening, screen
 from greyfit.solvers.discovery.summary import equation_names, summarize, validate, validation_worse
 from greyfit.solvers.discovery.warm_start import gauss_newton_start
+from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.methods.registry import simulates_outputs
-from greyfit.solvers.dynamics.integration import integrator_of
 
 
 @dataclass
@@ -44,6 +50,7 @@ class LoopState:
     rejected: list[RejectedCandidate] = field(default_factory=list)
     tried: set[str] = field(default_factory=set)
     clock: Clock = field(default_factory=lambda: Clock(float("inf")))
+    record_params: set[str] = field(default_factory=set)   # parameters of record-specific steps (off on validation)
     scorer_at: tuple[FitResult, OutputScorer] | None = None   # the output scorer built at a fit, for reuse
 
 
@@ -111,9 +118,26 @@ def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored) -> tuple
     return new_model, new_params, new_req
 
 
-def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
-                      screening: Screening) -> RejectedCandidate | None:
-    """Refit with the candidate (the best of its variants); None when kept, else why it was not."""
+@dataclass
+class Refitted:
+    """A candidate refitted and past the evidence gates (BIC, whitened likelihood ratio, t-value)."""
+
+    sc: Scored
+    fit: FitResult
+    model: Model
+    params: list[str]
+    request: FitRequest
+    t_value: float | None
+    bic_drop: float
+    order: int | None
+    lr_p: float | None
+    validation: ValidationSummary | None = None
+
+
+def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
+                    screening: Screening) -> Refitted | RejectedCandidate:
+    """Refit with the candidate (the best of its variants) and apply the evidence gates; the
+    validation records are simulated but not yet judged (`discriminate` compares contenders)."""
     opts = request.discovery
     best = None
     errors = []
@@ -154,38 +178,70 @@ def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list
     if (bic_drop < opts.min_bic_drop or (lr_p is not None and lr_p >= level)
             or (t_value is not None and t_value < opts.min_t_value)):
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
-        lr_text = "" if lr_p is None else f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
+        lr_text = "" if lr_p is None else \
+            f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
                                  detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
                                         f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")
-    validation_exps = (c.transform_experiments(request.validation) if c.transform_experiments and request.validation
-                       else request.validation)
+    out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p)
+    out.validation = validate_refit(request, state, out)
+    return out
+
+
+def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> ValidationSummary | None:
+    """The refitted model on the validation records, with the record-specific terms (steps, drifts in
+    the estimation record's time) switched off: their clock does not carry over to new data."""
+    c = r.sc.candidate
+    exps = c.transform_experiments(request.validation) if c.transform_experiments and request.validation \
+        else request.validation
+    neutral = state.record_params | (set(r.params) if c.record_specific else set())
     with state.clock.phase("validation"):
-        new_validation = validate(request, new_model, new_fit, validation_exps)
-    worse = validation_worse(state.validation, new_validation, opts.validation_tolerance)
+        return validate(request, r.model, r.fit, exps, neutral)
+
+
+def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
+                      screening: Screening) -> RejectedCandidate | None:
+    """Refit with the candidate (the best of its variants); None when kept, else why it was not."""
+    r = refit_candidate(request, state, variants, screening)
+    if isinstance(r, RejectedCandidate):
+        return r
+    worse = validation_worse(state.validation, r.validation, request.discovery.validation_tolerance)
     if worse:
-        return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="validation",
-                                 detail=f"better on the estimation data (BIC -{bic_drop:.0f}) but worse on the "
+        c = r.sc.candidate
+        return RejectedCandidate(effect=c.effect, equation=equation_names(screening, c), term=c.term,
+                                 reason="validation",
+                                 detail=f"better on the estimation data (BIC -{r.bic_drop:.0f}) but worse on the "
                                         f"validation records: {worse}")
+    accept(request, state, r, screening)
+    return None
+
+
+def accept(request: DiscoverRequest, state: LoopState, r: Refitted, screening: Screening, note: str = "",
+           **verdict) -> None:
+    """Add the refitted candidate as a step; `verdict`: the step's verdict, runners_up, separate_by;
+    `note` is appended to its description."""
+    sc, c = r.sc, r.sc.candidate
     state.steps.append(DiscoveryStep(
-        effect=c.effect, equation=where, term=c.term, description=c.description,
-        parameters=new_parameters(new_fit, new_params),
+        effect=c.effect, equation=equation_names(screening, c), term=c.term,
+        description=c.description + (f" ({note})" if note else ""),
+        parameters=new_parameters(r.fit, r.params),
         evidence=Evidence(scored_on=sc.scored_on, explained_variance=sc.score.explained,
                           screening_bic_drop=sc.score.bic_drop, p_value=sc.score.p_value,
-                          bic_before=state.fit.metrics.bic, bic_after=new_fit.metrics.bic, bic_drop=bic_drop,
-                          t_value=t_value, noise_model_order=order, refit_p_value=lr_p,
+                          bic_before=bic(state.fit), bic_after=bic(r.fit), bic_drop=r.bic_drop,
+                          t_value=r.t_value, noise_model_order=r.order, refit_p_value=r.lr_p,
                           residual_correlation_before=sc.score.corr_before,
-                          residual_correlation_after=correlation_after(sc, new_req, new_fit, screening)),
-        after=summarize(new_fit, new_validation), record_specific=c.record_specific))
+                          residual_correlation_after=correlation_after(sc, r.request, r.fit, screening)),
+        after=summarize(r.fit, r.validation), record_specific=c.record_specific, **verdict))
     state.accepted.append(c)
+    if c.record_specific:
+        state.record_params |= set(r.params)
     # no steps of a step, no drift of a drift
-    state.tried.update(f"{kind}:{n}" for n in new_params for kind in ("parameter_step", "parameter_drift"))
+    state.tried.update(f"{kind}:{n}" for n in r.params for kind in ("parameter_step", "parameter_drift"))
     model_before = state.model
-    state.model, state.fit, state.request, state.validation = new_model, new_fit, new_req, new_validation
+    state.model, state.fit, state.request, state.validation = r.model, r.fit, r.request, r.validation
     if c.width > 0:
         refine_width(request, state, sc, model_before)
     drop_superseded(request, state)
-    return None
 
 
 def refine_width(request: DiscoverRequest, state: LoopState, sc: Scored, model_before: Model) -> None:
@@ -235,7 +291,7 @@ def refine_width(request: DiscoverRequest, state: LoopState, sc: Scored, model_b
         if new_fit.quality == "failed" or bic(new_fit) >= bic(state.fit):
             return
         with state.clock.phase("validation"):
-            new_validation = validate(request, new_model, new_fit, request.validation)
+            new_validation = validate(request, new_model, new_fit, request.validation, state.record_params)
         if validation_worse(state.validation, new_validation, opts.validation_tolerance):
             return
         step = state.steps[-1]
@@ -289,7 +345,7 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
         del state.accepted[idx]
         state.model, state.fit, state.request = model, new_fit, new_req
         with state.clock.phase("validation"):
-            state.validation = validate(request, model, new_fit, request.validation)
+            state.validation = validate(request, model, new_fit, request.validation, state.record_params)
 
 
 def new_parameters(fit: FitResult, names: list[str]) -> list[NewParameter]:

@@ -4,7 +4,8 @@ The steps, in the order they run:
 
 1. Fit the declared model with the requested method (`fit_model`); simulate it on the validation
    experiments, if any.
-2. Screen (`screening.screen`): every candidate of the effect library is scored
+2. Screen (`screening.screen`): every candidate of the effect library (`effects.library`, a registry
+   of families in `families/`) is scored
    - on the equation residuals of measured states (`scoring_equations`), and
    - on the output residuals through the output sensitivities (`scoring_outputs`): effects in
      equations of unmeasured states and in the output path (`output_effects`) show there.
@@ -12,14 +13,17 @@ The steps, in the order they run:
    of candidates tried (Bonferroni), it explains at least `min_explained` of the residual variance,
    and its sign is physical. One ranking: largest BIC drop first, a change in time (step, drift)
    behind a structural effect that explains nearly as much.
-3. Confirm (`confirm.confirm_candidate`): the best significant candidate is added and the whole
-   model refitted with the requested method, started one Gauss-Newton step from the old fit
-   (`warm_start`). It is kept if the refit converges, its BIC falls by `min_bic_drop`, its likelihood
-   ratio with the noise allowed to be coloured passes the screen's Bonferroni level (`refit_test`),
-   the new parameter has |value|/stderr ≥ `min_t_value`, and the validation records do not get
-   worse. A smoothed switch is refitted at its widest significant width and the width refined
-   after. Otherwise it is recorded in `rejected` with the reason and the next ranked candidate is
-   tried, within `max_refits` refits.
+3. Discriminate and confirm (`discriminate.discriminate`, `confirm.refit_candidate`): the best
+   significant candidate and its contenders of other families within a margin of its screening
+   evidence are each added and the whole model refitted with the requested method, started one
+   Gauss-Newton step from the old fit (`warm_start`). A refit passes if it converges, its BIC falls
+   by `min_bic_drop`, its likelihood ratio with the noise allowed to be coloured passes the screen's
+   Bonferroni level (`refit_test`), the new parameter has |value|/stderr ≥ `min_t_value`, and the
+   validation records do not get worse; a catch-all also under the parsimony rules. Of those that
+   pass, the best by whitened BIC and validation is added, the others reported as its runners-up;
+   two the data cannot tell apart make the step `ambiguous`. A smoothed switch is refitted at its
+   widest significant width and the width refined after. What fails is recorded in `rejected` with
+   the reason and the next ranked candidate is tried, within `max_refits` refits.
 4. Repeat up to `max_terms`; report before/after (estimation and validation), each step's evidence
    and the augmented model. When nothing is added, the conclusion says why.
 
@@ -34,14 +38,15 @@ import numpy as np
 
 from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
-from greyfit.solvers.discovery.budget import Clock
-from greyfit.solvers.discovery.confirm import LoopState, confirm_candidate, screen_state
-from greyfit.solvers.discovery.screening import Screening
-from greyfit.solvers.discovery.summary import added_inputs, public_scores, summarize, validate
-from greyfit.solvers.errors import ModelDefinitionError
-from greyfit.solvers.model.expressions import compile_expression
-from greyfit.solvers.fit import fit_model
 from greyfit.solvers.data.preprocess import prepare_request
+from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.discovery.confirm import LoopState, screen_state
+from greyfit.solvers.discovery.discriminate import discriminate
+from greyfit.solvers.discovery.screening import Screening
+from greyfit.solvers.discovery.summary import added_inputs, public_scores, steps_conclusion, summarize, validate
+from greyfit.solvers.errors import ModelDefinitionError
+from greyfit.solvers.fit import fit_model
+from greyfit.solvers.model.expressions import compile_expression
 
 __all__ = ["discover", "LoopState", "try_in_rank_order", "Progress"]
 
@@ -98,14 +103,14 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
                      f"after {clock.elapsed():.1f} s; what was found until then is reported")
         why_not = why_not or (f"search stopped by the time budget ({opts.time_budget_s:g} s) before an effect "
                               "was confirmed")
-    conclusion = ("added " + "; ".join(f"{s.effect} ({s.description})" for s in state.steps) if state.steps
-                  else why_not or "no significant missing effect")
+    conclusion = steps_conclusion(state.steps) if state.steps else why_not or "no significant missing effect"
     tell("done", conclusion, opts.max_refits - state.refits_left)
     return DiscoveryResult(conclusion=conclusion, before=before, after=summarize(state.fit, state.validation),
                            steps=state.steps, added_inputs=added_inputs(request, state.request),
                            rejected=state.rejected, screened=screened_first, notes=notes, model=state.model,
                            fit=state.fit, wall_time_s=clock.elapsed(), timings=clock.report(),
-                           budget_exhausted=clock.exhausted)
+                           budget_exhausted=clock.exhausted,
+                           ambiguous=any(s.verdict == "ambiguous" for s in state.steps))
 
 
 def check_user_candidates(request: DiscoverRequest) -> None:
@@ -179,32 +184,14 @@ def _where_scored(screening: Screening) -> str:
 
 def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening,
                       tell: Progress = _silent) -> bool:
-    """Refit significant candidates best first until one is confirmed or the budget is spent.
-
-    A smoothed switch (a width family) is refitted once, at its widest significant width, and its
-    width refined after (`confirm.refine_width`); other families with variants (input delays)
-    refit their two best."""
-    tried_now: set[str] = set()
+    """Refit significant candidates best first, each beside its contenders (`discriminate`), until one
+    is added or the budget is spent."""
     for sc in [s for s in screening.scored if s.significant]:
-        fam = sc.candidate.family
-        if fam in tried_now or fam in state.tried:
+        if sc.candidate.family in state.tried:
             continue
         if state.refits_left <= 0 or not state.clock.allows():
             return False
-        tried_now.add(fam)
-        siblings = [s for s in screening.scored if s.significant and s.candidate.family == fam
-                    and s.scored_on == sc.scored_on]
-        if sc.candidate.width > 0:
-            variants = [max(siblings, key=lambda s: s.candidate.width)]
-        elif sc.candidate.refit_variants:
-            variants = siblings[:2]
-        else:
-            variants = [sc]
-        tell("refit", variants[0].candidate.description, request.discovery.max_refits - state.refits_left)
-        verdict = confirm_candidate(request, state, variants, screening)
-        if verdict is None:
-            state.tried.add(fam)
+        tell("refit", sc.candidate.description, request.discovery.max_refits - state.refits_left)
+        if discriminate(request, state, screening, sc):
             return True
-        state.rejected.append(verdict)
-        state.tried.add(fam)
     return False

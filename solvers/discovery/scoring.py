@@ -100,13 +100,25 @@ class RegressionScorer:
         """Column(s) with the linearised free parameters regressed out."""
         return g - self.q @ (self.q.T @ g)
 
-    def score(self, g: np.ndarray) -> Score | None:
+    def stack(self, regressor: dict | None, outputs: dict | None = None) -> np.ndarray | None:
+        """The candidate's column(s) in the residual's row order (each scorer has its own rows)."""
+        raise NotImplementedError
+
+    def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
+        """Physical changes of the declared parameters from a step in the scorer's columns."""
+        raise NotImplementedError
+
+    def trajectories(self) -> list[tuple]:
+        """(states, inputs, times, experiment name) the residual was computed on, per experiment."""
+        raise NotImplementedError
+
+    def score(self, g: np.ndarray | None) -> Score | None:
         """g: the stacked candidate column(s), (rows,) or (rows, m)."""
         if g is None or not np.all(np.isfinite(g)):
             return None
         g = g.reshape(g.shape[0], -1)
         g0 = self.project(g)
-        if np.linalg.norm(g0) <= 1e-6 * max(np.linalg.norm(g), 1e-300) or self.rss0 <= 0:
+        if np.linalg.norm(g0) <= 1e-6 * max(float(np.linalg.norm(g)), 1e-300) or self.rss0 <= 0:
             return None   # the term is (nearly) a combination of existing ones, or nothing to explain
         coef, *_ = np.linalg.lstsq(g0, self.r0, rcond=None)
         fitted = g0 @ coef

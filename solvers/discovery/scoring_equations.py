@@ -16,8 +16,8 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import FitOptions
-from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.data.derivatives import savgol_coefficients, smooth_and_differentiate
+from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.discovery.scoring import RegressionScorer
 from greyfit.solvers.model.compiler import CompiledModel
 
@@ -137,7 +137,7 @@ class EquationScorer(RegressionScorer):
         tr = self.trace
         return [(x, u, t, "") for x, u, t in zip(tr.x, tr.u, tr.t)]
 
-    def stack(self, regressor: dict[int, list[np.ndarray]], outputs=None) -> np.ndarray | None:
+    def stack(self, regressor: dict[int, list[np.ndarray]] | None, outputs=None) -> np.ndarray | None:
         """Rows of the candidate's column(s) in the scorer's order; (rows,) or (rows, m).
 
         Output-path columns (`outputs`) have no equation residual to enter: None.

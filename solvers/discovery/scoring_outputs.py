@@ -16,6 +16,7 @@ where the cost's gradient with respect to θ(t) wants a change.
 from __future__ import annotations
 
 from types import SimpleNamespace
+from typing import cast
 
 import casadi as ca
 import numpy as np
@@ -23,6 +24,7 @@ import numpy as np
 from greyfit.solvers.discovery.scoring import RegressionScorer
 from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
+from greyfit.solvers.model.compiler import CompiledModel
 
 
 def _disturbed_step(oem: OutputErrorModel) -> ca.Function:
@@ -33,7 +35,8 @@ def _disturbed_step(oem: OutputErrorModel) -> ca.Function:
     ud = ca.vertcat(u, d)
     rhs = ca.Function("rhs_d", [x, ud, p, t], [cm.rhs(x, u, p, t) + d])
     disturbed = SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np, model=cm.model)
-    step = make_step(disturbed, oem.options)
+    # the step builder reads only rhs, nx, nu, np and model: a namespace with the disturbed rhs
+    step = make_step(cast(CompiledModel, disturbed), oem.options)
     xm = ca.MX.sym("x", cm.nx)
     u0m, u1m = ca.MX.sym("u0", cm.nu + cm.nx), ca.MX.sym("u1", cm.nu + cm.nx)
     pm, t0m, dtm = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")

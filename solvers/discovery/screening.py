@@ -3,28 +3,28 @@ states and on the output residuals (through the sensitivities), in one ranking."
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
 from greyfit.schemas.discovery import DiscoveryOptions
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.data.experiments import prepare_experiments
-from greyfit.solvers.discovery.effects import Candidate, library
-from greyfit.solvers.discovery.output_effects import output_effects
+from greyfit.solvers.discovery.effects import Candidate, OutputFit, library
 from greyfit.solvers.discovery.scoring import RegressionScorer, Score
 from greyfit.solvers.discovery.scoring_equations import EquationScorer, build_trace
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
+from greyfit.solvers.methods.registry import simulates_outputs
+from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
-from greyfit.solvers.methods.shooting import OutputErrorModel
-from greyfit.solvers.methods.registry import simulates_outputs
 
 
 @dataclass
 class Scored:
     candidate: Candidate
     score: Score
-    scored_on: str            # "equations" | "outputs"
+    scored_on: Literal["equations", "outputs", "refit"]
     significant: bool = False
     scorer: RegressionScorer | None = None   # the regression it was scored in (a warm start's Gauss-Newton step)
 
@@ -105,10 +105,10 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         out.output_scorer = scorer
         sim_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=False)
         cands, notes = library(request.model, sim_trace, effects, opts.candidates, opts.coulomb_epsilon,
-                               lambda equations: scorer, opts.significance, opts.min_explained)
-        out_cands, out_notes = output_effects(request.model, cm.outputs, scorer.y, data, effects)
-        out.notes += [n for n in notes + out_notes if n not in out.notes]
-        cands = [c for c in cands + out_cands if keep(c)]
+                               lambda equations: scorer, opts.significance, opts.min_explained,
+                               OutputFit(list(cm.outputs), scorer.y, data))
+        out.notes += [n for n in notes if n not in out.notes]
+        cands = [c for c in cands if keep(c)]
         columns = scorer.stack_many([(c.equations, c.outputs) for c in cands])
         for c, g in zip(cands, columns):
             out.tries += c.tries
@@ -123,12 +123,13 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         out.outputs_scored = list(cm.outputs)
 
     alpha = opts.significance / max(out.tries, 1)
-    for sc in out.scored:
-        c, s = sc.candidate, sc.score
+    for item in out.scored:
+        c, sco = item.candidate, item.score
         if c.refit_only:
             continue
-        physical = c.sign == 0 or np.sign(s.beta) == np.sign(c.sign)
-        sc.significant = bool(s.p_value * c.multiplicity < alpha and s.explained >= opts.min_explained and physical)
+        physical = c.sign == 0 or np.sign(sco.beta) == np.sign(c.sign)
+        item.significant = bool(sco.p_value * c.multiplicity < alpha and sco.explained >= opts.min_explained
+                                and physical)
     out.scored = rank(out.scored)
     return out
 

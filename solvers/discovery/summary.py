@@ -18,12 +18,17 @@ def equation_names(screening: Screening, cand: Candidate) -> str:
     return "; ".join(parts)
 
 
-def validate(request: DiscoverRequest, model: Model, fit: FitResult, experiments) -> ValidationSummary | None:
-    """Simulation metrics on the validation experiments (initial states estimated on a leading window)."""
+def validate(request: DiscoverRequest, model: Model, fit: FitResult, experiments,
+             neutral: set[str] | frozenset[str] = frozenset()) -> ValidationSummary | None:
+    """Simulation metrics on the validation experiments (initial states estimated on a leading window).
+
+    `neutral`: parameters set to 0 there, those of record-specific terms (a step at t = 3 s of the
+    estimation record says nothing about t = 3 s of another record)."""
     if not experiments:
         return None
     from greyfit.solvers.simulation.simulate import validation_metrics
-    values = {name: p.value for name, p in fit.parameters.items() if p.experiment is None}
+    values = {name: (0.0 if name in neutral else p.value) for name, p in fit.parameters.items()
+              if p.experiment is None}
     try:
         res = validation_metrics(model, values, experiments, request.options)
     except (FitError, RuntimeError, ValueError):
@@ -65,3 +70,16 @@ def added_inputs(request: DiscoverRequest, final: FitRequest) -> dict:
         if extra:
             out[exp.name] = extra
     return out
+
+
+def steps_conclusion(steps) -> str:
+    """'added …' naming each step, and for an ambiguous one the law that explains the data as well."""
+    parts = []
+    for s in steps:
+        text = f"{s.effect} ({s.description})"
+        if s.verdict == "ambiguous" and s.runners_up:
+            other = s.runners_up[0]
+            text += (f" — ambiguous: {other.effect} ({other.term}) explains these data as well "
+                     f"(ΔBIC {other.delta_bic:.1f}); {s.separate_by}" if other.delta_bic is not None else "")
+        parts.append(text)
+    return "added " + "; ".join(parts)

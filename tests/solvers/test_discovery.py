@@ -10,7 +10,13 @@ from greyfit.solvers.discovery import discover
 from greyfit.solvers.fit import fit_model
 from tests.emps import PUBLISHED, emps_request
 from tests.systems import (
-    SEAT_TRUTH, msd_experiment, msd_model, seat_experiment, seat_k4_step, seat_model, simulate_msd,
+    SEAT_TRUTH,
+    msd_experiment,
+    msd_model,
+    seat_experiment,
+    seat_k4_step,
+    seat_model,
+    simulate_msd,
     simulate_seat,
 )
 

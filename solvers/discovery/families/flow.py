@@ -1,0 +1,51 @@
+"""Torricelli outflow: every flow the model computes from a level follows sqrt(level), not the level."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.augment import replace_in_equations
+from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.discovery.families.base import Scope, bind, sensitivity_regressor
+
+
+class SqrtFlow:
+    """The declared flows through s (say k1*h1, out of tank 1 and into tank 2) change law together,
+    so mass stays conserved: s -> sqrt(max(s, 0)) in the equations. Scored as the family
+    s -> s + β (sqrt(s) − s): forcing ∂f/∂s · (sqrt(s) − s); the flow coefficients absorb the
+    linear part, so the score does not depend on the units of s."""
+
+    name = "sqrt_flow"
+    scope: Scope = "equation"
+    generic = False
+
+    def supports(self, ctx: LibraryContext) -> bool:
+        return bool(ctx.trace.traced)
+
+    def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        s, floor = spec["state"], spec["floor"]
+        return replace_in_equations(model, s, f"sqrt(max({s}, {floor}))"), []
+
+    def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        out = [self._one(ctx, s) for s in ctx.states]
+        return [c for c in out if c is not None]
+
+    def _one(self, ctx: LibraryContext, s: str) -> Candidate | None:
+        trace = ctx.trace
+        k = ctx.states.index(s)
+        allv = np.concatenate([x[k] for x in trace.x])
+        if s in ctx.pos_of or s in ctx.vel_of or np.mean(allv > 0) < 0.9:
+            return None   # Torricelli outflow is for levels: positive, non-mechanical states
+        change = [np.sqrt(np.maximum(x[k], 0)) - x[k] for x in trace.x]
+        reg = sensitivity_regressor(trace, trace.jx, k, change)
+        if not reg:
+            return None
+        flows_into = sorted(ctx.states[i] for i in reg if ctx.states[i] != s)
+        # a floor far below the levels seen keeps sqrt's slope finite where a level starts at 0
+        floor = fmt(1e-6 * float(np.sqrt(np.mean(allv ** 2))))
+        where = f"d{s}/dt" + "".join(f", d{o}/dt" for o in flows_into)
+        return Candidate(self.name, reg, f"{s} -> sqrt(max({s}, 0)) in the flows of {where}",
+                         f"Torricelli outflow: the flows through {s} follow sqrt({s})",
+                         bind(self, state=s, floor=floor), sign=1.0, family=f"sqrt_flow:{s}", variables=(s,))

@@ -1,0 +1,73 @@
+"""A declared parameter that switches when a state (or a state's difference with an input) exceeds a
+threshold: the generic shape of a law the library has no name for (seed 000's damper d4, which
+switches with the relative speed |q̇4 − ẇ|)."""
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
+from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.discovery.families.base import Scope, bind, declared_differences, param_regressor
+from greyfit.solvers.discovery.families.time_varying import varying_parameters
+
+THRESHOLDS = np.linspace(0.1, 0.9, 17)   # quantiles of |s| the switch is tried at
+
+
+class StateDependent:
+    name = "state_dependent"
+    scope: Scope = "parameter"
+    generic = True
+
+    def supports(self, ctx: LibraryContext) -> bool:
+        return bool(ctx.trace.traced)
+
+    def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        name, expr, label, thr = spec["parameter"], spec["expr"], spec["label"], spec["threshold"]
+        d = fresh_name(model, f"d{name}_{label}")
+        model = with_parameter(model, d, 0.0)
+        # a switch smoothed over ±5 % of the threshold: a hard if_else makes the simulation
+        # discontinuous in the state and the refit crawl
+        width = fmt(0.05 * thr)
+        return replace_parameter(
+            model, name, f"({name} + {d}*0.5*(1 + tanh((abs({expr}) - {fmt(thr)})/{width})))"), [d]
+
+    def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        out: list[Candidate] = []
+        for name, j in varying_parameters(ctx):
+            for expr, label, values, variables in switch_variables(ctx):
+                out += self._thresholds(ctx, name, j, expr, label, values, variables)
+        return out
+
+    def _thresholds(self, ctx, name, j, expr, label, values, variables) -> list[Candidate]:
+        out = []
+        mags = np.abs(np.concatenate(values))
+        for thr in np.unique(np.quantile(mags, THRESHOLDS)):
+            if thr <= 0:
+                continue
+            reg = param_regressor(ctx.trace, j, [(np.abs(x) > thr).astype(float) for x in values])
+            out.append(Candidate(self.name, reg, f"{name} -> {name} + d{name}_{label}*[|{expr}| > {fmt(thr)}]",
+                                 f"{name} switches when |{expr}| exceeds {fmt(thr)}",
+                                 bind(self, parameter=name, expr=expr, label=label, threshold=float(thr)),
+                                 family=f"state_dependent:{name}:{label}", generic=True, modifies=name,
+                                 variables=variables))
+        return out
+
+
+def switch_variables(ctx: LibraryContext) -> list[tuple[str, str, list[np.ndarray], tuple[str, ...]]]:
+    """(expression, label, samples, variables): every state, and every declared difference of a state
+    and an input (a relative speed)."""
+    out: list[tuple[str, str, list[np.ndarray], tuple[str, ...]]] = [
+        (s, s, ctx.state_values(s), (s,)) for s in ctx.states]
+    inputs = set(ctx.trace.cm.inputs)
+    seen: set[tuple[str, str]] = set()
+    for _, a, b in declared_differences(ctx.model):
+        if (a, b) in seen:
+            continue
+        seen.add((a, b))
+        if (a in ctx.states and b in inputs) or (a in inputs and b in ctx.states):
+            values = [x - y for x, y in zip(ctx.values(a), ctx.values(b))]
+            out.append((f"{a} - {b}", f"{a}_{b}", values, (a, b)))
+    return out

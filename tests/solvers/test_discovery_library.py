@@ -1,0 +1,120 @@
+"""The wider library, discrimination by refit and parsimony, against known truth: systems simulated
+with scipy (tests/discovery_systems.py), measured in their outputs only, 1 % noise (AR(1) where said),
+inputs held between samples (declared `input_interpolation: zoh`), a second record for validation.
+EMPS (Coulomb friction and nothing else) is in test_discovery_outputs.py."""
+import numpy as np
+import pytest
+
+from greyfit.schemas.discovery import DiscoverRequest
+from greyfit.solvers.discovery import discover
+from tests import discovery_systems as ds
+
+ZOH = {"input_interpolation": "zoh"}
+
+
+def run(model: dict, est: dict, val: dict | None = None, **discovery):
+    body = {"model": model, "experiments": [est], "validation": [val] if val else [],
+            "method": "multiple_shooting", "options": ZOH, "discovery": discovery}
+    return discover(DiscoverRequest.model_validate(body))
+
+
+def value(res, name: str) -> float:
+    return res.fit.parameters[name].value
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("seed", [1, 3])
+def test_radiative_loss_is_found_as_t4_not_as_a_sensor_gain_or_drag(seed):
+    res = run(ds.block_model(), ds.block_record(seed), ds.block_record(seed + 1, name="val"))
+    effects = [s.effect for s in res.steps]
+    assert effects == ["radiation"], (res.conclusion, res.rejected)
+    assert not {"output_gain", "quadratic_drag", "parameter_step"} & set(effects)
+    b = ds.BLOCK
+    assert value(res, "C") == pytest.approx(b["C"], rel=0.10)
+    assert value(res, "h") == pytest.approx(b["h"], rel=0.10)
+    r = float(res.steps[0].description.split("sigma_T/")[1].split("^4")[0])
+    assert value(res, "sigma_T") / r ** 4 == pytest.approx(b["s"], rel=0.15)
+    assert res.after.validation.rmse["T"] < 0.5 * res.before.validation.rmse["T"]
+
+
+@pytest.mark.slow
+def test_amplitude_dependent_damping_is_found_as_x2v_with_mu_within_5_percent():
+    res = run(ds.amplitude_damping_model(), ds.amplitude_damping_record(1, rho=0.5),
+              ds.amplitude_damping_record(2, name="val"))
+    assert [s.effect for s in res.steps] == ["power_law"], (res.conclusion, res.rejected)
+    step = res.steps[0]
+    assert "y^2*yd" in step.term
+    # + c*y^2*yd inside (forces)/m: the force is −μ y² ẏ
+    assert -step.parameters[0].value == pytest.approx(ds.VDP["mu"], rel=0.05)
+    assert value(res, "c") == pytest.approx(ds.VDP["c"], rel=0.05)
+    assert value(res, "k") == pytest.approx(ds.VDP["k"], rel=0.05)
+    # |y|·ẏ screened first; the refit against y²·ẏ decided
+    assert step.runners_up and "abs(y)*yd" in step.runners_up[0].term
+
+
+@pytest.mark.slow
+def test_arrhenius_rate_is_found_with_its_activation_temperature():
+    res = run(ds.reactor_model(), ds.reactor_record(1), ds.reactor_record(2, name="val"))
+    assert [s.effect for s in res.steps] == ["arrhenius"], (res.conclusion, res.rejected)
+    r = ds.REACTOR
+    ref = float(res.steps[0].description.split("E/R = E_k_T*")[1])
+    assert value(res, "E_k_T") * ref == pytest.approx(r["E"], rel=0.05)
+    k_at_ref = r["k"] * np.exp(-r["E"] * (1 / ref - 1 / r["Tref"]))
+    assert value(res, "k") == pytest.approx(k_at_ref, rel=0.05)
+    assert value(res, "h") == pytest.approx(r["h"], rel=0.02)
+
+
+@pytest.mark.slow
+def test_sensor_offset_and_source_offset_are_told_apart_by_refit():
+    res = run(ds.rlc_model(), ds.rlc_record(1), ds.rlc_record(2, name="val"))
+    step = res.steps[0]
+    names = {step.effect} | {r.effect for r in step.runners_up}
+    assert {"output_offset", "offset"} <= names, (res.conclusion, step.runners_up)
+    if step.verdict == "ambiguous":
+        assert res.ambiguous and step.separate_by
+    else:
+        assert step.effect == "output_offset" and step.verdict == "identified"
+        source = [r for r in step.runners_up if r.effect == "offset"][0]
+        assert source.delta_bic is not None and source.delta_bic > 10
+        assert step.parameters[0].value == pytest.approx(ds.RLC["bias"], rel=0.05)
+    assert [s.effect for s in res.steps] == ["output_offset"]
+    for name in ("L", "R", "C"):
+        assert value(res, name) == pytest.approx(ds.RLC[name], rel=0.03)
+
+
+COMPLETE = {
+    "block": (ds.block_model(radiation=True), lambda seed: ds.block_record(seed, n=500, rho=0.8)),
+    "oscillator": (ds.amplitude_damping_complete_model(),
+                   lambda seed: ds.amplitude_damping_record(seed, n=500, rho=0.8)),
+    "rlc": (ds.rlc_complete_model(), lambda seed: ds.rlc_record(seed, n=500, rho=0.8)),
+}
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("system", sorted(COMPLETE))
+def test_complete_models_under_ar1_noise_and_held_inputs_get_nothing_over_ten_seeds(system):
+    model, record = COMPLETE[system]
+    for seed in range(10):
+        res = run(model, record(seed))
+        assert res.steps == [], (system, seed, res.conclusion)
+        assert res.model.equations == model["equations"]
+
+
+@pytest.mark.slow
+def test_offsets_that_are_equivalent_on_these_data_are_reported_ambiguous_with_what_separates_them():
+    """Measured on vc alone, a sensor offset on vc and a source offset in di/dt (or dvc/dt) give the
+    same outputs once the initial states are free: the step says `ambiguous`, names them, and asks for
+    the data that would tell them apart (another output)."""
+    def vc_only(record):
+        return {**record, "outputs": {"vc": record["outputs"]["vc"]}}
+    model = {**ds.rlc_model(), "outputs": {"vc": "vc"}}
+    res = run(model, vc_only(ds.rlc_record(1)), vc_only(ds.rlc_record(2, name="val")))
+    assert len(res.steps) == 1 and res.ambiguous, res.conclusion
+    step = res.steps[0]
+    assert step.verdict == "ambiguous" and "another output" in step.separate_by
+    tied = [r for r in step.runners_up if r.outcome == "as good on these data"]
+    assert {step.effect} | {r.effect for r in tied} == {"output_offset", "offset"}
+    assert all(abs(r.delta_bic) < 10 for r in tied)
+    assert "ambiguous" in res.conclusion
+    for name in ("L", "R", "C"):
+        assert value(res, name) == pytest.approx(ds.RLC[name], rel=0.03)

@@ -52,7 +52,8 @@ class JobProgress(BaseModel):
     failed: int
 
 
-class JobPublic(BaseModel):
+class JobSummary(BaseModel):
+    """A job in the job list: its status and progress, without its tasks (GET /v1/jobs/{id} has them)."""
     id: str
     kind: str = Field(description="the task kind (service/task_kinds.py lists them; OpenAPI gives the enum)")
     label: Optional[str] = None
@@ -61,11 +62,14 @@ class JobPublic(BaseModel):
     created_at: float
     started_at: Optional[float] = None
     finished_at: Optional[float] = None
+
+
+class JobPublic(JobSummary):
     tasks: list[TaskPublic]
 
 
 class JobsPublic(BaseModel):
-    data: list[JobPublic]
+    data: list[JobSummary]
     count: int
 
 

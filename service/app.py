@@ -117,7 +117,8 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     # outermost last: count -> key and rate limit -> body budget -> the app; no body byte is read
     # before the key is checked and the body admitted
     app.add_middleware(BodyBudget, max_body_bytes=settings.max_body_bytes,
-                       max_inflight_bytes=settings.max_inflight_body_bytes, retry_after=settings.retry_after_seconds)
+                       max_inflight_bytes=settings.max_inflight_body_bytes, retry_after=settings.retry_after_seconds,
+                       body_read_seconds=settings.body_read_seconds)
     app.add_middleware(ApiKeyGate, api_key=settings.api_key, rate_limit_per_minute=settings.rate_limit_per_minute)
     app.add_middleware(CountRequests, metrics=app.state.metrics)
     return app

@@ -5,8 +5,10 @@ It never runs numerics itself; the event loop only waits on futures it resolves.
 Three rules keep work honest:
 - an outcome is written to the job store before the task is forgotten: if the write fails (the store
   is read-only for a while) it stays in `pending` and is written again each round;
-- a task whose worker was lost (crash, kill) goes back to the queue until it has been started
+- a task whose worker was lost (crash, kill, hang) goes back to the queue until it has been started
   `task_max_attempts` times; one that hit its CPU or wall-time limit fails at once (it would again);
+  a start counts when its worker acknowledges it (written with the next outcomes), not at the claim:
+  a server that dies between the two costs the task no attempt;
 - job tasks keep `job_reserved_workers` workers while synchronous fits wait, so a burst of
   synchronous traffic cannot starve the jobs (with one worker the two alternate).
 
@@ -45,6 +47,11 @@ AHEAD_SECONDS = 0.25      # work per worker claimed ahead while tasks are short 
 MAX_AHEAD = 16            # tasks per worker claimed ahead at most
 
 
+def _is_retry(outcome: dict) -> bool:
+    """A failure outside the task (its worker was lost): the task runs again."""
+    return outcome["status"] == "failed" and bool((outcome.get("error") or {}).get("retry"))
+
+
 class Dispatcher:
     def __init__(self, store: JobStore, executor, settings: Settings, metrics: Metrics):
         self.store, self.executor, self.settings, self.metrics = store, executor, settings, metrics
@@ -53,6 +60,7 @@ class Dispatcher:
         # key -> ("job", job_id, idx, task, kind, t0) | ("sync", future, kind, t0); t0: when submitted
         self.running: dict[str, tuple] = {}
         self.pending: list[tuple[str, int, dict]] = []   # job outcomes not yet written to the store
+        self.starts: list[tuple[str, int, float]] = []   # acknowledged starts not yet written (attempts)
         self._pending_since = 0.0
         self._flush_now = False
         self.ready: deque[TaskRow] = deque()   # job tasks claimed (leased to us) but not on a worker yet
@@ -68,6 +76,10 @@ class Dispatcher:
     # --- called from the web layer -------------------------------------------------------------
     def submit_sync(self, kind: str, request: dict | str) -> cf.Future:
         fut: cf.Future = cf.Future()
+        reason = self.executor.unready()
+        if reason is not None:   # nothing would run it (a Dask cluster without workers): say so now
+            fut.set_exception(RuntimeError(reason))
+            return fut
         key = f"sync-{uuid.uuid4()}"
         if self._start_sync_now(key, kind, request, fut):
             return fut
@@ -187,7 +199,7 @@ class Dispatcher:
                 self._stop.wait(min(1.0, self.settings.poll_seconds * 10))
             if not self._wake.is_set():
                 timeout = self.settings.poll_seconds
-                if self.pending:      # wake up in time to write them (a failed write: after the pause)
+                if self.pending or self.starts:   # wake up in time to write them (a failed write: after the pause)
                     timeout = max(0.0, min(timeout, self._pending_since + FLUSH_SECONDS - time.monotonic()))
                 try:
                     self.executor.wait(timeout)
@@ -280,7 +292,10 @@ class Dispatcher:
         return True
 
     def _collect(self) -> None:
-        for key, outcome in self.executor.poll():
+        outcomes = self.executor.poll()
+        for key in self.executor.started():   # before the outcomes: a start is charged before its release
+            self._add_start(key)
+        for key, outcome in outcomes:
             item = self.running.pop(key, None)
             if item is None:
                 continue
@@ -308,6 +323,14 @@ class Dispatcher:
                 if not self._has_tasks(item[1]):   # perhaps the job's last: its caller waits for it
                     self._flush_now = True
 
+    def _add_start(self, key: str) -> None:
+        item = self.running.get(key)
+        if item is None or item[0] != "job":
+            return
+        if not self.pending and not self.starts:
+            self._pending_since = time.monotonic()
+        self.starts.append((item[1], item[2], time.time()))
+
     def _held(self) -> list[tuple[str, int]]:
         """The job tasks this dispatcher knows it owns: on a worker, claimed ahead, or not yet written."""
         return ([(item[1], item[2]) for item in self.running.values() if item[0] == "job"]
@@ -327,25 +350,24 @@ class Dispatcher:
 
         Unless `flush`, they wait until FLUSH_COUNT of them wait, the oldest is FLUSH_SECONDS old,
         or one may be its job's last: one transaction for several outcomes."""
-        if not self.pending or (not flush and not self._flush_now and len(self.pending) < FLUSH_COUNT
-                                and time.monotonic() - self._pending_since < FLUSH_SECONDS):
+        if not (self.pending or self.starts) or (
+                not flush and not self._flush_now and len(self.pending) < FLUSH_COUNT
+                and time.monotonic() - self._pending_since < FLUSH_SECONDS):
             return
         self._flush_now = False
-        finished = []
-        for job_id, idx, outcome in list(self.pending):
-            error = outcome.get("error")
-            if outcome["status"] == "failed" and error and error.get("retry"):
-                status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, error)
-                if status == "queued":
-                    log.warning("task %s:%s re-queued: %s", job_id, idx, error.get("detail"),
-                                extra={"task_id": f"{job_id}:{idx}"})
-                self.pending.remove((job_id, idx, outcome))
-            else:
-                finished.append((job_id, idx, outcome))
-        if finished:
-            self.store.finish_many(self.owner, [(job_id, idx, o["status"], o.get("result_json"), o.get("error"))
-                                                for job_id, idx, o in finished])
-            self.pending = [p for p in self.pending if p not in finished]
+        retried = [p for p in self.pending if _is_retry(p[2])]
+        finished = [p for p in self.pending if not _is_retry(p[2])]
+        # the starts with the outcomes, in one transaction, before the releases: a release reads the attempts
+        self.store.finish_many(self.owner, [(job_id, idx, o["status"], o.get("result_json"), o.get("error"))
+                                            for job_id, idx, o in finished], started=self.starts)
+        self.starts = []
+        self.pending = retried
+        for job_id, idx, outcome in retried:
+            status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, outcome["error"])
+            if status == "queued":
+                log.warning("task %s:%s re-queued: %s", job_id, idx, outcome["error"].get("detail"),
+                            extra={"task_id": f"{job_id}:{idx}"})
+            self.pending.remove((job_id, idx, outcome))
         self._pending_since = time.monotonic()
 
     def _cancel_abandoned(self) -> None:

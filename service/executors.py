@@ -1,7 +1,8 @@
 """Where fits run: persistent local worker processes (default) or a Dask cluster (scale-out).
 
 Both expose the same small interface to the dispatcher: `capacity()`, `free()`, `queue_room()`,
-`submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `cancel(key)`, `shutdown()`.
+`submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `started() -> [key]`, `cancel(key)`,
+`shutdown()`.
 
 A failed outcome whose error carries `retry: True` lost its worker to something outside the task
 (a crash, a kill, a lost Dask worker): the dispatcher runs the task again. A task that hit its CPU
@@ -67,6 +68,7 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         if not todo:
             continue
         key, kind, request = todo.popleft()
+        conn.send((key, {"status": "started"}))   # the acknowledged start: the attempt is charged now
         used = resource.getrusage(resource.RUSAGE_SELF)
         spent = used.ru_utime + used.ru_stime
         soft = int(spent + cpu_seconds) + 1
@@ -92,19 +94,38 @@ def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
             "detail": f"the worker process died ({how}): killed or crashed, not a fault of this request"}
 
 
+def _cpu_seconds_of(pid: int) -> Optional[float]:
+    """A process's CPU time (user + system) from /proc, or None where there is no /proc."""
+    try:
+        with open(f"/proc/{pid}/stat", "rb") as f:
+            fields = f.read().rsplit(b")", 1)[1].split()
+    except (OSError, IndexError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / _CLOCK_TICKS   # utime, stime (fields 14, 15)
+
+
+_CLOCK_TICKS = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+STALL_CHECK_SECONDS = 1.0   # how often a busy worker's CPU clock is read
+
+
 @dataclass
 class _Slot:
     process: Any
     conn: Any
     keys: list = field(default_factory=list)   # the task it runs, then at most one queued behind
-    started: float = 0.0                        # when the task it runs started (about)
+    started: float = 0.0                        # when the task it runs started (about; exact once acknowledged)
+    cpu: Optional[float] = None                 # the worker's CPU time when last read ...
+    progressed: float = 0.0                     # ... and when it last had moved
+    checked: float = 0.0
 
 
 class LocalWorkerPool:
     """A fixed number of worker processes; a task that overruns or crashes costs only its worker."""
 
-    def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float):
+    def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float,
+                 stall_seconds: Optional[float] = 60.0):
         self.ctx = mp.get_context("spawn")
+        self.stall_seconds = stall_seconds
         for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
             os.environ.setdefault(name, value)
         self.cpu_seconds = cpu_seconds
@@ -112,6 +133,7 @@ class LocalWorkerPool:
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_w, False)
         self._returned: list[tuple[str, Outcome]] = []   # tasks given back by a replaced worker
+        self._started: list[str] = []                    # starts acknowledged, not yet taken (started())
         self.slots = [self._spawn() for _ in range(workers)]
 
     def wait(self, timeout: float) -> None:
@@ -153,6 +175,11 @@ class LocalWorkerPool:
         """A free worker that is alive (one that died idle is replaced by the next poll())."""
         return next((s for s in self.slots if not s.keys and s.process.is_alive()), None)
 
+    def unready(self) -> Optional[str]:
+        """Why this executor cannot run tasks now (readiness), or None: local workers are replaced
+        when they die, so the pool is always able to."""
+        return None
+
     def can_start_now(self) -> bool:
         """Whether submit() would start a task at once; quick, so a caller's thread may ask (Dispatcher)."""
         return self._idle() is not None
@@ -162,7 +189,8 @@ class LocalWorkerPool:
         slot = self._idle() or next((s for s in self.slots if not s.keys), None) or \
             next(s for s in self.slots if len(s.keys) == 1)
         if not slot.keys:
-            slot.started = time.monotonic()
+            slot.started = slot.progressed = time.monotonic()
+            slot.cpu = None
         slot.keys.append(key)
         slot.conn.send((key, kind, request))
 
@@ -187,8 +215,12 @@ class LocalWorkerPool:
             try:
                 while slot.keys and slot.conn.poll():
                     key, outcome = slot.conn.recv()
+                    if outcome["status"] == "started":
+                        slot.started = slot.progressed = time.monotonic()   # its wall clock starts now
+                        self._started.append(key)
+                        continue
                     if key == slot.keys[0]:
-                        slot.started = time.monotonic()   # the next one starts now
+                        slot.started = slot.progressed = time.monotonic()   # the next one starts now
                     if key in slot.keys:
                         slot.keys.remove(key)
                     done.append((key, outcome))
@@ -200,6 +232,12 @@ class LocalWorkerPool:
                 done.append((slot.keys[0], {"status": "failed", "error": _death_reason(slot.process.exitcode,
                                                                                       self.cpu_seconds)}))
                 self._replace(i)
+            elif self._stalled(slot):
+                done.append((slot.keys[0], {"status": "failed", "error": {
+                    "type": "WorkerLost", "field": None, "retry": True,
+                    "detail": f"the worker process used no CPU for {self.stall_seconds:g} s mid-task (stopped or "
+                              "hung): replaced, not a fault of this request"}}))
+                self._replace(i)
             elif time.monotonic() - slot.started > self.wall_seconds:
                 done.append((slot.keys[0], {"status": "failed", "error": {
                     "type": "Timeout", "field": None,
@@ -208,6 +246,24 @@ class LocalWorkerPool:
         done += self._returned
         self._returned = []
         return done
+
+    def started(self) -> list[str]:
+        """The keys whose worker acknowledged the start since the last call (read by poll())."""
+        keys, self._started = self._started, []
+        return keys
+
+    def _stalled(self, slot: _Slot) -> bool:
+        """Whether a busy worker's CPU clock has stood still for `stall_seconds` (read once a second)."""
+        now = time.monotonic()
+        if self.stall_seconds is None or now - slot.checked < STALL_CHECK_SECONDS:
+            return False
+        slot.checked = now
+        cpu = _cpu_seconds_of(slot.process.pid)
+        if cpu is None:
+            return False
+        if slot.cpu is None or cpu > slot.cpu:
+            slot.cpu, slot.progressed = cpu, now
+        return now - slot.progressed > self.stall_seconds
 
     def cancel(self, key: str) -> bool:
         """Stop a task: a running one ends its worker (another takes its place), a queued one is
@@ -251,6 +307,7 @@ class DaskExecutor:
         self.cpu_seconds, self.wall_seconds = cpu_seconds, wall_seconds
         self._capacity = capacity
         self.futures: dict[str, tuple[Any, float]] = {}
+        self._started: list[str] = []   # reported as started at submit (the scheduler does not tell us)
 
     def capacity(self) -> int:
         if self._capacity:
@@ -261,6 +318,16 @@ class DaskExecutor:
     def free(self) -> int:
         return self.capacity() - len(self.futures)
 
+    def unready(self) -> Optional[str]:
+        """Why the cluster cannot run tasks now (readiness): its scheduler out of reach, or no
+        workers; None when it can. Read from the client's view of the scheduler, kept up to date
+        by the client itself: no round trip per probe."""
+        if self.client.status != "running":
+            return f"the Dask scheduler does not answer (client {self.client.status})"
+        if not self.client.scheduler_info().get("workers"):
+            return "the Dask cluster has no workers"
+        return None
+
     def queue_room(self) -> int:
         return 0   # the scheduler queues; a task is submitted when a thread is free
 
@@ -268,9 +335,15 @@ class DaskExecutor:
         fut = self.client.submit(run_task, kind, request, self.cpu_seconds, pure=False,
                                  key=f"greyfit-{key}-{time.time_ns()}")
         self.futures[key] = (fut, time.monotonic())
+        self._started.append(key)
+
+    def started(self) -> list[str]:
+        """The keys submitted since the last call: the scheduler does not say when a worker starts one."""
+        keys, self._started = self._started, []
+        return keys
 
     def poll(self) -> list[tuple[str, Outcome]]:
-        done = []
+        done: list[tuple[str, Outcome]] = []
         for key, (fut, started) in list(self.futures.items()):
             if fut.done():
                 del self.futures[key]
@@ -316,4 +389,5 @@ def make_executor(settings):
         if not settings.dask_scheduler:
             raise ValueError("GREYFIT_EXECUTOR=dask needs GREYFIT_DASK_SCHEDULER (e.g. tcp://host:8786)")
         return DaskExecutor(settings.dask_scheduler, settings.task_cpu_seconds, settings.task_wall_seconds)
-    return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)
+    return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds,
+                           settings.worker_stall_seconds)

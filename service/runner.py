@@ -12,8 +12,10 @@ class WorkerTaskFailed(Exception):
     """A worker's task ended in an unexpected exception: answered as a 500 like any other bug."""
 
 
-def outcome_or_raise(outcome: dict) -> Response:
-    """The worker's result JSON as the response (not parsed again), or the matching error."""
+def outcome_or_raise(outcome: dict, retry_after: int = 2) -> Response:
+    """The worker's result JSON as the response (not parsed again), or the matching error.
+
+    A lost worker is a 503 with `Retry-After` (`retry_after` seconds), as every 503 is documented."""
     if outcome["status"] == "succeeded":
         return Response(outcome["result_json"], media_type="application/json")
     err = outcome["error"]
@@ -21,7 +23,9 @@ def outcome_or_raise(outcome: dict) -> Response:
     if cls is not None:
         raise cls(err["detail"], err.get("field"))
     if err["type"] in ("Timeout", "WorkerLost"):
-        raise HTTPException(503 if err["type"] == "WorkerLost" else 504, err["detail"])
+        if err["type"] == "WorkerLost":
+            raise HTTPException(503, f"{err['detail']}; retry", headers={"Retry-After": str(retry_after)})
+        raise HTTPException(504, err["detail"])
     if err["type"] == "DependencyMissing":   # an optional extra of this server is not installed
         raise HTTPException(501, err["detail"])
     if err["type"] == "ValidationError":

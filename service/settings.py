@@ -60,6 +60,12 @@ class Settings(BaseSettings):
                                     "request_id, task_id) or text")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(
         default="INFO", description="level of greyfit's own loggers (other libraries log at WARNING and above)")
+    worker_stall_seconds: float = Field(
+        default=60.0, gt=0, description="a local worker whose CPU time stands still this long mid-task "
+                                        "(stopped, hung) is lost: replaced and its task retried")
+    body_read_seconds: float = Field(
+        default=60.0, gt=0, description="a request body must arrive within this many seconds of the request's "
+                                        "start (a 64 MB body: at least ~1.1 MB/s); a slower sender gets 408")
 
     def resolved_database_url(self) -> str:
         if self.database_url:

@@ -4,8 +4,9 @@ A task is claimed by a conditional UPDATE (status = 'queued'; on PostgreSQL the 
 selected `FOR UPDATE SKIP LOCKED`, so concurrent replicas pass each other instead of colliding),
 so two dispatchers never run the same task; a running task holds a lease that its dispatcher
 renews, and tasks whose lease has expired (their server died) are re-queued — a job accepted is
-never lost. `attempts` counts the claims that ended in a lost worker or server; a graceful
-shutdown hands its tasks back without counting one.
+never lost. `attempts` counts the starts a worker acknowledged (`mark_started`), not the claims: a
+server that dies between a claim and a start costs the task nothing; a graceful shutdown hands its
+tasks back without counting one.
 
 Request texts live in their own table: a task row is written on every claim, lease renewal and
 outcome, and a database rewrites the whole row (SQLite does, PostgreSQL copies it), request
@@ -22,8 +23,24 @@ from pathlib import Path
 from typing import Any, Optional
 
 from sqlalchemy import (
-    Column, Float, Index, Integer, MetaData, String, Table, Text, bindparam, create_engine, event, func, inspect,
-    select, text, tuple_, update,
+    Column,
+    Float,
+    Index,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    bindparam,
+    case,
+    create_engine,
+    event,
+    func,
+    inspect,
+    select,
+    text,
+    tuple_,
+    update,
 )
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError
@@ -101,7 +118,14 @@ _START = (update(tasks)
           .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx.in_(bindparam("b_idxs", expanding=True)),
                  tasks.c.status == "queued")
           .values(status="running", owner=bindparam("b_owner"), lease_until=bindparam("b_lease"),
-                  started_at=bindparam("b_at"), attempts=tasks.c.attempts + 1))
+                  started_at=None))
+# a worker acknowledged the start: the attempt is charged now, once per claim (started_at IS NULL)
+_STARTED = (update(tasks)
+            .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx == bindparam("b_idx"),
+                   tasks.c.status == "running", tasks.c.owner == bindparam("b_owner"), tasks.c.started_at.is_(None))
+            .values(started_at=bindparam("b_at"), attempts=tasks.c.attempts + 1))
+# a task handed back: the attempt of its claim is given back if it had been charged (started)
+_UNCHARGED = tasks.c.attempts - case((tasks.c.started_at.is_(None), 0), else_=1)
 _JOB = select(jobs).where(jobs.c.id == bindparam("b_id"))
 _JOB_TASKS = (select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at, tasks.c.finished_at,
                      tasks.c.error)
@@ -183,6 +207,9 @@ def make_engine(url: str) -> Engine:
             # FULL: a job answered 202 survives a power loss (NORMAL may lose the last commits then)
             cur.execute("PRAGMA synchronous=FULL")
             cur.close()
+            _refuse_read_only(dbapi_conn)
+
+        event.listen(engine, "handle_error", _drop_read_only_connection)
     else:
         engine = create_engine(url, pool_pre_ping=True)
     metadata.create_all(engine)
@@ -190,6 +217,31 @@ def make_engine(url: str) -> Engine:
     _add_queue_order(engine)
     _compress_texts_with_lz4(engine)
     return engine
+
+
+# SQLite opens a file it cannot write (write-protected, immutable, a read-only mount) read-only
+# instead of failing, and a pooled connection stays so for life: every later write fails although
+# the file is writable again. A connection proves it can write when it is made, and one that
+# meets a read-only error is dropped from the pool.
+_WRITE_CHECK = "_greyfit_write_check"
+
+
+def _refuse_read_only(dbapi_conn) -> None:
+    """Fail the connection unless it can take a write: a write statement that changes nothing
+    still needs a writable database (`attempt to write a readonly database` otherwise)."""
+    cur = dbapi_conn.cursor()
+    try:
+        cur.execute(f"CREATE TABLE IF NOT EXISTS {_WRITE_CHECK} (x INTEGER)")
+        cur.execute(f"DELETE FROM {_WRITE_CHECK} WHERE 0")
+        dbapi_conn.commit()
+    finally:
+        cur.close()
+
+
+def _drop_read_only_connection(context) -> None:
+    """A read-only error invalidates the connection (and the pool), like a lost connection."""
+    if "readonly database" in str(context.original_exception):
+        context.is_disconnect = True
 
 
 LZ4_COLUMNS = (("task_requests", "request"), ("tasks", "result"), ("tasks", "error"))
@@ -358,11 +410,44 @@ class JobStore:
         return {"job": dict(job), "tasks": [r._asdict() for r in rows]}
 
     def list_jobs(self, offset: int, limit: int) -> tuple[list[dict], int]:
+        """A page of jobs, newest first, each with its task counts by status (`counts`), not its tasks:
+        the page of 200 jobs of 1 000 tasks each was 73.5 MB with the tasks."""
         with self.engine.connect() as conn:
             count = conn.execute(select(func.count()).select_from(jobs)).scalar_one()
-            ids = conn.execute(select(jobs.c.id).order_by(jobs.c.created_at.desc())
-                               .offset(offset).limit(limit)).scalars().all()
-        return [self.get_job(i) for i in ids], count
+            page = conn.execute(select(jobs).order_by(jobs.c.created_at.desc(), jobs.c.id)
+                                .offset(offset).limit(limit)).mappings().all()
+            ids = [j["id"] for j in page]
+            summary: dict[str, dict] = {i: {"counts": {}, "started_at": None, "finished_at": None} for i in ids}
+            if ids:
+                rows = conn.execute(select(tasks.c.job_id, tasks.c.status, func.count(),
+                                           func.min(tasks.c.started_at), func.max(tasks.c.finished_at))
+                                    .where(tasks.c.job_id.in_(ids)).group_by(tasks.c.job_id, tasks.c.status)).all()
+                for job_id, status, n, started, finished in rows:
+                    entry = summary[job_id]
+                    entry["counts"][status] = n
+                    entry["started_at"] = _min_of(entry["started_at"], started)
+                    entry["finished_at"] = max(filter(None, (entry["finished_at"], finished)), default=None)
+        return [{"job": dict(j), **summary[j["id"]]} for j in page], count
+
+    def get_job_tasks(self, job_id: str, offset: int, limit: int) -> list[dict]:
+        """A page of a job's tasks, in order."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(_JOB_TASKS.where(tasks.c.idx >= offset).limit(limit), {"b_id": job_id}).all()
+        return [r._asdict() for r in rows]
+
+    def result_pages(self, job_id: str, offset: int = 0, limit: Optional[int] = None, page: int = 20):
+        """(idx, status, result JSON, error JSON) of each task from `offset`, `page` rows a query:
+        an answer streamed from this holds one page in memory, not every result of the job."""
+        last, left = offset - 1, limit
+        while left is None or left > 0:
+            size = page if left is None else min(page, left)
+            with self.engine.connect() as conn:
+                rows = conn.execute(_RESULTS.where(tasks.c.idx > last).limit(size), {"b_id": job_id}).all()
+            yield from (tuple(r) for r in rows)
+            if len(rows) < size:
+                return
+            last = rows[-1][0]
+            left = None if left is None else left - len(rows)
 
     def result_texts(self, job_id: str) -> list[tuple[int, str, Optional[str], Optional[str]]]:
         """(idx, status, result JSON, error JSON) of each task, in order, as stored."""
@@ -394,7 +479,9 @@ class JobStore:
         return claimed[0] if claimed else None
 
     def claim_many(self, owner: str, lease_seconds: float, max_attempts: int, limit: int) -> list[TaskRow]:
-        """Take up to `limit` of the oldest queued tasks in one transaction (a claim counts as a start)."""
+        """Take up to `limit` of the oldest queued tasks in one transaction.
+
+        A claim charges no attempt: `mark_started` does, when a worker acknowledges the start."""
         for _ in range(5):
             try:
                 with self.engine.begin() as conn:
@@ -420,7 +507,7 @@ class JobStore:
             if row.attempts >= max_attempts:
                 self._fail_queued(conn, row.job_id, row.idx, now, (
                     f"the task was started {row.attempts} times and each time its worker or server was lost "
-                    "(crash or kill); not retried again"))
+                    "(crash, kill or hang); not retried again"))
             else:
                 by_job.setdefault(row.job_id, []).append(row)
         claimed = []
@@ -432,7 +519,7 @@ class JobStore:
             if not group:
                 continue
             res = conn.execute(_START, {"b_job": job_id, "b_idxs": [r.idx for r in group], "b_owner": owner,
-                                        "b_lease": now + lease_seconds, "b_at": now})
+                                        "b_lease": now + lease_seconds})
             if res.rowcount != len(group):   # another server took one meanwhile: roll back, look again
                 raise _Raced()
             claimed += [TaskRow(job_id, r.idx, r.kind, texts[r.idx]) for r in group]
@@ -450,7 +537,7 @@ class JobStore:
         A claim whose COMMIT's answer was lost (the connection dropped after the database committed)
         leaves tasks owned by this server that its dispatcher never learned of: renewing every row
         it owns would keep them running, unrun, for ever. They go back to the queue without an
-        attempt counted (they never started). Returns how many were given back."""
+        attempt counted (they never started: no start was acknowledged). Returns how many were given back."""
         now = time.time()
         with self.engine.begin() as conn:
             owned = conn.execute(select(tasks.c.job_id, tasks.c.idx)
@@ -466,15 +553,27 @@ class JobStore:
                 conn.execute(update(tasks).where(tuple_(tasks.c.job_id, tasks.c.idx).in_(chunk),
                                                  tasks.c.owner == owner, tasks.c.status == "running")
                              .values(status="queued", owner=None, lease_until=None,
-                                     attempts=tasks.c.attempts - 1))
+                                     attempts=_UNCHARGED, started_at=None))
         return len(unknown)
 
+    def mark_started(self, owner: str, started: list[tuple[str, int, float]], conn=None) -> None:
+        """Charge an attempt to each (job_id, idx, at) whose worker acknowledged the start, once per claim."""
+        if not started:
+            return
+        params = [{"b_job": j, "b_idx": i, "b_owner": owner, "b_at": at} for j, i, at in started]
+        if conn is not None:
+            conn.execute(_STARTED, params)
+            return
+        with self.engine.begin() as own:
+            own.execute(_STARTED, params)
+
     def requeue_expired(self) -> int:
-        """Tasks whose server stopped renewing their lease go back to the queue."""
+        """Tasks whose server stopped renewing their lease go back to the queue (a started one
+        keeps its attempt; one only claimed had none charged)."""
         with self.engine.begin() as conn:
             res = conn.execute(update(tasks).where(tasks.c.status == "running",
                                                    tasks.c.lease_until < time.time())
-                               .values(status="queued", owner=None, lease_until=None))
+                               .values(status="queued", owner=None, lease_until=None, started_at=None))
         return res.rowcount
 
     def requeue_owned(self, owner: str) -> int:
@@ -482,7 +581,7 @@ class JobStore:
         with self.engine.begin() as conn:
             res = conn.execute(update(tasks).where(tasks.c.status == "running", tasks.c.owner == owner)
                                .values(status="queued", owner=None, lease_until=None,
-                                       attempts=tasks.c.attempts - 1))
+                                       attempts=_UNCHARGED, started_at=None))
         return res.rowcount
 
     def release(self, job_id: str, idx: int, owner: str, max_attempts: int, error: dict) -> str:
@@ -499,7 +598,7 @@ class JobStore:
             mine = (tasks.c.job_id == job_id, tasks.c.idx == idx, tasks.c.status == "running", tasks.c.owner == owner)
             if attempts < max_attempts:
                 conn.execute(update(tasks).where(*mine).values(status="queued", owner=None, lease_until=None,
-                                                              error=json.dumps(error)))
+                                                              started_at=None, error=json.dumps(error)))
                 return "queued"
             final = {**error, "detail": f"the task's worker was lost {attempts} times; not retried again "
                                         f"(last: {error.get('detail')})"}
@@ -512,11 +611,15 @@ class JobStore:
         """Record a task's outcome once; False if the task is no longer ours (e.g. re-queued)."""
         return self.finish_many(owner, [(job_id, idx, status, result_json, error)]) == 1
 
-    def finish_many(self, owner: str, outcomes: list[tuple[str, int, str, Optional[str], Optional[dict]]]) -> int:
+    def finish_many(self, owner: str, outcomes: list[tuple[str, int, str, Optional[str], Optional[dict]]],
+                    started: Optional[list[tuple[str, int, float]]] = None) -> int:
         """`finish` for several (job_id, idx, status, result_json, error) in one statement; how many
-        were still ours."""
+        were still ours. `started`: starts to charge first (`mark_started`), in the same transaction."""
         now = time.time()
         with self.engine.begin() as conn:
+            self.mark_started(owner, started or [], conn)
+            if not outcomes:
+                return 0
             res = conn.execute(_FINISH, [
                 {"b_job": job_id, "b_idx": idx, "b_owner": owner, "b_status": status, "b_at": now,
                  "b_result": result_json, "b_error": json.dumps(error) if error is not None else None}
@@ -531,6 +634,23 @@ class JobStore:
     def is_cancelled(self, job_id: str) -> bool:
         with self.engine.connect() as conn:
             return bool(conn.execute(select(jobs.c.cancelled).where(jobs.c.id == job_id)).scalar_one_or_none())
+
+
+def _min_of(a: Optional[float], b: Optional[float]) -> Optional[float]:
+    return min(filter(None, (a, b)), default=None)
+
+
+def status_of_counts(cancelled: bool, counts: dict[str, int]) -> str:
+    """`job_status` from the number of tasks in each status."""
+    live = counts.get("queued", 0) + counts.get("running", 0)
+    total = sum(counts.values())
+    if cancelled and live == 0:
+        return "cancelled"
+    if counts.get("queued", 0) == total:
+        return "queued"
+    if live:
+        return "running"
+    return "succeeded" if counts.get("succeeded", 0) else "failed"
 
 
 def job_status(job: dict, task_rows: list[dict]) -> str:

@@ -27,4 +27,9 @@ def readyz(request: Request):
         return answer
     if not state.dispatcher.is_alive():
         return problem(503, "Not ready", "the dispatcher thread is not running", "not-ready")
+    reason = state.dispatcher.executor.unready()
+    if reason is not None:    # e.g. a Dask cluster without scheduler or workers: nothing would run
+        answer = problem(503, "Not ready", reason, "not-ready")
+        answer.headers["Retry-After"] = str(state.settings.retry_after_seconds)
+        return answer
     return {"status": "ready", "executor": state.settings.executor}

@@ -7,13 +7,14 @@ import re
 from typing import Annotated, Any, Callable, Optional
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
+from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
 
-from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, TaskError, TaskPublic
+from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, JobSummary, TaskError, TaskPublic
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
-from greyfit.service.store import IdempotencyKeyReused, job_status
+from greyfit.service.store import IdempotencyKeyReused, job_status, status_of_counts
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
 
@@ -38,6 +39,18 @@ def job_public(record: dict[str, Any]) -> JobPublic:
         tasks=[TaskPublic(index=r["idx"], status=r["status"], attempts=r["attempts"],
                           started_at=r["started_at"], finished_at=r["finished_at"],
                           error=json.loads(r["error"]) if r["error"] else None) for r in rows])
+
+
+def job_summary(entry: dict[str, Any]) -> JobSummary:
+    """A job of the list, from its task counts by status (store.list_jobs)."""
+    job, counts = entry["job"], entry["counts"]
+    done = sum(counts.get(s, 0) for s in ("succeeded", "failed", "cancelled"))
+    return JobSummary(
+        id=job["id"], kind=job["kind"], label=job["label"], status=status_of_counts(bool(job["cancelled"]), counts),
+        progress=JobProgress(done=done, total=job["total"], succeeded=counts.get("succeeded", 0),
+                             failed=counts.get("failed", 0)),
+        created_at=job["created_at"], started_at=entry["started_at"],
+        finished_at=entry["finished_at"] if done == job["total"] else None)
 
 
 def as_json(model: BaseModel, status_code: int = 200, headers: Optional[dict] = None) -> Response:
@@ -86,10 +99,11 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
 
 
 @router.get("", response_model=JobsPublic)
-def list_jobs(request: Request, offset: int = Query(0, ge=0, le=MAX_OFFSET), limit: int = Query(20, ge=1, le=200)) -> JobsPublic:
-    """Jobs, newest first, with paging."""
-    records, count = request.app.state.store.list_jobs(offset, limit)
-    return JobsPublic(data=[job_public(r) for r in records], count=count)
+def list_jobs(request: Request, offset: int = Query(0, ge=0, le=MAX_OFFSET),
+              limit: int = Query(20, ge=1, le=200)) -> Response:
+    """Jobs, newest first, with paging: each job's status and progress, not its tasks (GET /v1/jobs/{id})."""
+    entries, count = request.app.state.store.list_jobs(offset, limit)
+    return as_json(JobsPublic(data=[job_summary(e) for e in entries], count=count))
 
 
 def _record(request: Request, job_id: str) -> dict:
@@ -99,26 +113,45 @@ def _record(request: Request, job_id: str) -> dict:
     return record
 
 
+TASK_OFFSET = Query(0, ge=0, le=MAX_INDEX, description="the first task listed (paging of `tasks`)")
+TASK_LIMIT = Query(None, ge=1, le=MAX_INDEX, description="how many tasks to list at most (default: all)")
+
+
 @router.get("/{job_id}", response_model=JobPublic)
-def get_job(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
-    """Status, progress and per-task status of a job."""
-    return as_json(job_public(_record(request, job_id)))
+def get_job(job_id: Annotated[str, JOB_ID], request: Request, task_offset: int = TASK_OFFSET,
+            task_limit: Optional[int] = TASK_LIMIT) -> Response:
+    """Status, progress and per-task status of a job (`task_offset`, `task_limit` page the tasks)."""
+    public = job_public(_record(request, job_id))
+    end = None if task_limit is None else task_offset + task_limit
+    if task_offset or end is not None:
+        public.tasks = public.tasks[task_offset:end]
+    return as_json(public)
+
+
+RESULT_OFFSET = Query(0, ge=0, le=MAX_INDEX, description="the first task whose result is returned (paging)")
+RESULT_LIMIT = Query(None, ge=1, le=MAX_INDEX, description="how many results at most (default: all)")
 
 
 @router.get("/{job_id}/results", response_model=JobResults)
-def get_results(job_id: Annotated[str, JOB_ID], request: Request) -> Response:
-    """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet."""
+def get_results(job_id: Annotated[str, JOB_ID], request: Request, offset: int = RESULT_OFFSET,
+                limit: Optional[int] = RESULT_LIMIT) -> Response:
+    """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet.
+    Streamed from the job store a few results at a time; `offset` and `limit` page them."""
     record = _record(request, job_id)
-    entries = []
-    for idx, status, result, error in request.app.state.store.result_texts(job_id):
-        # the result as its worker wrote it; an error through TaskError, which leaves out what is
-        # not for the caller (the traceback of an internal error)
-        error_json = TaskError.model_validate_json(error).model_dump_json() if error else "null"
-        entries.append(f'{{"index":{idx},"status":{json.dumps(status)},"result":{result or "null"},'
-                       f'"error":{error_json}}}')
     status = job_status(record["job"], record["tasks"])
-    return Response(f'{{"id":{json.dumps(job_id)},"status":"{status}","results":[{",".join(entries)}]}}',
-                    media_type="application/json")
+    pages = request.app.state.store.result_pages(job_id, offset, limit)
+
+    def body():
+        yield f'{{"id":{json.dumps(job_id)},"status":"{status}","results":['
+        for n, (idx, task_status, result, error) in enumerate(pages):
+            # the result as its worker wrote it; an error through TaskError, which leaves out what is
+            # not for the caller (the traceback of an internal error)
+            error_json = TaskError.model_validate_json(error).model_dump_json() if error else "null"
+            yield (f'{"," if n else ""}{{"index":{idx},"status":{json.dumps(task_status)},'
+                   f'"result":{result or "null"},"error":{error_json}}}')
+        yield "]}"
+
+    return StreamingResponse(body(), media_type="application/json")
 
 
 @router.delete("/{job_id}", response_model=JobPublic)

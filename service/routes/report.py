@@ -9,6 +9,7 @@ from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.report import ReportRequest
 from greyfit.service.deps import require_api_key
 from greyfit.service.json_body import StrictJSONRoute
+from greyfit.service.problems import PROBLEM
 from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
 from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.routes.sync import run_sync, run_sync_request
@@ -19,6 +20,9 @@ router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_
                    route_class=StrictJSONRoute)
 
 HTML = {200: {"content": {"text/html": {}}, "description": "one self-contained HTML page"}}
+NOT_FINISHED = {409: {"description": "the task has no result yet (queued, running, failed or cancelled): wait "
+                                     "for it, or report another task",
+                      "content": {PROBLEM: {"schema": {"$ref": "#/components/schemas/Problem"}}}}}
 
 
 async def _page(request: Request, payload: dict | str) -> HTMLResponse:
@@ -49,7 +53,7 @@ async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
     return HTMLResponse(json.loads(response.body)["html"])
 
 
-@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses=HTML)
+@router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses={**HTML, **NOT_FINISHED})
 async def job_report(job_id: Annotated[str, JOB_ID], request: Request,
                      index: int = Query(0, ge=0, le=MAX_INDEX)) -> HTMLResponse:
     """The report page of task `index` of a finished job (its stored request supplies the data)."""

@@ -68,4 +68,4 @@ async def run_sync(request: Request, kind: str, payload: dict | str):
     exc = waiter.exception()
     if exc is not None:               # the dispatcher stopped (shutdown) before the fit ran
         raise HTTPException(503, f"{exc}; retry", headers={"Retry-After": str(settings.retry_after_seconds)})
-    return outcome_or_raise(waiter.result())
+    return outcome_or_raise(waiter.result(), settings.retry_after_seconds)

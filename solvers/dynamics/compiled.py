@@ -78,7 +78,17 @@ int greyfit_columns_FN(long long n, const double** arg, const long long* astride
 }
 """
 
-_memory: dict[str, ca.Function] = {}
+# Both caches are bounded: each distinct model structure loaded cost ~93 KB that was never given
+# back, and each built library stays on disk. In memory the least recently used Function is dropped
+# past MAX_LOADED (`GREYFIT_COMPILED_IN_MEMORY`); on disk the oldest libraries are deleted once the
+# folder holds more than `GREYFIT_CACHE_MAX_BYTES` (default 512 MB), never one built in the last
+# KEEP_RECENT_S (another process may be about to load it; a process that has loaded a library keeps
+# its mapping when the file is deleted). A dropped library costs a compile, never a result.
+MAX_LOADED = 128
+DEFAULT_CACHE_MAX_BYTES = 512 * 1024 * 1024
+KEEP_RECENT_S = 600.0
+
+_memory: dict[str, ca.Function] = {}   # insertion order is recency: a hit moves its key to the end
 _pending: set[str] = set()                      # keys compiled in the background now
 _failed: dict[str, tuple[int, float]] = {}       # key -> (failures, monotonic time of the next try)
 _lock = threading.Lock()
@@ -131,7 +141,20 @@ def loaded(fn: ca.Function) -> ca.Function | None:
         return None
     key = function_key(fn)
     with _lock:
-        return _memory.get(key)
+        ext = _memory.pop(key, None)
+        if ext is not None:
+            _memory[key] = ext   # the most recently used now
+        return ext
+
+
+def _max_loaded() -> int:
+    value = os.environ.get("GREYFIT_COMPILED_IN_MEMORY", "")
+    return max(1, int(value)) if value.strip().isdigit() else MAX_LOADED
+
+
+def _cache_max_bytes() -> int:
+    value = os.environ.get("GREYFIT_CACHE_MAX_BYTES", "")
+    return int(value) if value.strip().isdigit() else DEFAULT_CACHE_MAX_BYTES
 
 
 def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bool]:
@@ -188,7 +211,30 @@ def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:
     ext = ca.external(fn.name(), str(library), {"enable_fd": True})
     with _lock:
         _memory[key] = ext
+        while len(_memory) > _max_loaded():
+            del _memory[next(iter(_memory))]   # the least recently used
     return ext
+
+
+def prune_disk_cache(folder: Path, keep: Path | None = None) -> int:
+    """Delete the oldest libraries of `folder` until it holds at most `GREYFIT_CACHE_MAX_BYTES`,
+    sparing `keep` and any built in the last KEEP_RECENT_S. Returns how many were deleted."""
+    try:
+        entries = [(p.stat().st_mtime, p.stat().st_size, p) for p in folder.glob("*.so")]
+    except OSError:
+        return 0
+    total, limit, now, deleted = sum(size for _, size, _ in entries), _cache_max_bytes(), time.time(), 0
+    for mtime, size, path in sorted(entries, key=lambda e: e[0]):
+        if total <= limit:
+            break
+        if path == keep or now - mtime < KEEP_RECENT_S:
+            continue
+        with contextlib.suppress(OSError):
+            path.unlink()
+            path.with_suffix(".lock").unlink(missing_ok=True)
+            total -= size
+            deleted += 1
+    return deleted
 
 
 def _build(fn: ca.Function, library: Path) -> bool:
@@ -208,6 +254,7 @@ def _build(fn: ca.Function, library: Path) -> bool:
                 subprocess.run([_compiler_path(), *CFLAGS, str(Path(tmp) / source), "-o", str(target), "-lm"],
                                check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)
                 os.replace(target, library)   # atomic: other processes see all of it or nothing
+        prune_disk_cache(library.parent, keep=library)
         return True
     except (OSError, subprocess.SubprocessError, RuntimeError):
         return False

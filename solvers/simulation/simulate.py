@@ -115,6 +115,11 @@ def estimate_initial_state(cm: CompiledModel, d: ExperimentData, p: np.ndarray, 
         return jac, res, 0.5 * float(res @ res)
 
     jac, res, cost = evaluate(x0)
+    if not (np.all(np.isfinite(jac)) and np.isfinite(cost)):
+        # parameters near the float limits (1e308) overflow the simulation itself: nothing to fit
+        raise DataError("the model's outputs are not finite over the first samples with these parameters, so "
+                        "its initial state cannot be estimated; check the parameter values or give initial_state",
+                        where)
     mu = 1e-3
     for _ in range(MAX_LM_ITERATIONS):
         jtj, jtr = jac.T @ jac, jac.T @ res
@@ -136,7 +141,7 @@ def estimate_initial_state(cm: CompiledModel, d: ExperimentData, p: np.ndarray, 
             mu *= 10
             if mu > 1e12:
                 break
-    sv = np.linalg.svd(jac, compute_uv=False) if jac.size else np.zeros(0)
+    sv = np.linalg.svd(jac, compute_uv=False) if jac.size and np.all(np.isfinite(jac)) else np.zeros(0)
     note = None
     if sv.size and sv[-1] <= 1e-8 * sv[0]:
         note = (f"the first {w} samples do not determine every initial state; lengthen "

@@ -38,3 +38,33 @@ def test_jobs_and_sync_fits_run_on_the_dask_cluster(tmp_path, cluster):
         assert any(logs.values()), "no Dask worker imported the fit engine"
     finally:
         info.close()
+
+
+@pytest.mark.slow
+def test_readiness_says_when_the_dask_cluster_has_no_workers(tmp_path):
+    """Defect: /readyz said 200 with no Dask worker, while every task waited for one."""
+    import time
+
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
+                                  dashboard_address=None) as small:
+        settings = make_settings(tmp_path, executor="dask", dask_scheduler=small.scheduler_address)
+        with TestClient(create_app(settings)) as c:
+            assert c.get("/readyz").status_code == 200
+            small.scale(0)
+            deadline, resp = time.monotonic() + 30, None
+            while time.monotonic() < deadline:
+                resp = c.get("/readyz")
+                if resp.status_code == 503:
+                    break
+                time.sleep(0.2)
+            assert resp.status_code == 503 and "no workers" in resp.json()["detail"]
+            assert resp.headers["retry-after"]
+            fit = c.post("/v1/fits", json=msd_request(0, n=41))   # at once, not after the wall-time limit
+            assert fit.status_code == 503 and "no workers" in fit.json()["detail"] and fit.headers["retry-after"]
+            small.scale(1)
+            deadline = time.monotonic() + 30
+            while time.monotonic() < deadline and c.get("/readyz").status_code != 200:
+                time.sleep(0.2)
+            assert c.get("/readyz").status_code == 200
+            job = wait_for_job(c, c.post("/v1/jobs", json={"requests": [msd_request(0, n=41)]}).json()["id"])
+            assert job["status"] == "succeeded"

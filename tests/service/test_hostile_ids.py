@@ -54,3 +54,12 @@ def test_readiness_names_the_component_not_the_path(tmp_path):
         r = c.get("/readyz")
         assert r.status_code == 503 and "Retry-After" in r.headers
         assert str(tmp_path) not in r.text and "job store" in r.json()["detail"]
+
+
+def test_simulating_with_parameters_near_the_float_limit_is_a_422(client):
+    """The simulation overflows: the initial state cannot be estimated, and the answer says so (was a 500)."""
+    body = msd_request(0)
+    r = client.post("/v1/simulate", json={"model": body["model"], "experiments": body["experiments"],
+                                          "parameters": {"c": 1e308, "k": 1e308}})
+    assert r.status_code == 422, r.text
+    assert "initial state" in r.json()["detail"] or "initial_state" in r.text

@@ -99,6 +99,8 @@ def test_concurrent_claims_take_every_task_exactly_once(store):
 
     def worker(owner):
         while (task := store.claim(owner, 30, 3)) is not None:
+            store.mark_started(owner, [(task.job_id, task.idx, time.time())])
+            store.mark_started(owner, [(task.job_id, task.idx, time.time())])   # charged once per claim
             with lock:
                 taken.append((owner, task.idx))
 
@@ -119,28 +121,63 @@ def test_lost_worker_is_retried_then_fails_with_the_count(store):
     job = store.create_job("fit", requests(1), None)
     lost = {"type": "WorkerLost", "field": None, "retry": True, "detail": "the worker process died (signal SIGKILL)"}
     for attempt in (1, 2):
-        assert store.claim("o", 30, 3).idx == 0
+        assert claim_and_start(store, "o").idx == 0
         assert store.release(job, 0, "o", 3, lost) == "queued"
-    assert store.claim("o", 30, 3).idx == 0
+    assert claim_and_start(store, "o").idx == 0
     assert store.release(job, 0, "o", 3, lost) == "failed"
     record = store.get_job(job)["tasks"][0]
     assert record["status"] == "failed" and record["attempts"] == 3
     assert "lost 3 times" in record["error"] and "SIGKILL" in record["error"]
 
 
+def claim_and_start(store, owner, lease=30.0):
+    """A claim whose worker acknowledged the start (what the dispatcher writes after the ack)."""
+    task = store.claim(owner, lease, 3)
+    if task is not None:
+        store.mark_started(owner, [(task.job_id, task.idx, time.time())])
+    return task
+
+
 def test_graceful_hand_back_does_not_count_an_attempt_but_a_dead_server_does(store):
     job = store.create_job("fit", requests(1), None)
     for _ in range(5):                                  # five graceful restarts mid-task
-        assert store.claim("o", 30, 3) is not None
+        assert claim_and_start(store, "o") is not None
         assert store.requeue_owned("o") == 1
     assert store.get_job(job)["tasks"][0]["attempts"] == 0
-    for _ in range(3):                                  # three servers that died: the lease expires
-        assert store.claim("o", 0.01, 3) is not None
+    for _ in range(3):                                  # three servers that died mid-task: the lease expires
+        assert claim_and_start(store, "o", 0.01) is not None
         time.sleep(0.02)
         assert store.requeue_expired() == 1
     assert store.claim("o", 30, 3) is None              # started 3 times, lost 3 times: failed
     record = store.get_job(job)["tasks"][0]
     assert record["status"] == "failed" and "started 3 times" in record["error"]
+
+
+def test_servers_that_die_between_claim_and_start_charge_no_attempt(store):
+    """Defect: the claim charged the attempt, so three server deaths right after a claim failed a
+    task 'lost 3 times' that never ran."""
+    job = store.create_job("fit", requests(1), None)
+    for _ in range(5):                                  # five servers died after their claim, before a start
+        assert store.claim("o", 0.01, 3) is not None
+        time.sleep(0.02)
+        assert store.requeue_expired() == 1
+    record = store.get_job(job)["tasks"][0]
+    assert record["status"] == "queued" and record["attempts"] == 0 and record["started_at"] is None
+    task = claim_and_start(store, "o")                  # the next server runs it
+    assert task is not None and store.get_job(job)["tasks"][0]["attempts"] == 1
+    assert store.finish(job, 0, "o", "succeeded", "{}", None)
+
+
+def test_a_claim_given_back_unstarted_keeps_the_attempts_of_earlier_starts(store):
+    job = store.create_job("fit", requests(1), None)
+    assert claim_and_start(store, "o", 0.01) is not None   # started once, its server died
+    time.sleep(0.02)
+    assert store.requeue_expired() == 1
+    assert store.claim("o", 30, 3) is not None              # claimed, not started: a graceful stop
+    assert store.requeue_owned("o") == 1
+    assert store.claim("o2", 30, 3) is not None             # claimed by a claim whose answer was lost
+    assert store.renew("o2", 30, []) == 1
+    assert store.get_job(job)["tasks"][0]["attempts"] == 1
 
 
 def test_store_write_check(store):

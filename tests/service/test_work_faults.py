@@ -97,10 +97,16 @@ def test_a_read_only_store_is_503_and_unready_then_recovers(store_url, tmp_path)
         assert wait_for_job(c, job_id)["status"] == "succeeded"
 
 
+def started_task(client, job_id):
+    """Wait until a worker has acknowledged the start of the job's first task (its attempt is charged)."""
+    return wait_until(lambda: client.get(f"/v1/jobs/{job_id}").json()["tasks"][0]["started_at"],
+                      what="a started task")
+
+
 def test_a_worker_killed_mid_task_is_retried_not_called_a_cpu_limit(tmp_path):
     with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
         job_id = c.post("/v1/jobs", json={"requests": [slow_request()]}).json()["id"]
-        running_task(c, job_id)
+        started_task(c, job_id)
         time.sleep(0.2)
         os.kill(c.app.state.dispatcher.executor.slots[0].process.pid, signal.SIGKILL)
         job = wait_for_job(c, job_id)
@@ -206,3 +212,58 @@ def test_jobs_progress_under_a_burst_of_synchronous_fits(tmp_path):
         assert done_before <= 10, f"the job waited for {done_before} of 40 synchronous fits"
         outcomes = [f.result(timeout=120) for f in cf.as_completed(burst, timeout=180)]
         assert all(o["status"] == "succeeded" for o in outcomes)
+
+
+def test_three_server_deaths_right_after_a_claim_do_not_fail_the_task(tmp_path):
+    """Defect: the claim charged the attempt, so three servers that died between their claim and
+    the start failed the task 'lost 3 times' with 0 executions."""
+    settings = make_settings(tmp_path, workers=1, task_max_attempts=3)
+    store = JobStore(make_engine(settings.resolved_database_url()))
+    try:
+        job_id = store.create_job("fit", [msd_request(0, n=41)], None)
+        for i in range(3):            # each server claimed the task, then died before a worker had it
+            assert store.claim(f"dead-server-{i}", 0.01, settings.task_max_attempts) is not None
+            time.sleep(0.02)
+            assert store.requeue_expired() == 1   # what the next server does when it starts
+    finally:
+        store.engine.dispose()
+    with TestClient(create_app(settings)) as c:   # starting, it re-queues the expired leases
+        job = wait_for_job(c, job_id)
+    assert job["status"] == "succeeded", job
+    assert job["tasks"][0]["attempts"] == 1 and job["tasks"][0]["started_at"] is not None
+
+
+def test_a_stopped_worker_is_a_lost_worker_retried_not_a_timeout(tmp_path):
+    """Defect: a worker frozen by SIGSTOP mid-task ran into the wall-time limit: the task failed as
+    `Timeout`, not retried. Its CPU clock stands still: it is replaced and the task runs again."""
+    settings = make_settings(tmp_path, workers=1, worker_stall_seconds=1.5, task_wall_seconds=20.0)
+    with TestClient(create_app(settings)) as c:
+        job_id = c.post("/v1/jobs", json={"requests": [slow_request()]}).json()["id"]
+        started_task(c, job_id)
+        pid = c.app.state.dispatcher.executor.slots[0].process.pid
+        os.kill(pid, signal.SIGSTOP)
+        try:
+            job = wait_for_job(c, job_id, timeout=120)
+        finally:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+    assert job["status"] == "succeeded", job
+    assert job["tasks"][0]["attempts"] == 2           # the stopped start counted, the retry succeeded
+    assert "Timeout" not in str(job["tasks"][0]["error"])
+
+
+def test_a_synchronous_fit_whose_worker_dies_is_503_with_retry_after(tmp_path):
+    """Defect: the 503 of a lost worker had no Retry-After, which every 503 is documented to carry."""
+    with TestClient(create_app(make_settings(tmp_path, workers=1, retry_after_seconds=3))) as c:
+        executor = c.app.state.dispatcher.executor
+        with cf.ThreadPoolExecutor(1) as pool:
+            answer = pool.submit(c.post, "/v1/fits", json=slow_request())
+            slot = wait_until(lambda: next((s for s in executor.slots if s.keys), None), what="the fit on a worker")
+            wait_until(lambda: not executor._started and slot.started, what="the fit's start")
+            time.sleep(0.1)                                # mid-fit: the fit takes about a second
+            os.kill(slot.process.pid, signal.SIGKILL)
+            resp = answer.result(timeout=120)
+    assert_problem(resp, 503, "worker", "retry")
+    assert resp.headers["retry-after"] == "3"

@@ -36,9 +36,15 @@ class FitOptions(BaseModel):
     model_config = ConfigDict(extra="forbid")
 
     integrator: Literal["rk4", "cvodes"] = "rk4"
-    substeps: int = Field(default=1, ge=1, le=100, description="RK4 steps per sample interval")
-    input_interpolation: Literal["foh", "zoh"] = Field(
-        default="foh", description="inputs between samples: linear (foh) or held (zoh)")
+    substeps: int = Field(
+        default=1, ge=1, le=100,
+        description="RK4 steps per sample interval; when not given, fits choose it from the model's "
+                    "fastest mode along the simulation at the initial guess (|λ|h ≤ 0.25) and say so in "
+                    "preprocessing.substeps")
+    input_interpolation: Literal["auto", "foh", "zoh"] = Field(
+        default="auto", description="inputs between samples: linear (foh), held (zoh), or auto: held "
+                                    "where the input is piecewise constant (PRBS, steps, a digital "
+                                    "controller's output), linear where it is smooth")
     shooting_interval: int = Field(
         default=1, ge=1, le=10_000, description="samples per multiple-shooting interval")
     hessian: Literal["gauss_newton", "exact"] = "gauss_newton"
@@ -232,6 +238,9 @@ class ProfileInterval(BaseModel):
     threshold: Optional[float] = Field(description="cost + ½ t²(ν) σ²: the interval is where the profile "
                                        "stays below it")
     note: Optional[str] = None
+    noise_adjustment: Optional[float] = Field(
+        default=None, description="coloured residual (HAC covariance reported): the factor var_HAC/"
+        "var_classical the threshold's ½t²σ² was scaled by; null: white residual, threshold unscaled")
 
 
 def _result_model_kind(value) -> str:

@@ -50,3 +50,11 @@ class ExperimentPreprocessing(BaseModel):
 class PreprocessingReport(BaseModel):
     experiments: list[ExperimentPreprocessing] = Field(default_factory=list)
     hints: list[Hint] = Field(default_factory=list)
+    input_interpolation: dict[str, Literal["foh", "zoh"]] = Field(
+        default_factory=dict, description="per input, how it was taken between samples: held (zoh) or "
+        "linear (foh); chosen from the data when options.input_interpolation is 'auto'")
+    interpolation_note: Optional[str] = Field(default=None, description="why, when chosen automatically")
+    substeps: Optional[int] = Field(
+        default=None, description="RK4 steps per sample interval chosen from the model's fastest mode "
+        "along the simulation at the initial guess (options.substeps not given)")
+    substeps_note: Optional[str] = None

@@ -20,6 +20,8 @@ from greyfit.solvers.checks.fit_checks import (
     active_constraints, fastest_rate_warning, pre_fit_warnings, row_keys, state_peaks,
 )
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
+from greyfit.solvers.checks.step_choice import choose_substeps, substeps_retry
+from greyfit.solvers.checks.verdict import review_fit
 from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.errors import DataError
@@ -76,12 +78,16 @@ def fit_model(request: FitRequest) -> FitResult:
     online = online_method(request.method)
     if online is not None:
         return attach_model(online.fit(request), request.model)
-    prepared, preprocessing = prepare_request(request)
+    prepared, preprocessing = choose_substeps(*prepare_request(request))
     result = _fit_prepared(prepared)
+    retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
+    if retry is not None:   # the chosen substeps proved coarse at the estimates: once more, finer
+        (prepared, preprocessing), result = retry, _fit_prepared(retry[0])
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
-    return attach_model(result, request.model)   # units and the model travel with the result
+    # lack of fit and input handling in the verdict; units and the model travel with the result
+    return attach_model(review_fit(prepared, result), request.model)
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:

@@ -69,6 +69,13 @@ def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: 
     """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
     if not integrator_of(options).fixed_step or cm.model.discrete is not None:   # no integration step to judge
         return []
+    rate, dt = fastest_rate(cm, data, layout, theta_s, states)
+    return step_size_warning(rate, dt, options.substeps, options.integrator)
+
+
+def fastest_rate(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
+                 theta_s: np.ndarray, states: list[np.ndarray]) -> tuple[float, float]:
+    """(largest |eigenvalue| of ∂f/∂x at up to 20 points of each trajectory, smallest median step)."""
     jac_fn = cm.derive(("dfdx_columns",), lambda: Columns(_state_jacobian(cm)))
     rate, dt = 0.0, np.inf
     for e, d in enumerate(data):
@@ -82,7 +89,7 @@ def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: 
             if blocks.size:
                 rate = max(rate, float(np.max(np.abs(np.linalg.eigvals(blocks)))))
         dt = min(dt, float(np.median(np.diff(d.t))))
-    return step_size_warning(rate, dt, options.substeps, options.integrator)
+    return rate, dt
 
 
 def _state_jacobian(cm: CompiledModel) -> ca.Function:

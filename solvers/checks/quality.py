@@ -17,13 +17,16 @@ from greyfit.solvers.methods.registry import method_family
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
                  "hessian_singular", "flat_cost", "residual_far_from_white", "poor_excitation",
-                 "multiple_optima"}   # multiple_optima: solvers/methods/multistart.py
+                 "multiple_optima",   # solvers/methods/multistart.py
+                 # lack of fit and integration (issue 22): each points at a wrong answer
+                 "missing_effect_likely", "residual_above_noise", "validation_misfit",
+                 "input_held_fitted_linear", "input_faster_than_sampling", "integration_step_coarse"}
 # online, frequency and equation-error checks (solvers/methods/online/checks.py, solvers/frequency/checks.py,
 # solvers/methods/equation_error_bias.py) whose warnings count against `good`
 SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
-              "input_faster_than_sampling", "integration_step_coarse", "initial_simulation_diverged",
-              "robust_covariance", "poor_excitation_at_start",
+              "initial_simulation_diverged", "robust_covariance", "poor_excitation_at_start",
+              "lack_of_fit_not_screened",
               "singular_derivative_guarded",     # solvers/model/compiler.py
               "polished_with_exact_hessian"}     # solvers/methods/multistart.py
 
@@ -213,14 +216,27 @@ def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
     if q.covariance.robust_bandwidth is not None:
         warnings.append(FitWarning(code="robust_covariance", message=q.covariance.note or "",
                                    detail={"bandwidth": q.covariance.robust_bandwidth}))
+    return finite_result(result.model_copy(update=verdict(result.message, warnings, q.converged)))
+
+
+def verdict(message: str, warnings: list[FitWarning], converged: bool) -> dict:
+    """The fields of a result that follow from its warnings: quality, success, status, message."""
     codes = {w.code for w in warnings}
     quality = "failed" if codes & FAILED_CODES else "suspect" if codes & SUSPECT_CODES else "good"
     update = {"warnings": warnings, "quality": quality, "success": quality == "good",
               "status": {"good": "success", "suspect": "suspect", "failed": "failed"}[quality]}
-    if quality == "suspect" and q.converged:
-        update["message"] = result.message + "; but the result is suspect: " + "; ".join(
-            sorted(codes & SUSPECT_CODES))
-    return finite_result(result.model_copy(update=update))
+    if quality == "suspect" and converged:
+        update["message"] = message.split("; but the result is suspect: ")[0] + \
+            "; but the result is suspect: " + "; ".join(sorted(codes & SUSPECT_CODES))
+    return update
+
+
+def requalify(result: FitResult, more: list[FitWarning]) -> FitResult:
+    """The result with `more` warnings added and its verdict recomputed (checks run after `assess_fit`)."""
+    if not more:
+        return result
+    converged = not any(w.code == "not_converged" for w in result.warnings)
+    return result.model_copy(update=verdict(result.message, list(result.warnings) + more, converged))
 
 
 def _plain(value):

@@ -111,31 +111,94 @@ def preprocess_experiment(exp: Experiment, where: str) -> tuple[Experiment, Expe
     return Experiment.model_validate(data), report
 
 
+HELD_REPEATS = 0.5   # fraction of exact repeats from sample to sample above which an input is held
+
+
 def looks_piecewise_constant(u: np.ndarray) -> bool:
-    """True for PRBS, steps and other held signals: mostly exact repeats, few levels."""
+    """True for PRBS, steps and other held signals: mostly exact repeats, or some and few levels.
+
+    A smooth signal sampled and converted to floats practically never repeats a value exactly; a
+    digital controller's output updated every k-th sample repeats (k-1)/k of the time whatever its
+    levels. A signal held at the sampling rate itself repeats nothing and cannot be recognised."""
     u = u[np.isfinite(u)]
     span = float(np.ptp(u)) if u.size else 0.0
     if u.size < 10 or span == 0:
         return False
     flat = float(np.mean(np.abs(np.diff(u)) <= 1e-9 * span))
-    if flat >= 0.8 or flat < 0.3:
-        return flat >= 0.8
+    if flat >= HELD_REPEATS or flat < 0.3:
+        return flat >= HELD_REPEATS
     return bool(np.unique(np.round(u / (1e-6 * span))).size <= 10)
+
+
+def _variation(values) -> float:
+    """Total variation of a series over its spread: how much it is misread when its interpolation is
+    wrong (either mistake is off by |Δu|·Δt/2 over each interval it concerns)."""
+    u = np.array([np.nan if v is None else v for v in values], dtype=float)
+    u = u[np.isfinite(u)]
+    spread = float(np.std(u)) if u.size > 1 else 0.0
+    return float(np.sum(np.abs(np.diff(u)))) / spread if spread > 0 else 0.0
+
+
+def held_inputs(experiments: list[Experiment]) -> dict[str, tuple[bool, float]]:
+    """Per input: (looks piecewise constant in every record that has it, total variation/spread)."""
+    held: dict[str, tuple[bool, float]] = {}
+    for exp in experiments:
+        for name, values in exp.inputs.items():
+            looks = looks_piecewise_constant(np.array([np.nan if v is None else v for v in values], dtype=float))
+            was, variation = held.get(name, (True, 0.0))
+            held[name] = (was and looks, variation + _variation(values))
+    return held
+
+
+def choose_interpolation(held: dict[str, tuple[bool, float]]) -> tuple[str, dict[str, str], str]:
+    """(interpolation for all inputs, the same per input, why) for options.input_interpolation 'auto'.
+
+    One interpolation serves every input of a fit. Where held and smooth inputs are mixed, the one
+    that misreads less is chosen: a held input read as a ramp and a smooth one read as held are
+    both off by |Δu|·Δt/2 over an interval, the first at its switches only, the second everywhere;
+    so the total variation (over the spread) of the inputs each choice misreads decides."""
+    steps = sorted(n for n, (h, _) in held.items() if h)
+    smooth = sorted(n for n, (h, _) in held.items() if not h)
+    if not steps or not smooth:
+        mode = "zoh" if steps else "foh"
+        why = ("every input is piecewise constant (PRBS, steps, a digital output): taken as held (zoh)" if steps
+               else "every input varies smoothly: taken as linear between samples (foh)")
+        return mode, {name: mode for name in held}, why
+    cost_zoh = sum(held[n][1] for n in smooth)   # smooth inputs misread as held
+    cost_foh = sum(held[n][1] for n in steps)    # held inputs misread as ramps
+    mode = "zoh" if cost_zoh < cost_foh else "foh"
+    wrong = smooth if mode == "zoh" else steps
+    why = (f"piecewise constant {steps} and smooth {smooth} inputs: one interpolation serves all, and "
+           f"{mode} misreads less (total variation over spread {min(cost_zoh, cost_foh):.3g} against "
+           f"{max(cost_zoh, cost_foh):.3g}); {wrong} are taken as {'held' if mode == 'zoh' else 'linear'} "
+           "although they are not: give them on a finer time grid if that matters")
+    return mode, {name: mode for name in held}, why
 
 
 def input_hints(experiments: list[Experiment], options: FitOptions) -> list[Hint]:
     """A hint per input that looks piecewise constant while inputs are interpolated linearly."""
     if options.input_interpolation != "foh":
         return []
-    held = sorted({name for exp in experiments for name, values in exp.inputs.items()
-                   if looks_piecewise_constant(np.array(values, dtype=float))})
+    held = sorted(name for name, (looks, _) in held_inputs(experiments).items() if looks)
     if not held:
         return []
     return [Hint(code="input_looks_held",
                  message=f"input(s) {held} look piecewise constant (PRBS, steps) but "
                          "options.input_interpolation is 'foh', which ramps between samples; "
-                         "if the input is held between samples set input_interpolation to 'zoh'",
+                         "if the input is held between samples set input_interpolation to 'zoh' (or 'auto')",
                  detail={"inputs": held})]
+
+
+def resolve_interpolation(request, experiments: list[Experiment]):
+    """(request with 'auto' replaced by the chosen interpolation, per input, why) — unchanged and
+    the requested one per input when the request chose."""
+    options = request.options
+    held = held_inputs(experiments)
+    if options.input_interpolation != "auto":
+        return request, {n: options.input_interpolation for n in held}, None
+    mode, per_input, why = choose_interpolation(held)
+    options = options.model_copy(update={"input_interpolation": mode})
+    return request.model_copy(update={"options": options}), per_input, why
 
 
 def preprocess_experiments(experiments: list[Experiment], field: str = "experiments",
@@ -157,7 +220,8 @@ def preprocessing_report(reports: list[ExperimentPreprocessing], hints: list[Hin
 
 
 def prepare_request(request):
-    """(request with every `preprocess` applied to its experiments and validation records, report).
+    """(request with every `preprocess` applied to its experiments and validation records and
+    `input_interpolation: auto` resolved, report).
 
     Works for any request with `experiments`, `validation` (optional) and `options`.
     """
@@ -167,6 +231,12 @@ def prepare_request(request):
     if validation:
         update["validation"], more = preprocess_experiments(validation, "validation")
         reports += more
-    hints = input_hints(experiments + list(update.get("validation", [])), request.options)
+    records = experiments + list(update.get("validation", []))
+    hints = input_hints(records, request.options)
     changed = any(r is not None for r in reports)
-    return (request.model_copy(update=update) if changed else request), preprocessing_report(reports, hints)
+    prepared = request.model_copy(update=update) if changed else request
+    if getattr(request.options, "input_interpolation", None) is None:
+        return prepared, preprocessing_report(reports, hints)
+    prepared, per_input, why = resolve_interpolation(prepared, records)
+    return prepared, PreprocessingReport(experiments=reports, hints=hints, input_interpolation=per_input,
+                                         interpolation_note=why)

@@ -17,8 +17,8 @@ from greyfit.solvers.model.compiler import CompiledModel
 
 
 def _input_at(u0, u1, tau, interpolation: str):
-    """Input at fraction tau of the interval: linear (foh) or held (zoh)."""
-    return u0 + (u1 - u0) * tau if interpolation == "foh" else u0
+    """Input at fraction tau of the interval: held (zoh) or linear (foh; also an unresolved "auto")."""
+    return u0 if interpolation == "zoh" else u0 + (u1 - u0) * tau
 
 
 def make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:

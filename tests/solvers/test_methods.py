@@ -37,8 +37,9 @@ def test_seat_equation_error_recovers_table1_to_four_digits(seat_data):
 def test_seat_multiple_shooting_from_noisy_states_and_40_percent_off(seat_data):
     t, x, dx, w, wd = seat_data
     guess = {k: v * (1.4 if i % 2 else 0.6) for i, (k, v) in enumerate(SEAT_TRUTH.items())}
+    # substeps left to the chooser: the 2 this test used to force leave the fastest mode at |λ|h ≈ 0.6,
+    # which `integration_step_coarse` counts against good since issue 22
     req = FitRequest.model_validate({"model": seat_model(guess), "method": "multiple_shooting",
-                                     "options": {"substeps": 2},
                                      "experiments": [seat_experiment(t, x, w, wd, noise=0.01, seed=3)]})
     res = fit_model(req)
     assert res.success

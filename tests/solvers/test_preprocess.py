@@ -81,10 +81,16 @@ def test_a_held_input_with_foh_interpolation_gets_a_hint():
     body["model"]["outputs"] = {"x": "x"}
     body["model"]["parameters"] = [{"name": n, "value": v, "fixed": True} for n, v in
                                    (("m", 2.0), ("c", 0.8), ("k", 5.0))]
+    # the default (auto) holds it; forcing foh gets the hint, and a warning that counts (issue 22)
+    res = fit_model(FitRequest.model_validate(body))
+    assert res.preprocessing.hints == [] and res.preprocessing.input_interpolation == {"u": "zoh"}
+    body["options"] = {"input_interpolation": "foh"}
     res = fit_model(FitRequest.model_validate(body))
     assert [h.code for h in res.preprocessing.hints] == ["input_looks_held"]
+    assert "input_held_fitted_linear" in {w.code for w in res.warnings} and res.quality == "suspect"
     body["options"] = {"input_interpolation": "zoh"}
-    assert fit_model(FitRequest.model_validate(body)).preprocessing is None
+    assert fit_model(FitRequest.model_validate(body)).preprocessing.hints == []
     body["experiments"][0]["inputs"]["u"] = np.sin(t).tolist()
     body["options"] = {}
-    assert fit_model(FitRequest.model_validate(body)).preprocessing is None
+    res = fit_model(FitRequest.model_validate(body))
+    assert res.preprocessing.hints == [] and res.preprocessing.input_interpolation == {"u": "foh"}

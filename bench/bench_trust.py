@@ -1,0 +1,108 @@
+"""Monte Carlo of the quality verdict (docs/trust.md): how often `good` is said of right and of wrong fits.
+
+Two systems other than the mass-spring-damper (tests/trust_systems.py): a thermal RC node driven by a
+held PRBS heater, and a pendulum measured by its angle only. Per system and scenario, over --seeds
+records (a new input and a new white noise each):
+
+  correct         the right model, every option at its default (input_interpolation auto, substeps chosen)
+  held_as_linear  the right model, but a held input forced to input_interpolation 'foh'
+  wrong_model     a nonlinear term at 5 % of the linear term it corrupts is missing from the model
+  aliased         the right model at coarse sampling (|λ|Δt ≈ 0.8-1), forced to one RK4 substep
+  aliased_auto    the same records with the substeps left to the chooser (a control: should be good)
+  sampled_sines   pendulum only: the right model, its torque the continuous sum of sines behind the
+                  samples (ωΔt ≤ 0.2), which first-order hold misrepresents by about (ωΔt)²/12
+
+Columns: the share of fits called good (with its 95 % Wilson interval), the share whose 95 % intervals
+hold every true parameter (what `good` should imply), the largest median |bias|/stderr over the
+parameters, the warning codes that made the fits not good, and ms per fit (wall time, load-dependent).
+
+    python bench/bench_trust.py [--seeds 100] [--systems thermal,pendulum] [--scenarios ...]
+
+The verdict must say good in ≥ 97 % of `correct` fits and in ≤ 5 % of held_as_linear, wrong_model and
+aliased ones (issue 22); tests/solvers/test_trust_verdict.py checks the same with fewer seeds.
+"""
+from __future__ import annotations
+
+import argparse
+import collections
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from greyfit.schemas.fit import FitRequest  # noqa: E402
+from greyfit.solvers.fit import fit_model  # noqa: E402
+from tests.trust_systems import ALIASED_THERMAL, SCENARIOS, TRUTH  # noqa: E402
+
+ALL = ["correct", "held_as_linear", "wrong_model", "aliased", "aliased_auto", "sampled_sines"]
+
+
+def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
+    if n == 0:
+        return math.nan, math.nan
+    p = k / n
+    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
+    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
+    return max(0.0, centre - half), min(1.0, centre + half)
+
+
+def truth_of(system: str, scenario: str) -> dict:
+    if system == "thermal" and scenario.startswith("aliased"):
+        return ALIASED_THERMAL
+    return TRUTH[system]
+
+
+def run(system: str, scenario: str, seeds: int) -> dict:
+    truth = truth_of(system, scenario)
+    good, covered, codes, ms = 0, 0, collections.Counter(), []
+    bias = collections.defaultdict(list)
+    for seed in range(seeds):
+        request = FitRequest.model_validate(SCENARIOS[system](scenario, seed))
+        t0 = time.perf_counter()
+        result = fit_model(request)
+        ms.append(1e3 * (time.perf_counter() - t0))
+        good += result.quality == "good"
+        if result.quality != "good":
+            codes.update({w.code for w in result.warnings} & _doubting())
+        inside = True
+        for name, value in truth.items():
+            p = result.parameters[name]
+            if p.stderr:
+                bias[name].append(abs(p.value - value) / p.stderr)
+            inside &= p.ci95 is not None and p.ci95[0] <= value <= p.ci95[1]
+        covered += inside
+    worst = max((float(np.median(v)) for v in bias.values() if v), default=math.nan)
+    return {"good": good, "n": seeds, "covered": covered, "bias": worst, "codes": codes,
+            "ms": float(np.median(ms))}
+
+
+def _doubting() -> set[str]:
+    from greyfit.solvers.checks.quality import FAILED_CODES, SUSPECT_CODES
+    return FAILED_CODES | SUSPECT_CODES
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--seeds", type=int, default=100)
+    ap.add_argument("--systems", default="thermal,pendulum")
+    ap.add_argument("--scenarios", default=",".join(ALL))
+    args = ap.parse_args()
+    print(f"{'system':9s} {'scenario':15s} {'good':>6s} {'95 % CI':>13s} {'CI holds truth':>15s} "
+          f"{'|bias|/se':>9s} {'ms':>5s}  not good because")
+    for system in args.systems.split(","):
+        for scenario in args.scenarios.split(","):
+            if scenario == "sampled_sines" and system != "pendulum":
+                continue
+            r = run(system, scenario, args.seeds)
+            lo, hi = wilson(r["good"], r["n"])
+            top = ", ".join(f"{c} {k}" for c, k in r["codes"].most_common(3))
+            print(f"{system:9s} {scenario:15s} {100 * r['good'] / r['n']:5.1f}% [{100 * lo:4.1f}, {100 * hi:5.1f}] "
+                  f"{100 * r['covered'] / r['n']:14.1f}% {r['bias']:9.2f} {r['ms']:5.0f}  {top}", flush=True)
+
+
+if __name__ == "__main__":
+    main()

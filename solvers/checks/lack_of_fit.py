@@ -1,0 +1,94 @@
+"""Lack of fit by the discovery screen's score test, run on every output-error fit.
+
+The discovery screen (`solvers.discovery.screening.screen`) regresses the fit's output residual on
+each library candidate's output sensitivity with the fitted parameters projected out: one
+Gauss-Newton step of the fit augmented by that candidate, i.e. a score (Lagrange-multiplier) test
+at β = 0, on an effective sample size that allows for coloured residuals, Bonferroni-corrected over
+the candidates tried. A significant candidate says the declared model leaves a systematic part of
+the residual that a named physical effect would explain: the answer is biased.
+
+Only the named laws are screened here (friction, drag, cubic stiffness, offsets, outflow, sensor
+gain and offset): switch points, steps and drifts in time are one hypothesis per grid point and
+cost most of a full screen, and the discovery endpoint is the place to search them. Only the
+output-residual scores count: the equation-residual scores are made from smoothed derivatives, which
+lag a held input by about a sample and read that as a missing effect on a right model.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+from greyfit.schemas.discovery import DiscoveryOptions, Effect
+from greyfit.schemas.fit import FitMethod, FitRequest, FitResult, FitWarning
+from greyfit.solvers.errors import FitError
+
+SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
+                    "output_offset", "output_gain"]
+SIGNIFICANCE = 0.001         # family-wise, over the candidates tried (the screen's Bonferroni): a
+#                              right model is flagged in about 0.1 % of fits, far below the 3 % `good` may lose
+MAX_SCREENED_VALUES = 50_000  # samples × (free parameters + states): above it the screen is skipped
+TOP_CANDIDATES = 3
+NEGLIGIBLE_MISFIT = 1e-3     # residual RMS over the output's spread below which nothing is screened
+
+
+def negligible_residual(result: FitResult) -> bool:
+    """Every output fitted to within NEGLIGIBLE_MISFIT of its spread (fit % above 99.9): any
+    effect left in the residual moves the outputs by less than that."""
+    fits = list(result.metrics.fit_percent.values())
+    return bool(fits) and all(f is not None and f >= 100.0 * (1.0 - NEGLIGIBLE_MISFIT) for f in fits)
+
+
+def _why_not_screened(request: FitRequest, result: FitResult) -> str | None:
+    """None: nothing to screen or say; "": screen; else why the screen is skipped."""
+    model, opts = request.model, request.options
+    if request.method not in (FitMethod.single_shooting, FitMethod.multiple_shooting):
+        return None   # the screen needs a simulated output; equation error's residuals are derivatives
+    if model.discrete is not None or opts.prefilter is not None or \
+            any(p.time_varying is not None or p.per_experiment for p in model.parameters):
+        return "the screen covers continuous models with constant shared parameters and no prefilter"
+    if result.quality == "failed" or not result.parameters or all(p.fixed for p in result.parameters.values()):
+        return None   # nothing to screen, and nothing to say: the verdict is made elsewhere
+    if negligible_residual(result):
+        return None   # noise-free data: the residual is the integrator's error, significant but harmless
+    samples = sum(len(e.time) for e in request.experiments)
+    size = samples * (sum(not p.fixed for p in model.parameters) + len(model.states))
+    if size > MAX_SCREENED_VALUES:
+        return (f"skipped on a large fit ({samples} samples × {len(model.states)} states and the free "
+                f"parameters > {MAX_SCREENED_VALUES} values): run POST /v1/discover to screen it")
+    return ""
+
+
+def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
+    """`missing_effect_likely` with the top significant candidates, or `lack_of_fit_not_screened`."""
+    why = _why_not_screened(request, result)
+    if why is None:
+        return []
+    if why:
+        return [FitWarning(code="lack_of_fit_not_screened", message=f"lack of fit not screened: {why}",
+                           detail={"reason": why})]
+    from greyfit.solvers.discovery.screening import screen  # the discovery wing, only when used
+
+    opts = DiscoveryOptions(effects=SCREENED_EFFECTS, significance=SIGNIFICANCE)
+    try:
+        screening = screen(request, result, opts, set())
+    except (RuntimeError, FitError) as exc:   # CasADi could not linearise this model: say so
+        return [FitWarning(code="lack_of_fit_not_screened",
+                           message=f"lack of fit not screened: the screen failed ({str(exc).splitlines()[0]})",
+                           detail={"reason": "screen failed"})]
+    hits = [sc for sc in screening.scored if sc.significant and sc.scored_on == "outputs"
+            and not sc.candidate.refit_only]
+    if not hits:
+        return []
+    top: list[dict[str, Any]] = [
+        {"effect": sc.candidate.effect, "term": sc.candidate.term, "description": sc.candidate.description,
+         "explained": round(float(sc.score.explained), 4), "p_value": float(sc.score.p_value)}
+        for sc in hits[:TOP_CANDIDATES]]
+    alpha = SIGNIFICANCE / max(screening.tries, 1)
+    return [FitWarning(
+        code="missing_effect_likely",
+        message=f"the residual holds a systematic part a missing effect would explain (score test, "
+                f"Bonferroni level {alpha:.2g} over {screening.tries} candidates): "
+                + "; ".join(f"{c['description']} ({100 * c['explained']:.0f} % of the residual variance, "
+                            f"p = {c['p_value']:.1g})" for c in top)
+                + "; the estimates are biased by it: add the effect (POST /v1/discover tries them)",
+        detail={"test": "score test of the discovery screen", "candidates": top, "level": alpha,
+                "tried": screening.tries})]

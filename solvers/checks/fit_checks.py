@@ -27,6 +27,8 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
     if eep is not None:
         jac, _ = problem.evaluate_jacobian(problem.initial_guess(layout.initial))
         labels = list(layout.labels)
+    elif oem is None:   # each batch method builds one of the two (solvers/methods/batch.py)
+        raise ValueError("pre_fit_warnings needs the equation-error problem or the output-error model")
     else:
         x0s = [dict(zip(cm.states, oem.x0_guess(e))) for e in range(len(data))]
         failures = len(oem.simulation_failures)
@@ -120,9 +122,9 @@ def active_constraints(cm: CompiledModel, layout: ParameterLayout, theta_s: np.n
     active = set()
     for e in range(len(layout.matrix)):
         g = np.array(cm.constraint(layout.full(e, theta_s))).ravel()
+        tolerance = ACTIVE_TOLERANCE * max(1.0, _size(cm, layout, e, theta_s))
         for i, value in enumerate(g):
-            size = max(1.0, _size(cm, layout, e, theta_s))
-            if not cm.constraint_equality[i] and abs(value) <= ACTIVE_TOLERANCE * size:
+            if not cm.constraint_equality[i] and abs(value) <= tolerance:
                 active.add(i)
     return [texts[i] for i in sorted(active)]
 

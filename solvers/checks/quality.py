@@ -75,7 +75,7 @@ def noise_level(y: np.ndarray) -> float:
 
 
 def _fit_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
-    out = []
+    out: list[FitWarning] = []
     if method_family(q.method) == "equation_error":
         return out   # channels are derivatives, smoothed: their differences do not show the noise
     for name, series in q.measured.items():

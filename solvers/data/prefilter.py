@@ -63,7 +63,7 @@ def is_linear_in_states_and_inputs(cm: CompiledModel) -> bool:
 
 def apply_prefilter(cm: CompiledModel, data: list[ExperimentData], spec: Prefilter) -> tuple[list[ExperimentData], str]:
     """Filtered copies of the experiments and a description for `solver.derivative_filter`."""
-    discrete = cm.model.discrete is not None
+    discrete = cm.model.discrete
     out = []
     for e, d in enumerate(data):
         if np.isnan(d.y).any():
@@ -74,8 +74,8 @@ def apply_prefilter(cm: CompiledModel, data: list[ExperimentData], spec: Prefilt
             raise DataError(f"the prefilter needs {drop} samples to settle and the experiment has "
                             f"{d.n}; raise options.prefilter.cutoff_hz or give a longer record",
                             f"experiments[{e}].time")
-        if discrete:
-            a = math.exp(-2 * math.pi * spec.cutoff_hz * cm.model.discrete.sample_time)
+        if discrete is not None:
+            a = math.exp(-2 * math.pi * spec.cutoff_hz * discrete.sample_time)
             y, u = d.y, d.u
             for _ in range(spec.order):
                 y, u = lowpass_discrete(y, a), lowpass_discrete(u, a)
@@ -93,7 +93,7 @@ def apply_prefilter(cm: CompiledModel, data: list[ExperimentData], spec: Prefilt
         for v in derivatives.values():
             v[:drop] = np.nan
         out.append(replace(d, y=y, u=u, derivatives=derivatives))
-    if discrete:
+    if discrete is not None:
         note = (f"prefilter: {spec.order} x first-order low-pass (1-a)/(1-a z^-1), "
                 f"f_c = {spec.cutoff_hz:g} Hz, on outputs and inputs")
     else:

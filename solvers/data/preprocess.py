@@ -9,7 +9,7 @@ import numpy as np
 
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.fit import FitOptions
-from greyfit.schemas.preprocess import ExperimentPreprocessing, Hint, Preprocess, PreprocessingReport
+from greyfit.schemas.preprocess import ExperimentPreprocessing, Hint, PreprocessingReport
 from greyfit.solvers.errors import DataError
 
 FIR_TAPS_PER_FACTOR = 20   # scipy.signal.decimate(ftype="fir") uses the same order, 20 q
@@ -59,7 +59,9 @@ def _trend(t: np.ndarray, y: np.ndarray, kind: str) -> tuple[np.ndarray, list[fl
 
 def preprocess_experiment(exp: Experiment, where: str) -> tuple[Experiment, ExperimentPreprocessing]:
     """The experiment with its `preprocess` applied (and removed), and a report of what was done."""
-    spec: Preprocess = exp.preprocess
+    spec = exp.preprocess
+    if spec is None:   # `preprocess_experiments` passes such experiments through unchanged
+        raise ValueError(f"{where} has no preprocess to apply")
     t = np.asarray(exp.time, dtype=float)
     series = {("inputs", k): np.array(v, dtype=float) for k, v in exp.inputs.items()}
     series.update({("outputs", k): np.array(v, dtype=float) for k, v in exp.outputs.items()})

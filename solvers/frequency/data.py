@@ -5,7 +5,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from greyfit.schemas.frequency import FrequencyData, TransferFunctionModel
+from greyfit.schemas.frequency import FrequencyData, LinearisedOdeModel, TransferFunctionModel
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.frequency.sine_tests import response_from_sine_tests
 
@@ -50,7 +50,7 @@ def _measured(d: FrequencyData, where: str) -> tuple[np.ndarray, np.ndarray]:
     if len(forms) != 1:
         raise DataError(f"give exactly one of real/imag, gain/phase_deg or sine_tests (got {forms or 'none'})",
                         where)
-    if forms[0] == "sine_tests":
+    if d.sine_tests is not None:   # the one form given
         if d.omega is not None:
             raise DataError("omega comes from the sine tests themselves; leave it out", f"{where}.omega")
         return response_from_sine_tests(d.sine_tests, f"{where}.sine_tests")
@@ -78,7 +78,8 @@ def _measured(d: FrequencyData, where: str) -> tuple[np.ndarray, np.ndarray]:
     return omega, g
 
 
-def prepare_frequency_data(data: list[FrequencyData], model: TransferFunctionModel) -> list[FrequencySet]:
+def prepare_frequency_data(data: list[FrequencyData],
+                           model: TransferFunctionModel | LinearisedOdeModel) -> list[FrequencySet]:
     """Validated frequency sets; errors name the field (`data[0].omega`) and the fix."""
     sets, names = [], set()
     for i, d in enumerate(data):

@@ -28,8 +28,8 @@ from greyfit.solvers.fit import _at_bound, _message
 from greyfit.solvers.frequency.checks import assess_frequency_fit
 from greyfit.solvers.frequency.data import prepare_frequency_data
 from greyfit.solvers.frequency.levy import levy_fit
-from greyfit.solvers.frequency.linearise import compile_linearised_model
-from greyfit.solvers.frequency.polynomials import ClosedLoop, compile_transfer_function
+from greyfit.solvers.frequency.linearise import CompiledLinearisedModel, compile_linearised_model
+from greyfit.solvers.frequency.polynomials import ClosedLoop, CompiledTransferFunction, compile_transfer_function
 from greyfit.solvers.frequency.problem import FrequencyProblem, build_frequency_problem, data_weights
 from greyfit.solvers.frequency.response import numeric_response
 from greyfit.solvers.frequency.stability import poles, routh_first_column
@@ -67,7 +67,7 @@ def _interior(theta: np.ndarray, layout) -> np.ndarray:
 def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: FitOptions):
     solver = LeastSquaresSolver(fp.problem, options)
     best: NlpOutcome | None = None
-    best_key = None
+    best_key: tuple[bool, bool, float] | None = None   # set together with best
     cpu0 = time.process_time()
     used = 0
     for theta0 in starts:
@@ -78,7 +78,7 @@ def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: F
         out = solver.solve(fp.problem.initial_guess(theta0))
         used += 1
         key = (out.success and _feasible(fp, out.w), _feasible(fp, out.w), -out.cost)
-        if best is None or key > best_key:
+        if best_key is None or key > best_key:
             best, best_key = out, key
     return best, used
 
@@ -137,6 +137,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     started = time.perf_counter()
     opts = request.options
     engine_opts = _engine_options(request)
+    tf: CompiledTransferFunction
     if isinstance(request.model, LinearisedOdeModel):
         tf = compile_linearised_model(request.model)
     else:
@@ -211,13 +212,13 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         params[name] = ParameterEstimate(value=value, fixed=True, initial=value)
 
     response = _response_report(loops, extra, sets, layout, theta_s, opts, levy_theta)
-    if isinstance(request.model, LinearisedOdeModel):
+    if isinstance(tf, CompiledLinearisedModel):
         response.operating_point = tf.operating_point(np.array(layout.full(0, theta_s), dtype=float).ravel())
     nvarys = int(keep.sum())
     cost = 0.5 * float(res @ res)
     aic, bic = information_criteria(2 * cost, ndata, nvarys)
-    rmse = {}
-    fitp = {}
+    rmse: dict[str, float | None] = {}
+    fitp: dict[str, float | None] = {}
     for d in response.data:
         meas = np.array(d.measured_real) + 1j * np.array(d.measured_imag)
         err = np.array(d.fitted_real) + 1j * np.array(d.fitted_imag) - meas

@@ -98,6 +98,8 @@ def _check_supported(model: LinearisedOdeModel) -> None:
 class CompiledLinearisedModel(CompiledTransferFunction):
     """A linearised ODE model behaving as a `CompiledTransferFunction` (see the module docstring)."""
 
+    model: LinearisedOdeModel
+
     def __init__(self, model: LinearisedOdeModel):
         _check_supported(model)
         self.model = model
@@ -208,6 +210,8 @@ class CompiledLinearisedModel(CompiledTransferFunction):
         return fn
 
     def _equilibrium_at(self, p: np.ndarray) -> np.ndarray:
+        if self.equilibrium is None:   # only equilibrium "solve" has x*(θ); "given" keeps x0
+            raise ValueError("the operating point is given (equilibrium 'given'); there is no x*(θ) to solve for")
         return np.array(self.equilibrium(p), dtype=float).ravel()
 
     def _probes(self, model: LinearisedOdeModel) -> np.ndarray:

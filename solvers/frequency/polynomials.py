@@ -10,10 +10,11 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from greyfit.schemas.frequency import TransferFunctionModel
+from greyfit.schemas.frequency import LinearisedOdeModel, TransferFunctionModel
 from greyfit.solvers.errors import ModelDefinitionError
 from greyfit.solvers.model.constraints import compile_constraints
 from greyfit.solvers.model.expressions import compile_expression
+from greyfit.solvers.model.parameters import DeclaresParameters
 
 Poly = list  # list of SX scalars, descending powers of s
 
@@ -32,7 +33,7 @@ class ClosedLoop:
 
 @dataclass
 class CompiledTransferFunction:
-    model: TransferFunctionModel           # or a LinearisedOdeModel (solvers.frequency.linearise)
+    model: TransferFunctionModel | LinearisedOdeModel   # the latter in solvers.frequency.linearise
     parameters: list[str]
     p: ca.SX                               # what the coefficients are expressions of
     constraint: ca.SX | None          # g(p) >= 0 (== 0 where equality)
@@ -46,8 +47,9 @@ class CompiledTransferFunction:
     def plant(self, constants: dict[str, float]) -> tuple[Poly, Poly]:
         """Numerator and denominator of P(s) with these constant values."""
         env = self._env(constants)
-        return (_coefficients(self.model.numerator, env, "model.numerator"),
-                _coefficients(self.model.denominator, env, "model.denominator"))
+        model = self._declared()
+        return (_coefficients(model.numerator, env, "model.numerator"),
+                _coefficients(model.denominator, env, "model.denominator"))
 
     def coefficient_function(self, name: str, poly: Poly) -> ca.Function:
         """p (physical parameters) -> coefficient column."""
@@ -74,11 +76,19 @@ class CompiledTransferFunction:
 
     def check_plant(self) -> None:
         env = self._env({})
-        num = _coefficients(self.model.numerator, env, "model.numerator")
-        den = _coefficients(self.model.denominator, env, "model.denominator")
+        model = self._declared()
+        num = _coefficients(model.numerator, env, "model.numerator")
+        den = _coefficients(model.denominator, env, "model.denominator")
         self._check_proper(num, den, "model")
 
     # -- helpers ---------------------------------------------------------------------------------
+    def _declared(self) -> TransferFunctionModel:
+        """The declared numerator/denominator; a class built from another model overrides their users."""
+        if not isinstance(self.model, TransferFunctionModel):
+            raise TypeError(f"{type(self).__name__} holds a {type(self.model).__name__}, which has no "
+                            "numerator/denominator: it must override plant() and check_plant()")
+        return self.model
+
     def _env(self, constants: dict[str, float]) -> dict[str, object]:
         env: dict[str, object] = {n: self.p[i] for i, n in enumerate(self.parameters)}
         env.update(self.model.constants)
@@ -135,7 +145,7 @@ def _coefficients(texts: list[str], env: dict, where: str) -> Poly:
     return [ca.SX(compile_expression(t, env, f"{where}[{i}]")) for i, t in enumerate(texts)]
 
 
-def _probe_points(model: TransferFunctionModel, n: int = 3, seed: int = 12345) -> np.ndarray:
+def _probe_points(model: DeclaresParameters, n: int = 3, seed: int = 12345) -> np.ndarray:
     """Generic parameter vectors (around the guesses) to tell structural zeros from accidental ones."""
     rng = np.random.default_rng(seed)
     base = np.array([p.value if p.value != 0 else 1.0 for p in model.parameters])

@@ -27,6 +27,8 @@ import numpy as np
 from greyfit.schemas.fit import ProfileInterval
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.inference.statistics import student_t_quantile
+from greyfit.solvers.nlp.problem import LeastSquaresProblem
+from greyfit.solvers.nlp.protocol import Solver
 
 MAX_STEPS = 20        # per side
 REFINE = 4            # solves to locate a crossing
@@ -36,8 +38,8 @@ MAX_FAILURES = 3      # unconverged re-optimisations on one side before giving u
 
 @dataclass
 class ProfileContext:
-    problem: object       # LeastSquaresProblem
-    solver: object        # LeastSquaresSolver or CurvatureFirstSolver
+    problem: LeastSquaresProblem
+    solver: Solver        # make_warm_solver's: re-optimisations start next to the optimum
     w_hat: np.ndarray     # the fit's NLP solution (scaled)
     cost_hat: float       # the NLP objective there
     scale: np.ndarray     # physical = scaled * scale, per θ entry
@@ -132,7 +134,8 @@ def _walk(ctx: ProfileContext, i: int, direction: float, h0: float, delta: float
     bound = ctx.problem.lbw[i] if direction < 0 else ctx.problem.ubw[i]
     side = "lower" if direction < 0 else "upper"
     v_prev, rise_prev, w_prev = float(ctx.w_hat[i]), 0.0, ctx.w_hat
-    h, pts, failures = h0, [], 0
+    h, failures = h0, 0
+    pts: list[tuple[float, float]] = []   # (scaled value, cost)
     for _ in range(MAX_STEPS):
         if time.process_time() - start > ctx.max_cpu_time:
             return None, pts, f"{side} end not reached within max_cpu_time"

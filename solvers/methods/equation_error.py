@@ -26,7 +26,7 @@ class EquationData:
     x: np.ndarray
     dx: np.ndarray
     rows: np.ndarray
-    u: np.ndarray | None = None
+    u: np.ndarray
 
 
 def equation_data(cm: CompiledModel, d: ExperimentData, e: int, options: FitOptions,

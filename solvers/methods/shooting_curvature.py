@@ -128,8 +128,8 @@ class GapCurvature:
                 block = ca.MX(nth, nth)
                 block[idx, idx] = summed[th_loc.tolist(), th_loc.tolist()]
                 hth += block
-            a_loc, b_loc = np.meshgrid(np.arange(na), np.arange(na), indexing="ij")
-            a_loc, b_loc = a_loc.ravel(order="F"), b_loc.ravel(order="F")   # vec (column-major) order
+            a_grid, b_grid = np.meshgrid(np.arange(na), np.arange(na), indexing="ij")
+            a_loc, b_loc = a_grid.ravel(order="F"), b_grid.ravel(order="F")   # vec (column-major) order
             node_part = (act[a_loc] < nx) | (act[b_loc] < nx)
             a_keep, b_keep = act[a_loc[node_part]], act[b_loc[node_part]]
             flat = (b_loc * na + a_loc)[node_part]

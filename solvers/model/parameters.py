@@ -2,11 +2,20 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from greyfit.schemas.model import Model
+from greyfit.schemas.model import Parameter
+
+
+class DeclaresParameters(Protocol):
+    """A model's declared parameters: an ODE `Model`, a transfer function or a linearised model."""
+
+    @property
+    def parameters(self) -> Sequence[Parameter]: ...
 
 
 def nominal_scale(value: float, lower: float | None, upper: float | None) -> float:
@@ -47,7 +56,7 @@ class ParameterLayout:
         return self.offset + self.matrix[e] @ theta_scaled
 
 
-def build_layout(model: Model, experiment_names: list[str]) -> ParameterLayout:
+def build_layout(model: DeclaresParameters, experiment_names: list[str]) -> ParameterLayout:
     names = [p.name for p in model.parameters]
     labels, base, exps, scale, init, lo, hi = [], [], [], [], [], [], [],
     offset = np.zeros(len(names))

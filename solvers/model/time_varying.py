@@ -115,7 +115,9 @@ class TimeVaryingExpansion:
         jtj, jtr = jac.T @ jac, jac.T @ r0
         ridge = 1e-14 * float(np.mean(np.diag(jtj))) * np.eye(layout.size)
         theta = np.linalg.lstsq(jac, -r0, rcond=None)[0]
-        for it in range(1, max_iter + 1):  # noqa: B007  (it is the count reported after the loop)
+        iterations = 0   # counted, not the loop variable: the outcome reports it after the loop
+        for _ in range(max_iter):
+            iterations += 1
             wts = c / np.sqrt((d @ theta) ** 2 + TV_EPSILON ** 2)
             new = np.linalg.solve(jtj + d.T @ (wts[:, None] * d) + ridge, -jtr)
             done = np.max(np.abs(new - theta)) <= 1e-10 * max(1.0, np.max(np.abs(new)))
@@ -126,7 +128,7 @@ class TimeVaryingExpansion:
             return None
         r = jac @ theta + r0
         cost = 0.5 * float(r @ r) + float(np.sum(c * np.sqrt((d @ theta) ** 2 + TV_EPSILON ** 2)))
-        return NlpOutcome(theta, cost, IRLS_STATUS, True, it, time.perf_counter() - started), 1
+        return NlpOutcome(theta, cost, IRLS_STATUS, True, iterations, time.perf_counter() - started), 1
 
     def trajectory(self, layout: ParameterLayout, theta: np.ndarray, cov_names: list[str],
                    cov: np.ndarray | None, times: np.ndarray) -> ParameterTrajectory:

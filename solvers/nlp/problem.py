@@ -3,7 +3,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, field
 from functools import cached_property
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import casadi as ca
 import numpy as np
@@ -13,6 +13,10 @@ from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
+
+if TYPE_CHECKING:   # the protocol module imports the solver, which imports this module
+    from greyfit.solvers.nlp.protocol import SolverFactory
+
 
 # weighted residuals beyond this overflow when squared and summed
 WEIGHTED_LIMIT = 1e100
@@ -40,7 +44,7 @@ class LeastSquaresProblem:
     penalty: Callable[[ca.MX], ca.MX] | None = None
     # a solver over a different formulation of the same NLP (e.g. structured multiple shooting);
     # `w` and `g` then only give the sizes, the residual graph is never built
-    solver_factory: Callable[[], object] | None = None
+    solver_factory: SolverFactory | None = None
     # (λ) -> the constraints' curvature added to the Gauss-Newton Hessian (multiple shooting)
     constraint_hessian: Callable[[ca.MX], ca.MX] | None = None
     # where `solver_factory` is a structured form: the same NLP as one CasADi graph, built when a

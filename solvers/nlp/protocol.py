@@ -17,3 +17,13 @@ class Solver(Protocol):
               ubw: np.ndarray | None = None) -> NlpOutcome:
         """The outcome from start `w0` (bounds default to the problem's)."""
         ...
+
+
+class SolverFactory(Protocol):
+    """Builds a solver over another formulation of the same NLP (structured multiple shooting).
+
+    `max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve).
+    """
+
+    def __call__(self, max_iter: int | None = None, max_cpu_time: float | None = None) -> Solver:
+        ...

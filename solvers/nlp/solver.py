@@ -49,11 +49,11 @@ class LeastSquaresSolver:
             sigma = ca.MX.sym("sigma")
             lam_g = ca.MX.sym("lam_g", problem.g.numel())
             hess = sigma * ca.mtimes(jac.T, jac)
-            curvature = problem.constraint_curvature(lam_g) if curvature else None
-            if curvature is not None:
+            gap_curvature = problem.constraint_curvature(lam_g) if curvature else None
+            if gap_curvature is not None:
                 # multiple shooting: without its gaps' curvature the step is unstable when the
                 # model misfits, and walked from the optimum to a degenerate point (#8)
-                hess = hess + curvature
+                hess = hess + gap_curvature
             opts["hess_lag"] = ca.Function(
                 "nlp_hess_l",
                 {"x": w, "p": ca.MX.sym("p", 0), "lam_f": sigma, "lam_g": lam_g,

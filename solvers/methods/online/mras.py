@@ -35,7 +35,7 @@ from greyfit.schemas.fit import FitOptions
 from greyfit.schemas.online import MrasOptions
 from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.dynamics.integration import make_step
-from greyfit.solvers.errors import DataError
+from greyfit.solvers.errors import DataError, ModelDefinitionError
 from greyfit.solvers.methods.online.recursive import OnlineRun
 from greyfit.solvers.model.discrete import delay_sources
 from greyfit.solvers.model.reparametrize import LinearForm
@@ -208,6 +208,8 @@ def discrete_model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, e
     psi_all = np.array(g_all).reshape(len(equations), rows.size, layout.size) / x_scale[:, None, None]
     psi_rms = np.sqrt(np.mean(psi_all ** 2, axis=(0, 1)))
     psi_rms[psi_rms == 0] = 1.0
+    if cm.model.discrete is None:
+        raise ModelDefinitionError("the discrete-time MRAS needs a discrete-time model", "model.discrete")
     ts = cm.model.discrete.sample_time
     f_i, f_p = opts.ki * ts, opts.kp
 

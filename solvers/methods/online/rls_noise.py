@@ -117,6 +117,8 @@ def measurement_noise(form: LinearForm, equations: list[int], rows: np.ndarray) 
         raise DataError("the measurement noise model needs the equation linear in the states",
                         "options.rls.noise")
     signal = _source(cm, eq, sources)
+    if signal is None:   # a directly measured state is its own source; kept for a clear error all the same
+        raise DataError(f"state '{cm.states[eq]}' is not measured directly", "options.rls.noise")
     offsets, gains = [1], [ca.SX(1)]
     for j in range(cm.nx):
         if not ca.depends_on(jx[j], eta) and float(ca.evalf(jx[j])) == 0.0:

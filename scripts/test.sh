@@ -10,6 +10,9 @@ if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 &
     (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
         || echo "scripts/test.sh: could not install chromium; the browser test will skip" >&2
 fi
+# The gate: ruff, mypy on greyfit.schemas and greyfit.solvers, import-linter's layer contracts
+# (scripts/lint.sh; configuration in pyproject.toml). A finding fails the run before the tests.
+bash scripts/lint.sh .venv/bin/python
 # The docs site (mkdocs.yml) in strict mode: a broken link, a page left out of the navigation or an
 # option table that no longer builds from the schemas fails the run. No network needed.
 NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet

@@ -27,7 +27,19 @@ OUTSIDE_BOUNDS = "estimate_outside_bounds"      # in quality.SUSPECT_CODES
 
 
 def excitation_warnings(excitation: ExcitationReport) -> list[FitWarning]:
-    """`poor_excitation` when the regressor is rank deficient or the inputs' PE order is too low."""
+    """`poor_excitation` when the regressor is rank deficient or the inputs' PE order is too low.
+
+    Parameters
+    ----------
+    excitation : ExcitationReport
+        The persistent-excitation report of the run (`recursive.excitation_report`).
+
+    Returns
+    -------
+    list of FitWarning
+        Empty when the report says the data are persistently exciting; else one `poor_excitation`
+        warning naming the order the model needs, the order the inputs give and the regressor's rank.
+    """
     if excitation.persistently_exciting:
         return []
     orders = ", ".join(f"'{u}' of order {k}" for u, k in excitation.input_order.items()) or "no input"
@@ -50,14 +62,43 @@ def excitation_warnings(excitation: ExcitationReport) -> list[FitWarning]:
 
 
 def outside_bounds(values: np.ndarray, layout: ParameterLayout) -> np.ndarray:
-    """(M, nθ) True where a physical value is outside its declared bounds or not finite."""
+    """(M, nθ) True where a physical value is outside its declared bounds or not finite.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        (M, nθ) physical parameter values, one row per sample (or one row: the final estimate).
+    layout : ParameterLayout
+        The free parameters; its `lower` and `upper` (nθ,) are the declared bounds.
+
+    Returns
+    -------
+    numpy.ndarray
+        (M, nθ) booleans, True where a value is below its lower bound, above its upper bound or NaN.
+    """
     with np.errstate(invalid="ignore"):
         inside = (values >= layout.lower) & (values <= layout.upper)
     return ~inside
 
 
 def bound_warnings(theta: np.ndarray, layout: ParameterLayout, marks: np.ndarray) -> list[FitWarning]:
-    """A warning naming each final estimate outside its bounds, with the share of samples that were."""
+    """A warning naming each final estimate outside its bounds, with the share of samples that were.
+
+    Parameters
+    ----------
+    theta : numpy.ndarray
+        (nθ,) final physical estimate.
+    layout : ParameterLayout
+        The free parameters: labels and declared bounds.
+    marks : numpy.ndarray
+        (M, nθ) booleans from `outside_bounds` over the kept trajectory samples.
+
+    Returns
+    -------
+    list of FitWarning
+        One `estimate_outside_bounds` warning per parameter whose final estimate is outside its bounds
+        (the bound, its limit and the fraction of samples outside in `detail`); empty when all are inside.
+    """
     out = []
     final = outside_bounds(theta[None, :], layout)[0]
     for i, label in enumerate(layout.labels):
@@ -77,7 +118,22 @@ def bound_warnings(theta: np.ndarray, layout: ParameterLayout, marks: np.ndarray
 
 
 def apply_verdict(result: FitResult, warnings: list[FitWarning]) -> FitResult:
-    """Attach the warnings and the quality verdict; `success` becomes finite and good."""
+    """Attach the warnings and the quality verdict; `success` becomes finite and good.
+
+    Parameters
+    ----------
+    result : FitResult
+        The online estimator's result before the checks.
+    warnings : list of FitWarning
+        The excitation and bound warnings to attach (a `not_converged` warning is added when
+        `result.success` is false: the recursion gave no finite estimate).
+
+    Returns
+    -------
+    FitResult
+        A copy with the warnings appended and `quality` ("good", "suspect" or "failed" by the codes of
+        `solvers.checks.quality`), `status`, `success` (quality is "good") and `message` set from it.
+    """
     if not result.success:      # the recursion overflowed: no finite estimate
         warnings = warnings + [FitWarning(code="not_converged", message="the online estimate is not finite "
                                           "(the recursion overflowed); check the excitation, the gains and the guess",

@@ -51,7 +51,30 @@ def _check_request(request: FitRequest) -> None:
 
 
 def fit_online(request: FitRequest) -> FitResult:
-    """Run the online estimator named by `request.method` over the single experiment."""
+    """Run the online estimator named by `request.method` over the single experiment.
+
+    Parameters
+    ----------
+    request : FitRequest
+        A fit request with `method` recursive least squares or MRAS and exactly one experiment;
+        the estimator's settings are `request.options.rls` or `request.options.mras`.
+
+    Returns
+    -------
+    FitResult
+        The final estimate as `parameters` (with the covariance of the last update where the gain law
+        gives one), the whole θ(t) with its ±2σ band as `trajectory`, the excitation report, and the
+        excitation and bound warnings with their quality verdict.
+
+    Raises
+    ------
+    DataError
+        When the request has more than one experiment, a time-varying or per-experiment parameter,
+        every parameter fixed, no state equation depending on a free parameter, or bad data or
+        options (from the data preparation and the estimators).
+    ModelDefinitionError
+        When the model cannot be compiled or brought to a form linear in its coefficients.
+    """
     started = time.perf_counter()
     _check_request(request)
     opts = request.options

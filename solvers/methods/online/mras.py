@@ -87,6 +87,36 @@ def model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, equations:
     The adjustable model and the integral of the adaptation law are integrated together by the
     fits' own one-sample integrator (`solvers.dynamics.integration.make_step`: RK4 with
     `opts.substeps` steps per sample, or CVODES), inputs interpolated as `fit_options` says.
+    Discrete-time models are handed to `discrete_model_reference_adaptive`.
+
+    Parameters
+    ----------
+    form : LinearForm
+        The model in its linear coefficients η (`solvers.model.reparametrize.linear_form`).
+    d : ExperimentData
+        The one prepared experiment (time, inputs, measured states).
+    ed : object
+        Equation error's per-experiment data of that experiment: states `x` (nx, N), next values `dx`
+        and the `rows` (sample indices) the estimates are returned at.
+    equations : list of int
+        Indices of the estimated state equations (those that depend on a free parameter).
+    eta0 : numpy.ndarray
+        (nη,) initial estimate η̂(0), scaled units.
+    opts : MrasOptions
+        Adaptation gains `kp`, `ki`, `substeps` per sample.
+    fit_options : FitOptions or None
+        The fit's options (integrator, input interpolation); None: the defaults.
+
+    Returns
+    -------
+    OnlineRun
+        Estimates (M, nη) at the rows, no covariances, the state errors x − x̂ (M, neq) as innovations and
+        the measured states they are errors of; window M, memory 1.
+
+    Raises
+    ------
+    DataError, ModelDefinitionError
+        From `discrete_model_reference_adaptive` for a discrete-time model.
     """
     cm, layout = form.cm, form.layout
     if cm.model.discrete is not None:
@@ -181,7 +211,9 @@ def _following(cm, equations: list[int]) -> list[int]:
 
 def discrete_model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, equations: list[int],
                                       eta0: np.ndarray, opts: MrasOptions) -> OnlineRun:
-    """Seed 003's MRAS in discrete time: Landau's parallel model with a-posteriori errors.
+    """Run the MRAS on a discrete-time model: Landau's parallel model with a-posteriori errors.
+
+    The model reference adaptive systems chapter's law, sampled.
 
     With x[k+1] = f₀ + G η, the adjustable model x̂ runs on its own states (and on its own delayed
     outputs); the PI law of (7-29/30), sampled, is
@@ -194,6 +226,34 @@ def discrete_model_reference_adaptive(form: LinearForm, d: ExperimentData, ed, e
     plant: z/(z − a)), which is strictly positive real for |a| < 1: Popov's inequality then holds for
     any positive gains (Landau's discrete-time hyperstability design), where the a-priori error of a
     direct transcription would need small gains. Signals are normalised as in continuous time.
+
+    Parameters
+    ----------
+    form : LinearForm
+        The model in its linear coefficients η.
+    d : ExperimentData
+        The one prepared experiment.
+    ed : object
+        Equation error's per-experiment data: states `x` (nx, N), next values `dx` (nx, N), `rows`.
+    equations : list of int
+        Indices of the estimated state equations.
+    eta0 : numpy.ndarray
+        (nη,) initial estimate, scaled units.
+    opts : MrasOptions
+        Adaptation gains `kp` (F_P) and `ki` (F_I = ki·Ts).
+
+    Returns
+    -------
+    OnlineRun
+        Estimates (M, nη) before each update at the rows, no covariances, the a-priori state errors
+        (M, neq) as innovations; window M, memory 1.
+
+    Raises
+    ------
+    DataError
+        When the rows are not consecutive samples (`experiments[0].outputs` has gaps).
+    ModelDefinitionError
+        When the model is not discrete-time (`model.discrete`).
     """
     cm, layout = form.cm, form.layout
     model = _DiscreteParts(form, equations)

@@ -94,12 +94,25 @@ def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, op
 
     Parameters
     ----------
-    y, phi : measurements and regressors of the M updates (a block of neq rows per sample).
-    eta0 : initial estimate θ̂₋₁ (scaled units; the guess).
-    opts : forgetting factor, gain law, initial covariance γ (P₀ = γI), initialisation. With
+    y : numpy.ndarray
+        (M, neq) measurements of the M updates (a block of neq rows per sample).
+    phi : numpy.ndarray
+        (M, neq, nη) regressors of the M updates.
+    eta0 : numpy.ndarray
+        (nη,) initial estimate θ̂₋₁ (scaled units; the guess).
+    opts : RlsOptions
+        Forgetting factor, gain law, initial covariance γ (P₀ = γI), initialisation. With
         ``initialisation="exact"`` (the forgetting and decreasing-gain laws) γI only serves the first
         rows, until their information matrix is invertible; from there θ̂ is weighted least squares.
-    noise : measurement noise map (`solvers.rls_noise`); None: white equation error.
+    noise : MeasurementNoise or None
+        Measurement noise map (`solvers.methods.online.rls_noise`); None: white equation error.
+
+    Returns
+    -------
+    OnlineRun
+        Estimates (M, nη) after every update, their covariances (M, nη, nη) for the forgetting and
+        decreasing-gain laws (None for constant trace and constant gain), the a-priori innovations
+        (M, neq), a label naming the gain law, the effective window 1/(1 − λ) (M for λ = 1) and λ.
     """
     m, neq, n = phi.shape
     law = opts.gain_law
@@ -163,6 +176,18 @@ def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
     (fast sampling makes neighbouring samples nearly collinear, hence the small threshold). A constant has
     order 1, a sinusoid 2, n sinusoids 2n (the model reference adaptive systems chapter: an n-th order
     plant needs n frequencies).
+
+    Parameters
+    ----------
+    u : numpy.ndarray
+        (N,) one input series.
+    max_order : int
+        Largest order tried (it is also capped at N // 2).
+
+    Returns
+    -------
+    int
+        The persistent-excitation order; 0 for an all-zero input.
     """
     u = np.asarray(u, dtype=float)
     n_max = min(max_order, u.size // 2)
@@ -182,6 +207,16 @@ def required_order(phi: np.ndarray) -> int:
 
     A regressor that is a linear filter of the inputs has rank at most the inputs' PE order, so an
     equation with n coefficients needs input of order n (an n-th order ARX model 2n: n frequencies).
+
+    Parameters
+    ----------
+    phi : numpy.ndarray
+        (M, neq, nη) regressors; a coefficient belongs to an equation when its column is ever nonzero there.
+
+    Returns
+    -------
+    int
+        The largest number of coefficients in one equation (0 for an empty regressor).
     """
     used = np.any(phi != 0, axis=0)                  # (neq, nη): which coefficients each equation has
     return int(np.max(np.sum(used, axis=1))) if used.size else 0
@@ -211,6 +246,24 @@ def excitation_report(phi: np.ndarray, run: OnlineRun, inputs: dict[str, np.ndar
     regressor is a linear function of states and inputs (`linear_regressor`), the inputs' PE
     order is also compared with the order the model needs (`required_order`): a noisy regressor
     can have full rank from noise alone while the input cannot determine the coefficients.
+
+    Parameters
+    ----------
+    phi : numpy.ndarray
+        (M, neq, nη) regressors of the updates.
+    run : OnlineRun
+        The estimator's run: its `memory` λ weights the information matrix, its `window` bounds the
+        samples the PE order is counted over.
+    inputs : dict of str to numpy.ndarray
+        Input name to its (M,) series at the updates.
+    linear_regressor : bool
+        Whether the regressor is a linear filter of the inputs (then the required order is compared).
+
+    Returns
+    -------
+    ExcitationReport
+        The window, each input's PE order, the regressor's rank, size and condition number, the required
+        and available orders (None when not compared) and whether the data are persistently exciting.
     """
     m, _, n = phi.shape
     weights = run.memory ** np.arange(m - 1, -1, -1, dtype=float)

@@ -40,6 +40,18 @@ class MeasurementNoise:
     signal: str                         # the output whose noise this is
 
     def coefficients(self, eta: np.ndarray) -> np.ndarray:
+        """The moving-average coefficients c_d(η) at an estimate.
+
+        Parameters
+        ----------
+        eta : numpy.ndarray
+            (nη,) estimate, scaled units.
+
+        Returns
+        -------
+        numpy.ndarray
+            (D,) coefficients, one per entry of `offsets`.
+        """
         return np.array(self.gains(eta), dtype=float).ravel()
 
 
@@ -58,7 +70,22 @@ class NoiseCovariance:
         self.closed = np.zeros((self.n, self.n))
 
     def update(self, k: int, phi_row: np.ndarray, eta: np.ndarray) -> np.ndarray:
-        """Add update k (regressor row Φ_k, estimate η̂_k) and return S_k."""
+        """Add update k (regressor row Φ_k, estimate η̂_k) and return S_k.
+
+        Parameters
+        ----------
+        k : int
+            Index of the RLS update (row of `noise.samples`).
+        phi_row : numpy.ndarray
+            (nη,) regressor row Φ_k of the one estimated equation.
+        eta : numpy.ndarray
+            (nη,) estimate after the update, scaled units; the coefficients are taken there.
+
+        Returns
+        -------
+        numpy.ndarray
+            (nη, nη) S_k; `gain_sq` is set to Σ c_d² at the same time.
+        """
         c = self.noise.coefficients(eta)
         self.gain_sq = float(c @ c)
         self.closed *= self.lam * self.lam
@@ -96,7 +123,29 @@ def _source(cm, state: int, sources: dict[int, tuple[str, int]]) -> tuple[str, i
 
 
 def measurement_noise(form: LinearForm, equations: list[int], rows: np.ndarray) -> MeasurementNoise:
-    """The moving-average map of measurement noise into the one estimated equation; errors name the field."""
+    """The moving-average map of measurement noise into the one estimated equation; errors name the field.
+
+    Parameters
+    ----------
+    form : LinearForm
+        The model in its linear coefficients η.
+    equations : list of int
+        Indices of the estimated state equations (exactly one is accepted).
+    rows : numpy.ndarray
+        (M,) sample index of every RLS update.
+
+    Returns
+    -------
+    MeasurementNoise
+        The sample offsets, the coefficient Function η -> c and the name of the noisy output.
+
+    Raises
+    ------
+    DataError
+        On `options.rls.noise` when the model is continuous-time, more than one equation is estimated,
+        the equation's state is not measured directly, the equation is not linear in the states, or it
+        reads a state that is neither measured nor a delay of a measured signal, or two measured signals.
+    """
     cm = form.cm
     if cm.model.discrete is None:
         raise DataError("the measurement noise model is for discrete-time models (continuous ones see the "

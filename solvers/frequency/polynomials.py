@@ -41,22 +41,84 @@ class CompiledTransferFunction:
     probe_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     def arguments(self, p):
-        """What the coefficient expressions take (``self.p``) from the physical parameter vector."""
+        """What the coefficient expressions take (``self.p``) from the physical parameter vector.
+
+        Parameters
+        ----------
+        p : casadi.SX or casadi.MX or numpy.ndarray
+            The full physical parameter vector (declaration order).
+
+        Returns
+        -------
+        casadi.SX or casadi.MX or numpy.ndarray
+            `p` itself: a transfer function's coefficients are expressions of the parameters directly.
+        """
         return p
 
     def plant(self, constants: dict[str, float]) -> tuple[Poly, Poly]:
-        """Numerator and denominator of P(s) with these constant values."""
+        """Numerator and denominator of P(s) with these constant values.
+
+        Parameters
+        ----------
+        constants : dict of str to float
+            Values that override the model's constants (e.g. one data set's).
+
+        Returns
+        -------
+        tuple of list
+            (numerator, denominator): SX coefficients of ``self.p``, descending powers of s.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a coefficient expression does not compile (the field names the coefficient).
+        """
         env = self._env(constants)
         model = self._declared()
         return (_coefficients(model.numerator, env, "model.numerator"),
                 _coefficients(model.denominator, env, "model.denominator"))
 
     def coefficient_function(self, name: str, poly: Poly) -> ca.Function:
-        """p (physical parameters) -> coefficient column."""
+        """p (physical parameters) -> coefficient column.
+
+        Parameters
+        ----------
+        name : str
+            Name of the CasADi Function.
+        poly : list
+            SX coefficients of ``self.p``.
+
+        Returns
+        -------
+        casadi.Function
+            ``self.p`` -> the coefficients as one column.
+        """
         return ca.Function(name, [self.p], [ca.vertcat(*poly)])
 
     def loop(self, name: str, constants: dict[str, float]) -> ClosedLoop:
-        """The response measured with these constant values (e.g. this data set's Kp, Ki)."""
+        """The response measured with these constant values (e.g. this data set's Kp, Ki).
+
+        With `model.feedback`, the closed loop PC/(1+PC) or P/(1+PC) by what it says is measured;
+        else the plant. Common factors s^k of numerator and denominator are cancelled.
+
+        Parameters
+        ----------
+        name : str
+            Name of the loop (the data set's), used in messages.
+        constants : dict of str to float
+            Values that override the model's constants.
+
+        Returns
+        -------
+        ClosedLoop
+            The loop's numerator and denominator, their coefficient Functions and the cancelled power.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a coefficient does not compile, the controller is improper, or the closed-loop
+            denominator is identically zero.
+        """
         env = self._env(constants)
         m = self.model
         num, den = self.plant(constants)
@@ -75,6 +137,14 @@ class CompiledTransferFunction:
                           self.coefficient_function("den", den), cancelled)
 
     def check_plant(self) -> None:
+        """Check that the plant's coefficients compile and that it is proper.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a coefficient does not compile, the denominator is identically zero, or the numerator's
+            degree exceeds the denominator's (field `model.numerator` / `model.denominator`).
+        """
         env = self._env({})
         model = self._declared()
         num = _coefficients(model.numerator, env, "model.numerator")
@@ -96,7 +166,18 @@ class CompiledTransferFunction:
         return env
 
     def is_zero(self, expr) -> bool:
-        """Zero for every probe parameter vector: a structural zero (e.g. Ki*b2 with Ki = 0)."""
+        """Zero for every probe parameter vector: a structural zero (e.g. Ki*b2 with Ki = 0).
+
+        Parameters
+        ----------
+        expr : casadi.SX
+            An expression of ``self.p``.
+
+        Returns
+        -------
+        bool
+            True when it evaluates to exactly 0 at every one of `probe_points`.
+        """
         fn = ca.Function("c", [self.p], [expr])
         return all(float(fn(pt)) == 0.0 for pt in self.probe_points)
 
@@ -127,6 +208,18 @@ class CompiledTransferFunction:
 
 
 def poly_mul(a: Poly, b: Poly) -> Poly:
+    """Product of two polynomials.
+
+    Parameters
+    ----------
+    a, b : list
+        Coefficients (SX scalars), descending powers of s.
+
+    Returns
+    -------
+    list
+        The len(a) + len(b) − 1 coefficients of a·b.
+    """
     out = [ca.SX(0)] * (len(a) + len(b) - 1)
     for i, x in enumerate(a):
         for j, y in enumerate(b):
@@ -135,6 +228,18 @@ def poly_mul(a: Poly, b: Poly) -> Poly:
 
 
 def poly_add(a: Poly, b: Poly) -> Poly:
+    """Sum of two polynomials, the shorter padded with leading zeros.
+
+    Parameters
+    ----------
+    a, b : list
+        Coefficients (SX scalars), descending powers of s.
+
+    Returns
+    -------
+    list
+        The max(len(a), len(b)) coefficients of a + b.
+    """
     n = max(len(a), len(b))
     a = [ca.SX(0)] * (n - len(a)) + list(a)
     b = [ca.SX(0)] * (n - len(b)) + list(b)
@@ -153,7 +258,25 @@ def _probe_points(model: DeclaresParameters, n: int = 3, seed: int = 12345) -> n
 
 
 def compile_transfer_function(model: TransferFunctionModel) -> CompiledTransferFunction:
-    """Compile constraints and check the plant; loops are built per data set with `loop`."""
+    """Compile constraints and check the plant; loops are built per data set with `loop`.
+
+    Parameters
+    ----------
+    model : TransferFunctionModel
+        The declared transfer-function model.
+
+    Returns
+    -------
+    CompiledTransferFunction
+        Its parameters as one SX vector, the compiled constraints g(p) (or None) and probe points for
+        telling structural zeros apart.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a coefficient or constraint does not compile, or the plant is improper or has a zero
+        denominator; the field is named.
+    """
     names = [p.name for p in model.parameters]
     p = ca.SX.sym("p", len(names))
     tf = CompiledTransferFunction(model, names, p, None, probe_points=_probe_points(model))

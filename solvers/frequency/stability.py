@@ -27,14 +27,38 @@ class HurwitzConditions:
 
 
 def hurwitz_matrix(a: list) -> list[list]:
-    """n×n Hurwitz matrix H[i][j] = a_(2j - i + 1) (0-based i, j), zero outside 0..n."""
+    """n×n Hurwitz matrix H[i][j] = a_(2j - i + 1) (0-based i, j), zero outside 0..n.
+
+    Parameters
+    ----------
+    a : list
+        n+1 coefficients a0..an in descending powers of s (SX scalars or floats).
+
+    Returns
+    -------
+    list of list
+        The n×n matrix as nested lists, entries of the same kind as `a`.
+    """
     n = len(a) - 1
     zero = ca.SX(0) if isinstance(a[0], ca.SX) else 0.0
     return [[a[2 * j - i + 1] if 0 <= 2 * j - i + 1 <= n else zero for j in range(n)] for i in range(n)]
 
 
 def normalised(den: list, nominal: np.ndarray) -> list:
-    """Coefficients of D(σ z) / (|a0| σ^n) with σ and |a0| taken from the nominal values."""
+    """Coefficients of D(σ z) / (|a0| σ^n) with σ and |a0| taken from the nominal values.
+
+    Parameters
+    ----------
+    den : list
+        n+1 coefficients of D(s), descending powers (SX scalars or floats).
+    nominal : numpy.ndarray
+        (n+1,) the same coefficients at nominal parameter values; σ = (|an|/|a0|)^(1/n).
+
+    Returns
+    -------
+    list
+        The n+1 rescaled coefficients; stability is unchanged since σ > 0.
+    """
     n = len(den) - 1
     a0 = abs(nominal[0]) if nominal[0] != 0 else 1.0
     an = abs(nominal[-1])
@@ -43,7 +67,25 @@ def normalised(den: list, nominal: np.ndarray) -> list:
 
 
 def lienard_chipart(den: list, nominal: np.ndarray, depends_on) -> HurwitzConditions:
-    """Conditions on the SX coefficients `den` (descending); `depends_on(expr)` tells constants apart."""
+    """Conditions on the SX coefficients `den` (descending); `depends_on(expr)` tells constants apart.
+
+    Above `MAX_SYMBOLIC_DEGREE` only the coefficient conditions are formed.
+
+    Parameters
+    ----------
+    den : list
+        n+1 SX coefficients of the closed-loop denominator, descending powers of s.
+    nominal : numpy.ndarray
+        (n+1,) their values at the nominal parameters (for the rescaling of `normalised`).
+    depends_on : callable
+        ``depends_on(expr) -> bool``: whether an expression depends on the free parameters.
+
+    Returns
+    -------
+    HurwitzConditions
+        The positive-coefficient and Hurwitz-minor expressions with their labels, or, when a constant
+        coefficient is not positive, no expressions and `constant_violation` saying which.
+    """
     a = normalised(den, nominal)
     n = len(a) - 1
     exprs, labels = [], []
@@ -65,7 +107,18 @@ def lienard_chipart(den: list, nominal: np.ndarray, depends_on) -> HurwitzCondit
 
 
 def routh_first_column(den: np.ndarray) -> list[float]:
-    """Routh array's first column (numeric); a zero pivot is replaced by a tiny ε as in textbooks."""
+    """Routh array's first column (numeric); a zero pivot is replaced by a tiny ε as in textbooks.
+
+    Parameters
+    ----------
+    den : numpy.ndarray
+        Denominator coefficients, descending powers of s (leading zeros are dropped).
+
+    Returns
+    -------
+    list of float
+        The n+1 first-column entries; all of one sign iff every root is in the open left half plane.
+    """
     a = np.trim_zeros(np.asarray(den, dtype=float), "f")
     n = a.size - 1
     if n < 1:
@@ -85,7 +138,19 @@ def routh_first_column(den: np.ndarray) -> list[float]:
 
 def poles(den: np.ndarray) -> np.ndarray:
     """Roots of the denominator; NaN (one, unknown) where its coefficients are not finite, e.g. a
-    constant near the float limits overflowed them: such a loop is not reported stable."""
+    constant near the float limits overflowed them: such a loop is not reported stable.
+
+    Parameters
+    ----------
+    den : numpy.ndarray
+        Denominator coefficients, descending powers of s (leading zeros are dropped).
+
+    Returns
+    -------
+    numpy.ndarray
+        Complex roots (empty for a constant); one NaN when the coefficients are not finite or the
+        eigenvalue computation failed.
+    """
     a = np.trim_zeros(np.asarray(den, dtype=float), "f")
     if not np.all(np.isfinite(a)):
         return np.array([complex(np.nan, np.nan)])
@@ -96,5 +161,18 @@ def poles(den: np.ndarray) -> np.ndarray:
 
 
 def is_stable(den: np.ndarray) -> bool:
+    """Whether every pole has a negative real part.
+
+    Parameters
+    ----------
+    den : numpy.ndarray
+        Denominator coefficients, descending powers of s.
+
+    Returns
+    -------
+    bool
+        True when all poles are in the open left half plane (or there are none); False when any is
+        not, or the poles are unknown (NaN).
+    """
     p = poles(den)
     return bool(p.size == 0 or np.max(p.real) < 0)

@@ -80,7 +80,27 @@ def _measured(d: FrequencyData, where: str) -> tuple[np.ndarray, np.ndarray]:
 
 def prepare_frequency_data(data: list[FrequencyData],
                            model: TransferFunctionModel | LinearisedOdeModel) -> list[FrequencySet]:
-    """Validated frequency sets; errors name the field (`data[0].omega`) and the fix."""
+    """Validated frequency sets; errors name the field (`data[0].omega`) and the fix.
+
+    Parameters
+    ----------
+    data : list of FrequencyData
+        The request's data sets, each in one form: real/imag, gain/phase_deg or sine tests.
+    model : TransferFunctionModel or LinearisedOdeModel
+        The model; the sets' `constants` must be among its constants.
+
+    Returns
+    -------
+    list of FrequencySet
+        One per data set: its name, ω (rad/s, strictly increasing), the complex response and its constants.
+
+    Raises
+    ------
+    DataError
+        On a repeated name, an unknown constant, none or several forms given, omega missing, not
+        positive, not increasing or not finite, series lengths unlike omega, a negative absolute gain,
+        or bad sine-test records.
+    """
     sets, names = [], set()
     for i, d in enumerate(data):
         where = f"data[{i}]"

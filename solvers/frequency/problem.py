@@ -32,6 +32,19 @@ def data_weights(sets: list[FrequencySet], cost: str) -> list[np.ndarray]:
 
     The common factor of `complex` and `log1p_abs_error` only scales the cost (not its minimiser) so that
     Ipopt's tolerances see an O(1) problem.
+
+    Parameters
+    ----------
+    sets : list of FrequencySet
+        The prepared data sets.
+    cost : str
+        The cost (`options.cost`): "relative_complex" weighs each frequency by 1/|G|; any other cost
+        gets one common 1/rms|G| over all sets (1 when every response is zero).
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One (N_e,) weight array per data set.
     """
     if cost == "relative_complex":
         return [1.0 / np.maximum(np.abs(s.response), 1e-300) for s in sets]
@@ -40,7 +53,26 @@ def data_weights(sets: list[FrequencySet], cost: str) -> list[np.ndarray]:
 
 
 def cost_residual(re, im, g: np.ndarray, weight: np.ndarray, cost: str):
-    """Residual rows of one data set (CasADi) for the chosen cost."""
+    """Residual rows of one data set (CasADi) for the chosen cost.
+
+    Parameters
+    ----------
+    re, im : casadi.MX or casadi.SX
+        (N, 1) real and imaginary parts of the model's response at the set's frequencies.
+    g : numpy.ndarray
+        (N,) complex measured response G(jω).
+    weight : numpy.ndarray
+        (N,) weights from `data_weights` (not used by "log", whose rows are relative already).
+    cost : str
+        "log": log-magnitude and phase of model/measured; "log1p_abs_error": the weighted error pair
+        scaled to squared norm log(1 + |w·d|)²; else ("complex", "relative_complex") the weighted
+        real and imaginary errors.
+
+    Returns
+    -------
+    casadi.MX or casadi.SX
+        (2N, 1) residual column: the N real-part rows, then the N imaginary-part (or phase) rows.
+    """
     gr, gi = g.real, g.imag
     if cost == "log":
         mag2 = np.abs(g) ** 2
@@ -66,7 +98,36 @@ def _distinct_parameter_vectors(layout: ParameterLayout) -> list[int]:
 def build_frequency_problem(tf: CompiledTransferFunction, loops: list[ClosedLoop], stability_loops:
                             list[tuple[ClosedLoop, int]], sets: list[FrequencySet], layout: ParameterLayout,
                             options: FrequencyFitOptions) -> FrequencyProblem:
-    """Decision vector = scaled θ only; `stability_loops` pairs each loop with its parameter set index."""
+    """Decision vector = scaled θ only; `stability_loops` pairs each loop with its parameter set index.
+
+    Parameters
+    ----------
+    tf : CompiledTransferFunction
+        The compiled model (its user constraints g(p) and the parameter symbol).
+    loops : list of ClosedLoop
+        The measured loop of each data set, in the order of `sets`.
+    stability_loops : list of tuple of (ClosedLoop, int)
+        Loops whose stability is required, each with the index of the parameter vector it uses.
+    sets : list of FrequencySet
+        The prepared data sets.
+    layout : ParameterLayout
+        The free parameters (scales, bounds, per-set parameter vectors).
+    options : FrequencyFitOptions
+        Cost, stability handling ("routh": Liénard-Chipart constraints ≥ margin, "penalty": a residual
+        penalty, else none), stability margin and penalty weight.
+
+    Returns
+    -------
+    FrequencyProblem
+        The least-squares problem over scaled θ, the number of data rows, the data residual and
+        Hurwitz Functions, the condition labels, notes and the user constraint (or None).
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a loop's denominator has a constant coefficient that is not positive: no parameter values
+        can make it stable (`model.feedback`).
+    """
     theta = ca.MX.sym("theta", layout.size)
     weights = data_weights(sets, options.cost)
     rows = []

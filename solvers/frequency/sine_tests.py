@@ -23,7 +23,27 @@ def _as_array(values, where: str) -> np.ndarray:
 
 
 def sine_test_response(test: SineTest, where: str) -> tuple[np.ndarray, np.ndarray]:
-    """(omega, G(jω)) of one record; several frequencies in one record are estimated jointly."""
+    """(omega, G(jω)) of one record; several frequencies in one record are estimated jointly.
+
+    Parameters
+    ----------
+    test : SineTest
+        One record: frequencies (rad/s), time (s), input and output samples, settle time (s).
+    where : str
+        The record's field path, for error messages (e.g. ``data[0].sine_tests[1]``).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (omega (K,), complex G(jω) (K,)) in the record's frequency order.
+
+    Raises
+    ------
+    DataError
+        On a non-finite sample, input or output length unlike time, time not increasing, a frequency
+        not positive, a record after `settle_time` shorter than one period of the lowest frequency, or
+        an input with no component at one of the frequencies; the field is named.
+    """
     omega = np.atleast_1d(_as_array(test.omega, f"{where}.omega"))
     t = _as_array(test.time, f"{where}.time")
     u = _as_array(test.input, f"{where}.input")
@@ -56,7 +76,25 @@ def sine_test_response(test: SineTest, where: str) -> tuple[np.ndarray, np.ndarr
 
 
 def response_from_sine_tests(tests: list[SineTest], where: str) -> tuple[np.ndarray, np.ndarray]:
-    """All records' estimates, sorted by frequency; a frequency measured twice is an error."""
+    """All records' estimates, sorted by frequency; a frequency measured twice is an error.
+
+    Parameters
+    ----------
+    tests : list of SineTest
+        The records.
+    where : str
+        Their field path (e.g. ``data[0].sine_tests``).
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        (omega, complex G(jω)), sorted by increasing frequency.
+
+    Raises
+    ------
+    DataError
+        On any error of `sine_test_response`, or when two records share a frequency.
+    """
     omegas, responses = [], []
     for i, test in enumerate(tests):
         w, g = sine_test_response(test, f"{where}[{i}]")

@@ -37,6 +37,18 @@ def log_scatter(omega: np.ndarray, g: np.ndarray) -> float:
     component the residual has std σ·sqrt(1 + w₋² + w₊²). The median makes the few points at a sharp
     feature (a lightly damped zero) harmless; a smooth response adds curvature, so this is an upper
     bound of the noise. NaN with too few points.
+
+    Parameters
+    ----------
+    omega : numpy.ndarray
+        (N,) angular frequencies, rad/s, increasing.
+    g : numpy.ndarray
+        (N,) complex response; points that are not finite or zero are left out.
+
+    Returns
+    -------
+    float
+        Robust (median-based) std of ln G per component; NaN with fewer than `MIN_POINTS` + 2 points.
     """
     ok = np.isfinite(g) & (np.abs(g) > 0)
     omega, g = omega[ok], g[ok]
@@ -54,7 +66,23 @@ def log_scatter(omega: np.ndarray, g: np.ndarray) -> float:
 
 def fit_level_warnings(result: FitResult, response: FrequencyResponseResult,
                        sets: list[FrequencySet]) -> list[FitWarning]:
-    """`fit_below_noise_level` for each data set whose ln(Ĝ/G) is far above the data's scatter."""
+    """`fit_below_noise_level` for each data set whose ln(Ĝ/G) is far above the data's scatter.
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit's result (its `metrics.fit_percent` goes into the detail).
+    response : FrequencyResponseResult
+        The fitted responses per data set.
+    sets : list of FrequencySet
+        The measured data sets.
+
+    Returns
+    -------
+    list of FitWarning
+        One warning per set whose RMS of ln(Ĝ/G) exceeds `NOISE_RATIO` times its `log_scatter`; sets
+        whose scatter cannot be estimated are skipped.
+    """
     out: list[FitWarning] = []
     fitted = {d.name: np.array(d.fitted_real) + 1j * np.array(d.fitted_imag) for d in response.data}
     for s in sets:
@@ -79,6 +107,18 @@ def fit_level_warnings(result: FitResult, response: FrequencyResponseResult,
 
 
 def bound_warnings(result: FitResult) -> list[FitWarning]:
+    """`estimate_at_bound` for each parameter that ended on a bound of its box.
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit's result; a parameter's `at_bound` says which bound it ended on.
+
+    Returns
+    -------
+    list of FitWarning
+        One warning per parameter at a bound, naming it, the bound and the value.
+    """
     out: list[FitWarning] = []
     for label, p in result.parameters.items():
         if p.at_bound:
@@ -99,8 +139,34 @@ def assess_frequency_fit(result: FitResult, *, sets: list[FrequencySet], layout:
 
     Parameters
     ----------
-    jac : data-residual Jacobian in scaled parameters (all columns); `keep`: columns not at a bound.
-    stability_enforced : whether an unstable fitted loop is a failure of the fit (routh, penalty).
+    result : FitResult
+        The fit's result before the checks.
+    sets : list of FrequencySet
+        The measured data sets.
+    layout : ParameterLayout
+        The free parameters (labels, bounds: a box that excludes a sign marks the parameter signed).
+    theta_s : numpy.ndarray
+        (nθ,) estimate in scaled parameters.
+    converged : bool
+        Whether the solver converged.
+    status : str
+        The solver's return status.
+    nlp_cost : float
+        The NLP's cost at the estimate.
+    covariance : CovarianceEstimate
+        The covariance estimate (or the reason it is unavailable).
+    jac : numpy.ndarray
+        Data-residual Jacobian in scaled parameters (all columns).
+    keep : numpy.ndarray
+        (nθ,) booleans: the columns not at a bound.
+    stability_enforced : bool
+        Whether an unstable fitted loop is a failure of the fit (routh, penalty).
+
+    Returns
+    -------
+    FitResult
+        A copy with the warnings of `assess_fit` and the frequency checks and the verdict set; a
+        `parameter_at_bound` warning is dropped where `estimate_at_bound` already names the parameter.
     """
     fr = result.frequency_response
     before = bound_warnings(result) + ([] if fr is None else fit_level_warnings(result, fr, sets))

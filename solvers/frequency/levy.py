@@ -65,8 +65,29 @@ def levy_fit(loops: list[ClosedLoop], sets: list[FrequencySet], layout: Paramete
 
     Parameters
     ----------
-    constrained : keep the parameter bounds and `constraint` = (Function θ -> g, lbg, ubg), θ scaled;
-        False gives the plain (unconstrained) Levy estimate of the textbook.
+    loops : list of ClosedLoop
+        The measured loop of each data set, in the order of `sets`.
+    sets : list of FrequencySet
+        The measured data sets.
+    layout : ParameterLayout
+        The free parameters (scales, bounds, guesses: the common scale of Levy proper is taken there).
+    iterations : int
+        Most SK reweightings; they stop early when the relative step is below 1e-10.
+    data_weights : list of numpy.ndarray or None
+        Per-set (N_e,) weights multiplied into the SK weights; None: 1.
+    constrained : bool
+        Keep the parameter bounds and `constraint`; False gives the plain (unconstrained) Levy
+        estimate of the textbook.
+    constraint : tuple or None
+        (Function θ -> g, lbg, ubg), θ scaled; None: no constraint.
+    options : FitOptions or None
+        Solver options; None: 500 iterations, tolerance 1e-10.
+
+    Returns
+    -------
+    LevyOutcome
+        The physical estimate (layout order), the number of SK reweightings done and the last
+        solver status.
     """
     options = options or FitOptions(max_iter=500, tol=1e-10)
     theta = ca.MX.sym("theta", layout.size)

@@ -1,8 +1,9 @@
 """Levy's linearised fit and Sanathanan-Koerner (SK) reweighting: a start that needs no guess.
 
 Levy minimises ``Σ |D(jω_i) G_i - N(jω_i)|²``: the error multiplied by the denominator, which is
-affine in the coefficients (convex when the coefficients are affine in the parameters, as in seed
-001). Its implicit weight ``|D(jω)|²`` grows like ``ω^(2n)``, so on noisy data the high frequencies
+affine in the coefficients (convex when the coefficients are affine in the parameters, as in the
+course notes on parameter estimation from frequency data). Its implicit weight ``|D(jω)|²`` grows
+like ``ω^(2n)``, so on noisy data the high frequencies
 dominate and the low-frequency poles come out biased. SK iteration k divides by ``|D_(k-1)(jω)|``,
 which removes that weight at convergence (the fixed point fits ``(G - N/D)`` with ``D/D_prev -> 1``).
 """

@@ -30,7 +30,19 @@ EQUILIBRIUM_TOLERANCE = 1e-8        # |f| (relative to the point's scale) that c
 
 
 def characteristic_polynomial(a: ca.SX) -> tuple[list, list]:
-    """(c, M): det(sI − A) coefficients c[0..n] (ascending, c[n] = 1) and M_1..M_n of the adjugate."""
+    """(c, M): det(sI − A) coefficients c[0..n] (ascending, c[n] = 1) and M_1..M_n of the adjugate.
+
+    Parameters
+    ----------
+    a : casadi.SX
+        (n, n) state matrix A (symbolic).
+
+    Returns
+    -------
+    tuple of list
+        (c, M): the n+1 SX coefficients of det(sI − A) in ascending powers, and the n SX matrices
+        M_1..M_n with adj(sI − A) = Σ M_k s^(n−k) (Faddeev–LeVerrier).
+    """
     n = a.shape[0]
     eye = ca.SX.eye(n)
     c = [ca.SX(0)] * (n + 1)
@@ -46,7 +58,25 @@ def characteristic_polynomial(a: ca.SX) -> tuple[list, list]:
 
 
 def transfer_polynomials(a, b, c, d) -> tuple[Poly, Poly]:
-    """(num, den) of C (sI − A)⁻¹ B + D in descending powers of s (SISO: b column, c row)."""
+    """(num, den) of C (sI − A)⁻¹ B + D in descending powers of s (SISO: b column, c row).
+
+    Parameters
+    ----------
+    a : casadi.SX
+        (n, n) state matrix A.
+    b : casadi.SX
+        (n, 1) input column B.
+    c : casadi.SX
+        (1, n) output row C.
+    d : casadi.SX
+        Scalar feedthrough D.
+
+    Returns
+    -------
+    tuple of list
+        (num, den): n+1 SX coefficients each, descending powers of s; den is det(sI − A), num is
+        C adj(sI − A) B + D det(sI − A).
+    """
     coef, mats = characteristic_polynomial(a)
     n = a.shape[0]
     den = [coef[n - j] for j in range(n + 1)]
@@ -124,9 +154,35 @@ class CompiledLinearisedModel(CompiledTransferFunction):
 
     # -- what CompiledTransferFunction asks -------------------------------------------------------
     def arguments(self, p):
+        """What the coefficient expressions take from the physical parameter vector.
+
+        Parameters
+        ----------
+        p : casadi.SX or casadi.MX or numpy.ndarray
+            The physical parameters (declaration order).
+
+        Returns
+        -------
+        casadi.SX or casadi.MX or numpy.ndarray
+            ``[p; x*(p)]`` with equilibrium "solve" (x* from the Newton rootfinder), else `p`.
+        """
         return ca.vertcat(p, self.equilibrium(p)) if self.solve else p
 
     def coefficient_function(self, name: str, poly: Poly) -> ca.Function:
+        """p (physical parameters) -> coefficient column, through x*(p) with equilibrium "solve".
+
+        Parameters
+        ----------
+        name : str
+            Name of the CasADi Function.
+        poly : list
+            SX coefficients of ``self.p`` (the parameters, and x* when solved for).
+
+        Returns
+        -------
+        casadi.Function
+            The physical parameters -> the coefficients as one column.
+        """
         inner = ca.Function(name + "_of_point", [self.p], [ca.vertcat(*poly)])
         if not self.solve:
             return inner
@@ -134,6 +190,24 @@ class CompiledLinearisedModel(CompiledTransferFunction):
         return ca.Function(name, [p], [inner(self.arguments(p))])
 
     def plant(self, constants: dict[str, float]) -> tuple[Poly, Poly]:
+        """Numerator and denominator of the linearised plant with these constant values (cached).
+
+        Parameters
+        ----------
+        constants : dict of str to float
+            Values that override the model's constants (one data set's).
+
+        Returns
+        -------
+        tuple of list
+            (num, den): SX coefficients of ``self.p``, descending powers of s.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When the model does not compile or depends on t, or, with equilibrium "solve", when the
+            constants change the model's equations (`model.operating_point.equilibrium`).
+        """
         key = tuple(sorted(constants.items()))
         if key not in self._plants:
             cm = self._compiled(constants)
@@ -152,6 +226,13 @@ class CompiledLinearisedModel(CompiledTransferFunction):
         return not np.allclose(np.array(base.rhs(x, u, p, 0)), np.array(cm.rhs(x, u, p, 0)), equal_nan=True)
 
     def check_plant(self) -> None:
+        """Check that the chosen output responds to the chosen input at the operating point.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When C adj(sI − A) B + D is identically zero (`model.output`).
+        """
         num, _ = self.plant({})
         if not self._strip_leading(num):
             raise ModelDefinitionError(
@@ -160,7 +241,19 @@ class CompiledLinearisedModel(CompiledTransferFunction):
                 "model.output")
 
     def operating_point(self, p: np.ndarray) -> dict[str, float]:
-        """States and inputs of the operating point at the physical parameters p."""
+        """States and inputs of the operating point at the physical parameters p.
+
+        Parameters
+        ----------
+        p : numpy.ndarray
+            Physical parameters (declaration order).
+
+        Returns
+        -------
+        dict of str to float
+            State and input name to value: x*(p) with equilibrium "solve" (NaN where Newton fails),
+            else the given states; the given inputs u0.
+        """
         x = self._equilibrium_at(p) if self.solve else self.x0
         point = dict(zip(self.model.states, map(float, x)))
         point.update(zip(self.model.inputs, map(float, self.u0)))
@@ -257,5 +350,27 @@ class CompiledLinearisedModel(CompiledTransferFunction):
 
 
 def compile_linearised_model(model: LinearisedOdeModel) -> CompiledLinearisedModel:
-    """Check the operating point and build the linearised transfer function; errors name the field."""
+    """Check the operating point and build the linearised transfer function; errors name the field.
+
+    Parameters
+    ----------
+    model : LinearisedOdeModel
+        A continuous-time ODE model with its operating point, input and output.
+
+    Returns
+    -------
+    CompiledLinearisedModel
+        The linearisation as a `CompiledTransferFunction`, its constraints including f(x0, u0, θ) = 0
+        with equilibrium "given".
+
+    Raises
+    ------
+    ModelDefinitionError
+        When the model is discrete-time, has a time-varying parameter, no input, more than
+        `MAX_LINEARISED_STATES` states, depends on t, or the output does not respond to the input.
+    DataError
+        When the input or output is not named where the model has several or is unknown, the operating
+        point is incomplete, unknown or not finite, no equilibrium is found ("solve"), or the point is
+        no equilibrium whatever the parameters ("given").
+    """
     return CompiledLinearisedModel(model)

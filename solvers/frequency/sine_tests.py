@@ -4,7 +4,7 @@ on parameter estimation from frequency data).
 With ``u(t) = Σ Im(U_i e^{jω_i t})`` and ``y(t) = Σ Im(Y_i e^{jω_i t})`` in steady state,
 ``Y_i = G(jω_i) U_i``. Regressing u and y on ``[sin ω_i t, cos ω_i t, 1]`` gives
 ``Im(X e^{jωt}) = Re X sin ωt + Im X cos ωt``, so ``X = (sin coefficient) + j (cos coefficient)``;
-the seed's ``s_i = |G| cos∠G`` and ``c_i = |G| sin∠G`` are Re G and Im G for a unit input.
+the course notes' ``s_i = |G| cos∠G`` and ``c_i = |G| sin∠G`` are Re G and Im G for a unit input.
 The constant column absorbs an offset (e.g. the shifted rest position of a marginally stable plant).
 """
 from __future__ import annotations

@@ -56,7 +56,13 @@ class Candidate:
 
     @property
     def catch_all(self) -> bool:
-        """A generic shape or a change in time: kept only where no named law does as well."""
+        """A generic shape or a change in time: kept only where no named law does as well.
+
+        Returns
+        -------
+        bool
+            True when the candidate is `generic` or `record_specific`.
+        """
         return self.generic or self.record_specific
 
 
@@ -89,21 +95,70 @@ class LibraryContext:
 
     @property
     def states(self) -> list[str]:
+        """The model's state names, in the compiled order.
+
+        Returns
+        -------
+        list of str
+            The state names.
+        """
         return list(self.trace.cm.states)
 
     @property
     def velocities(self) -> list[str]:
+        """States that are the velocity of a position (dx/dt = v); all states when there are none.
+
+        Returns
+        -------
+        list of str
+            The velocity states, or every state.
+        """
         return [s for s in self.states if s in self.pos_of] or self.states
 
     def state_values(self, s: str) -> list[np.ndarray]:
+        """Fitted samples of one state.
+
+        Parameters
+        ----------
+        s : str
+            The state's name.
+
+        Returns
+        -------
+        list of numpy.ndarray
+            One (n_e,) array per experiment.
+        """
         return [x[self.states.index(s)] for x in self.trace.x]
 
     def input_values(self, u: str) -> list[np.ndarray]:
+        """Samples of one input along the trace.
+
+        Parameters
+        ----------
+        u : str
+            The input's name.
+
+        Returns
+        -------
+        list of numpy.ndarray
+            One (n_e,) array per experiment.
+        """
         k = list(self.trace.cm.inputs).index(u)
         return [uu[k] for uu in self.trace.u]
 
     def values(self, name: str) -> list[np.ndarray]:
-        """Samples of a state, an input or a constant, per experiment."""
+        """Samples of a state, an input or a constant, per experiment.
+
+        Parameters
+        ----------
+        name : str
+            A state, input or constant of the model.
+
+        Returns
+        -------
+        list of numpy.ndarray
+            One (n_e,) array per experiment (a constant repeated over the samples).
+        """
         if name in self.states:
             return self.state_values(name)
         if name in self.trace.cm.inputs:
@@ -112,11 +167,35 @@ class LibraryContext:
         return [np.full(t.size, c) for t in self.trace.t]
 
     def traced(self, s: str) -> bool:
+        """Whether the equation of state `s` is traced (has a fitted derivative to regress on).
+
+        Parameters
+        ----------
+        s : str
+            The state's name.
+
+        Returns
+        -------
+        bool
+            True when its index is in `trace.traced`.
+        """
         return self.states.index(s) in set(self.trace.traced)
 
     def equation_variables(self, eq: str) -> list[str]:
         """States and inputs d(eq)/dt depends on along the trajectory (its own state always): a law
-        that enters an equation is a law of what that equation already involves."""
+        that enters an equation is a law of what that equation already involves.
+
+        Parameters
+        ----------
+        eq : str
+            The state whose equation is looked at.
+
+        Returns
+        -------
+        list of str
+            The states (its own first among them in model order) and then the inputs whose Jacobian
+            entries are nonzero somewhere along the trajectory.
+        """
         i = self.states.index(eq)
         cm = self.trace.cm
         names = [s for k, s in enumerate(self.states)
@@ -124,16 +203,50 @@ class LibraryContext:
         return names + [u for k, u in enumerate(cm.inputs) if any(np.any(j[:, i, k] != 0) for j in self.trace.ju)]
 
     def force_equations(self) -> list[str]:
-        """Traced equations that are not kinematic identities dx/dt = v (those have no force to add to)."""
+        """Traced equations that are not kinematic identities dx/dt = v (those have no force to add to).
+
+        Returns
+        -------
+        list of str
+            The state names of those equations.
+        """
         return [s for s in self.states if self.traced(s) and s not in self.vel_of]
 
 
 def fmt(v: float) -> str:
+    """A number as it is written into a model expression (6 significant digits).
+
+    Parameters
+    ----------
+    v : float
+        The number.
+
+    Returns
+    -------
+    str
+        ``f"{v:.6g}"``.
+    """
     return f"{v:.6g}"
 
 
 def structure(model: Model) -> tuple[dict[str, str], dict[str, str]]:
-    """(velocity -> its position, position -> its velocity) from kinematic equations dx/dt = v."""
+    """(velocity -> its position, position -> its velocity) from kinematic equations dx/dt = v.
+
+    Parameters
+    ----------
+    model : Model
+        The model; an equation that is exactly another state's name is kinematic.
+
+    Returns
+    -------
+    tuple of dict of str to str
+        (pos_of: velocity -> position, vel_of: position -> velocity).
+
+    Raises
+    ------
+    ModelDefinitionError
+        When an equation does not parse.
+    """
     vel_of, pos_of = {}, {}
     for s, text in model.equations.items():
         node = parse(text, f"equations.{s}")

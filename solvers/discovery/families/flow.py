@@ -22,13 +22,51 @@ class SqrtFlow:
     generic = False
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether any state equation is traced.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when the trace has at least one traced equation.
+        """
         return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with state s replaced by sqrt(max(s, floor)) in its equations and definitions.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (the outputs keep measuring s itself).
+        **spec : Any
+            `state`: the level s; `floor`: the small positive floor, as text.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and no new parameters.
+        """
         s, floor = spec["state"], spec["floor"]
         return replace_in_equations(model, s, f"sqrt(max({s}, {floor}))"), []
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """The change of law s -> sqrt(s) for every positive, non-mechanical state that flows depend on.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate per such state (at least 90 % of its samples positive, not a position or velocity).
+        """
         out = [self._one(ctx, s) for s in ctx.states]
         return [c for c in out if c is not None]
 

@@ -13,6 +13,20 @@ class Coulomb(TermFamily):
     name = "coulomb"
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """A friction term −Fc_v·tanh(v/ε) (Fc_v ≥ 0) in the equation of every velocity that changes sign.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            Per traced velocity, one candidate per width ε (`ctx.epsilon`, else `WIDTHS` times the RMS of
+            v), marked for the refit to choose among them; a velocity that keeps its sign gets a note
+            in `ctx.notes` instead.
+        """
         out: list[Candidate] = []
         for v in ctx.velocities:
             vals = ctx.state_values(v)

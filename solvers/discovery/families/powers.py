@@ -34,6 +34,19 @@ class PowerLaw(TermFamily):
     name = "power_law"
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """Every power or product of degree 2 or 3 of the states in each force equation (any sign).
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate per term and equation (`SINGLE`, `PAIR` of the states the equation involves, and
+            `DIFFERENCE` of its declared differences), each its own family and marked approximating.
+        """
         out: list[Candidate] = []
         for eq in ctx.force_equations():
             for term, values, variables in self._terms(ctx, eq):

@@ -16,6 +16,19 @@ class Radiation(TermFamily):
     name = "radiation"
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """A radiative term σ·((a/R)⁴ − (b/R)⁴) for every declared difference a − b of a state in a traced equation.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate per difference whose samples stay positive and whose equation depends on a
+            (with the sign of that dependence).
+        """
         out: list[Candidate] = []
         for eq, a, b in declared_differences(ctx.model):
             if a not in ctx.states or eq not in ctx.states or not ctx.traced(eq):

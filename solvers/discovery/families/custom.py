@@ -22,15 +22,63 @@ class Custom:
     generic = False
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether the request gives candidates of its own.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when the request gives candidates of its own.
+        """
         return bool(ctx.custom)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with the user's term `p*(term)` added to its equation, p a new parameter.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `cand`: the `CustomCandidate` (equation, term, parameter name, start value and bounds).
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The augmented model and the new parameter's name (the candidate's, made unique).
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         cand = spec["cand"]
         name = fresh_name(model, cand.parameter)
         model = with_parameter(model, name, cand.value, cand.lower, cand.upper)
         return add_term(model, cand.equation, f"{name}*({cand.term})", "+"), [name]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """Each user candidate whose equation is traced, evaluated along the trajectory.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate per user candidate on a traced equation, in the request's order.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a term does not compile (`discovery.candidates[i].term`).
+        """
         out: list[Candidate] = []
         env = numeric_env(ctx.trace)
         for ci, cand in enumerate(ctx.custom):
@@ -47,7 +95,18 @@ class Custom:
 
 
 def numeric_env(trace: TraceData) -> dict:
-    """Samples of every name a term may use (t, states, inputs, parameters, constants), per experiment."""
+    """Samples of every name a term may use (t, states, inputs, parameters, constants), per experiment.
+
+    Parameters
+    ----------
+    trace : TraceData
+        The fitted trajectory (time, states, inputs and parameter values per experiment).
+
+    Returns
+    -------
+    dict
+        Name to a list of (n_e,) arrays, one per experiment; parameters and constants repeated over the samples.
+    """
     cm = trace.cm
     env: dict = {"t": trace.t}
     for i, s in enumerate(cm.states):
@@ -61,7 +120,29 @@ def numeric_env(trace: TraceData) -> dict:
 
 
 def evaluate(text: str, env: dict, n_exp: int, where: str) -> list[np.ndarray]:
-    """The expression `text` at every sample of every experiment."""
+    """The expression `text` at every sample of every experiment.
+
+    Parameters
+    ----------
+    text : str
+        The expression (model syntax).
+    env : dict
+        Name to per-experiment samples (`numeric_env`); must hold "t".
+    n_exp : int
+        Number of experiments.
+    where : str
+        The expression's field, for error messages.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One (n_e,) array of values per experiment.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When the expression does not compile or uses an unknown name (the field is `where`).
+    """
     names = list(env)
     syms = [ca.SX.sym(n) for n in names]
     expr = compile_expression(text, dict(zip(names, syms)), where)

@@ -23,15 +23,59 @@ class Saturation:
     generic = False
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether the model has inputs.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when the model has inputs.
+        """
         return bool(ctx.trace.cm.inputs)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with input u replaced by min(max(u, −u_max), u_max), u_max a new parameter.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `input`: the input's name; `level`: the start value of u_max (≥ 0).
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         u, level = spec["input"], spec["level"]
         name = fresh_name(model, f"{u}_max")
         model = with_parameter(model, name, float(level), lower=0.0)
         return replace_parameter(model, u, f"min(max({u}, -{name}), {name})"), [name]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """Saturation of every input at 13 levels between the median and the 98th percentile of |u|.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            Per input and level, a candidate whose regressor is the change clip(u) − u through ∂f/∂u
+            (levels where no traced equation feels the change are left out).
+        """
         out: list[Candidate] = []
         for k, u in enumerate(ctx.trace.cm.inputs):
             vals = ctx.input_values(u)
@@ -59,14 +103,59 @@ class InputDelay:
     generic = True
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether the model has inputs.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when the model has inputs.
+        """
         return bool(ctx.trace.cm.inputs)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with input u replaced by a new input, u delayed.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `input`: the input's name; `delayed`: the new input's name.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model (one more input) and no new parameters; the delayed data come with the
+            candidate's `transform_experiments`.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         u, delayed = spec["input"], spec["delayed"]
         model = model.model_copy(update={"inputs": [*model.inputs, delayed]})
         return replace_parameter(model, u, delayed), []
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """A delay of every input by 1 to `MAX_LAG` whole samples.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            Per input and lag, a candidate that brings its delayed input as data (`transform_experiments`);
+            the refit chooses among the lags.
+        """
         out: list[Candidate] = []
         dt = float(np.median(np.diff(ctx.trace.t[0])))
         for k, u in enumerate(ctx.trace.cm.inputs):

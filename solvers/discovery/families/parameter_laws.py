@@ -35,9 +35,40 @@ class ParameterLaw:
     POWERS = ((1, "linear"), (2, "quadratic"))
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether any state equation is traced.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when any state equation is traced.
+        """
         return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with parameter p replaced by p + d·(x − x₀)^power, d a new parameter.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `parameter`: p; `variable`: x; `reference`: x₀ (0: x itself); `power`: 1 or 2.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         name, var, ref, power = spec["parameter"], spec["variable"], spec["reference"], spec["power"]
         d = fresh_name(model, f"{name}_{var}{power}")
         model = with_parameter(model, d, 0.0)
@@ -46,6 +77,18 @@ class ParameterLaw:
         return replace_parameter(model, name, f"({name} + {d}*{law})"), [d]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """Linear and quadratic laws of every varying parameter in every state and input.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            Per parameter, variable that varies, and power (1, 2), one candidate (marked approximating).
+        """
         out: list[Candidate] = []
         for name, j in varying_parameters(ctx):
             for var, values in _law_variables(ctx, j):
@@ -72,15 +115,59 @@ class Arrhenius:
     generic = False
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether any state equation is traced.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when any state equation is traced.
+        """
         return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with parameter p replaced by p·exp(Ê·(1 − T₀/T)), Ê a new parameter.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `parameter`: p; `variable`: T; `reference`: T₀.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         name, var, ref = spec["parameter"], spec["variable"], spec["reference"]
         e = fresh_name(model, f"E_{name}_{var}")
         model = with_parameter(model, e, 0.0)
         return replace_parameter(model, name, f"({name}*exp({e}*(1 - {fmt(ref)}/{var})))"), [e]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """An Arrhenius law of every varying parameter in every variable that can be an absolute temperature.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            Per parameter and variable that is positive, varies and stays within a factor `ABSOLUTE_SPAN`,
+            one candidate (reference T₀ the variable's mean).
+        """
         out: list[Candidate] = []
         for name, j in varying_parameters(ctx):
             value = float(ctx.trace.p[0][ctx.trace.cm.parameters.index(name)])

@@ -41,11 +41,45 @@ class OutputOffset(_SensorFamily):
     name = "output_offset"
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """Output h becomes h + b, b a new parameter (the sensor's bias).
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `output`: the measured output's name.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+        """
         b = fresh_name(model, f"{spec['output']}_bias")
         model = with_parameter(model, b, 0.0)
         return rewrite_output(model, spec["output"], "{h} + " + b), [b]
 
     def for_output(self, ctx, j, name, y_hat, measured) -> list[Candidate]:
+        """The candidate bias of this output (a constant column); notes a quantised output.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and options; notes go to `ctx.notes`.
+        j : int
+            Index of the output.
+        name : str
+            The output's name.
+        y_hat : list of numpy.ndarray
+            The fitted output, one (n_e,) array per experiment.
+        measured : numpy.ndarray
+            The finite measured samples of the output, all experiments together.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate.
+        """
         step = quantisation_step(measured)
         if step is not None:
             ctx.notes.append(f"output {name} is quantised in steps of {fmt(step)}: treated as noise "
@@ -59,11 +93,45 @@ class OutputGain(_SensorFamily):
     name = "output_gain"
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """Output h becomes (1 + g)·h, g a new parameter (the sensor's gain error).
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `output`: the measured output's name.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+        """
         g = fresh_name(model, f"{spec['output']}_gain_error")
         model = with_parameter(model, g, 0.0)
         return rewrite_output(model, spec["output"], "(1 + " + g + ")*{h}"), [g]
 
     def for_output(self, ctx, j, name, y_hat, measured) -> list[Candidate]:
+        """The candidate gain error of this output (the fitted output as its column).
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and options; notes go to `ctx.notes`.
+        j : int
+            Index of the output.
+        name : str
+            The output's name.
+        y_hat : list of numpy.ndarray
+            The fitted output, one (n_e,) array per experiment.
+        measured : numpy.ndarray
+            The finite measured samples of the output, all experiments together.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate.
+        """
         return [Candidate(self.name, {}, f"{name} = (1 + {name}_gain_error)*h", f"gain error of the sensor of {name}",
                           bind(self, output=name), outputs={j: [y.copy() for y in y_hat]},
                           family=f"output_gain:{name}")]
@@ -77,9 +145,43 @@ class OutputAbs(_SensorFamily):
     name = "output_abs"
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """Output h becomes |h|.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `output`: the measured output's name.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and no new parameters.
+        """
         return rewrite_output(model, spec["output"], "abs({h})"), []
 
     def for_output(self, ctx, j, name, y_hat, measured) -> list[Candidate]:
+        """The candidate |h| where the measurement looks sign-blind (`sign_blind`).
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and options; notes go to `ctx.notes`.
+        j : int
+            Index of the output.
+        name : str
+            The output's name.
+        y_hat : list of numpy.ndarray
+            The fitted output, one (n_e,) array per experiment.
+        measured : numpy.ndarray
+            The finite measured samples of the output, all experiments together.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate (refit only when the fitted output keeps its sign), or none.
+        """
         if not sign_blind(measured):
             return []
         changes_sign = np.mean(np.concatenate(y_hat) < 0) > 0.02
@@ -96,9 +198,43 @@ class OutputSaturation(_SensorFamily):
     name = "output_saturation"
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """Output h becomes min(h, level) or max(h, level).
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `output`: the output's name; `fn`: "min" (upper limit) or "max" (lower limit); `level`: the limit.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and no new parameters.
+        """
         return rewrite_output(model, spec["output"], f"{spec['fn']}({{h}}, {fmt(spec['level'])})"), []
 
     def for_output(self, ctx, j, name, y_hat, measured) -> list[Candidate]:
+        """Clipping at the measured maximum and minimum, where the data sit on them and the fit goes past.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and options; notes go to `ctx.notes`.
+        j : int
+            Index of the output.
+        name : str
+            The output's name.
+        y_hat : list of numpy.ndarray
+            The fitted output, one (n_e,) array per experiment.
+        measured : numpy.ndarray
+            The finite measured samples of the output, all experiments together.
+
+        Returns
+        -------
+        list of Candidate
+            Up to two candidates (upper and lower limit).
+        """
         out = []
         allhat = np.concatenate(y_hat)
         spread = float(measured.max() - measured.min()) or 1.0
@@ -117,11 +253,36 @@ class OutputSaturation(_SensorFamily):
 
 
 def measured_values(outputs: OutputFit, j: int) -> np.ndarray:
+    """The finite measured samples of output j, all experiments together.
+
+    Parameters
+    ----------
+    outputs : OutputFit
+        The fitted outputs and the experiments' data.
+    j : int
+        Index of the output.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n,) the samples that are not NaN, experiments concatenated.
+    """
     return np.concatenate([d.y[j][np.isfinite(d.y[j])] for d in outputs.data])
 
 
 def sign_blind(measured: np.ndarray) -> bool:
-    """Nearly never negative, and down at zero (within the noise) at times: the look of |h|."""
+    """Nearly never negative, and down at zero (within the noise) at times: the look of |h|.
+
+    Parameters
+    ----------
+    measured : numpy.ndarray
+        The measured samples of one output.
+
+    Returns
+    -------
+    bool
+        True when at most 1 % of the samples are negative and at least 1 % are below 3 % of the range.
+    """
     spread = float(np.ptp(measured))
     if spread <= 0 or np.mean(measured < 0) > 0.01:
         return False
@@ -129,7 +290,19 @@ def sign_blind(measured: np.ndarray) -> bool:
 
 
 def quantisation_step(values: np.ndarray) -> float | None:
-    """The step of a quantised signal (every value on a grid of few levels per range), else None."""
+    """The step of a quantised signal (every value on a grid of few levels per range), else None.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        The measured samples of one output.
+
+    Returns
+    -------
+    float or None
+        The smallest difference between levels when every sample lies on that grid and there are at
+        least 3 and at most n/4 levels; else None.
+    """
     levels = np.unique(values)
     if levels.size < 3 or levels.size > values.size / 4:
         return None

@@ -1,6 +1,6 @@
 """A declared parameter that switches when a state (or a state's difference with an input) exceeds a
-threshold: the generic shape of a law the library has no name for (seed 000's damper d4, which
-switches with the relative speed |q̇4 − ẇ|)."""
+threshold: the generic shape of a law the library has no name for (the damper d4 of the LMI-based
+identification of physical parameters, which switches with the relative speed |q̇4 − ẇ|)."""
 from __future__ import annotations
 
 from typing import Any
@@ -22,9 +22,41 @@ class StateDependent:
     generic = True
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether any state equation is traced.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when any state equation is traced.
+        """
         return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with p replaced by p + d·½(1 + tanh((|s| − thr)/(0.05·thr))), d a new parameter.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `parameter`: p; `expr`: the switching variable s (model syntax); `label`: its name in the new
+            parameter's; `threshold`: thr > 0.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         name, expr, label, thr = spec["parameter"], spec["expr"], spec["label"], spec["threshold"]
         d = fresh_name(model, f"d{name}_{label}")
         model = with_parameter(model, d, 0.0)
@@ -35,6 +67,18 @@ class StateDependent:
             model, name, f"({name} + {d}*0.5*(1 + tanh((abs({expr}) - {fmt(thr)})/{width})))"), [d]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """Switches of every varying parameter in every switching variable, at the `THRESHOLDS` quantiles of |s|.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate per parameter, variable and positive threshold (generic).
+        """
         out: list[Candidate] = []
         for name, j in varying_parameters(ctx):
             for expr, label, values, variables in switch_variables(ctx):
@@ -58,7 +102,18 @@ class StateDependent:
 
 def switch_variables(ctx: LibraryContext) -> list[tuple[str, str, list[np.ndarray], tuple[str, ...]]]:
     """(expression, label, samples, variables): every state, and every declared difference of a state
-    and an input (a relative speed)."""
+    and an input (a relative speed).
+
+    Parameters
+    ----------
+    ctx : LibraryContext
+        The model and the fitted trajectory.
+
+    Returns
+    -------
+    list of tuple
+        (expression, label, samples per experiment, variables it is a function of), states first.
+    """
     out: list[tuple[str, str, list[np.ndarray], tuple[str, ...]]] = [
         (s, s, ctx.state_values(s), (s,)) for s in ctx.states]
     inputs = set(ctx.trace.cm.inputs)

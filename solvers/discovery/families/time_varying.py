@@ -23,7 +23,18 @@ STEP_GRID = 200
 
 
 def varying_parameters(ctx: LibraryContext) -> list[tuple[str, int]]:
-    """(name, index) of the shared free parameters some traced equation depends on."""
+    """(name, index) of the shared free parameters some traced equation depends on.
+
+    Parameters
+    ----------
+    ctx : LibraryContext
+        The model and the fitted trajectory.
+
+    Returns
+    -------
+    list of tuple of (str, int)
+        Parameter name and its index in the compiled parameter vector.
+    """
     cm = ctx.trace.cm
     ones = [np.ones_like(t) for t in ctx.trace.t]
     out = []
@@ -37,9 +48,9 @@ def varying_parameters(ctx: LibraryContext) -> list[tuple[str, int]]:
 class ParameterStep:
     """Switch times of a piecewise-constant parameter by forward selection over a time grid.
 
-    One step rarely explains a parameter that switches back and forth (seed 000's k4 alternates
-    at 0.25/0.5/0.75 s), so the switch times are chosen jointly, each kept while its partial
-    F-test passes at `significance` divided by the grid size.
+    One step rarely explains a parameter that switches back and forth (the spring k4 of the LMI-based
+    identification of physical parameters alternates at 0.25/0.5/0.75 s), so the switch times are
+    chosen jointly, each kept while its partial F-test passes at `significance` divided by the grid size.
     """
 
     name = "parameter_step"
@@ -47,9 +58,40 @@ class ParameterStep:
     generic = False
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether the loop gives a scorer to select switch times with.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when the loop gives a scorer to select switch times with.
+        """
         return ctx.scorer_for is not None
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with p replaced by p + Σ d_i·[t ≥ τ_i], one new parameter per switch time.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `parameter`: p; `taus`: the switch times τ_i, s.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameters' names.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         name, taus = spec["parameter"], spec["taus"]
         names, terms = [], []
         for tau in taus:
@@ -60,6 +102,19 @@ class ParameterStep:
         return replace_parameter(model, name, f"({name} + {' + '.join(terms)})"), names
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """Switch times of every varying parameter, chosen jointly by forward selection on a time grid.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            At most one candidate per parameter (record-specific), its switch times within the 3-97 %
+            quantiles of the record's time.
+        """
         t_all = np.concatenate(ctx.trace.t)
         t_lo, t_hi = np.quantile(t_all, 0.03), np.quantile(t_all, 0.97)
         out = [self._one(ctx, name, j, t_lo, t_hi) for name, j in varying_parameters(ctx)]
@@ -123,15 +178,58 @@ class ParameterDrift:
     generic = False
 
     def supports(self, ctx: LibraryContext) -> bool:
+        """Whether any state equation is traced.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        bool
+            True when any state equation is traced.
+        """
         return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with p replaced by p + d·(t − t̄), d a new parameter.
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `parameter`: p; `t_mid`: t̄, the mean time of the record, s.
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
         name, t_mid = spec["parameter"], spec["t_mid"]
         d = fresh_name(model, f"d{name}_dt")
         model = with_parameter(model, d, 0.0)
         return replace_parameter(model, name, f"({name} + {d}*(t - {fmt(t_mid)}))"), [d]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """A linear drift in time of every varying parameter.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            One candidate per parameter (record-specific).
+        """
         t_mid = float(np.mean(np.concatenate(ctx.trace.t)))
         out = []
         for name, j in varying_parameters(ctx):

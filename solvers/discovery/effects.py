@@ -29,15 +29,35 @@ def library(model: Model, trace: TraceData, effects: Sequence[str], custom: Sequ
 
     Parameters
     ----------
-    model, trace : the fitted model and its trajectory (`scoring_equations.build_trace`).
-    effects : names of the families to ask (`DiscoveryOptions.effects`); user candidates always.
-    custom, epsilon, significance, min_explained : from `DiscoveryOptions`.
-    scorer_for : equations -> the scorer they are scored in (the step search selects in it).
-    outputs : the fitted outputs, when the output path is screened (sensor families need them).
+    model : Model
+        The fitted model.
+    trace : TraceData
+        Its fitted trajectory (`scoring_equations.build_trace`).
+    effects : sequence of str
+        Names of the families to ask (`DiscoveryOptions.effects`); user candidates always.
+    custom : sequence of CustomCandidate
+        The user's candidates (`DiscoveryOptions.candidates`).
+    epsilon : float or None
+        Smoothing width of sign-like terms; None: each family's own widths.
+    scorer_for : callable or None
+        Equations -> the scorer they are scored in (the step search selects in it).
+    significance : float
+        The screen's significance level.
+    min_explained : float
+        Smallest share of the residual a term must explain.
+    outputs : OutputFit or None
+        The fitted outputs, when the output path is screened (sensor families need them).
 
     Returns
     -------
-    (candidates, notes)
+    tuple of (list of Candidate, list of str)
+        The candidates, registry order, duplicates dropped (`drop_duplicates`); notes on what was not
+        tried or is noise (a quantised output).
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a user candidate's term does not compile.
     """
     ctx = LibraryContext(model, trace, list(effects), list(custom), epsilon, scorer_for, significance,
                          min_explained, outputs)
@@ -53,6 +73,18 @@ def library(model: Model, trace: TraceData, effects: Sequence[str], custom: Sequ
 
 
 def quantisation_notes(outputs: OutputFit) -> list[str]:
+    """A note for every measured output that is quantised: its step is noise, not an effect.
+
+    Parameters
+    ----------
+    outputs : OutputFit
+        The fitted outputs and the experiments' data.
+
+    Returns
+    -------
+    list of str
+        One note per quantised output, with its step and the variance step²/12.
+    """
     notes = []
     for j, name in enumerate(outputs.names):
         measured = measured_values(outputs, j)
@@ -65,7 +97,19 @@ def quantisation_notes(outputs: OutputFit) -> list[str]:
 
 def drop_duplicates(cands: list[Candidate]) -> list[Candidate]:
     """The later of two single-column candidates of the same equations whose columns are equal up
-    to scale (|correlation| ≈ 1) goes: the same hypothesis proposed twice is counted once."""
+    to scale (|correlation| ≈ 1) goes: the same hypothesis proposed twice is counted once.
+
+    Parameters
+    ----------
+    cands : list of Candidate
+        The candidates in registry order.
+
+    Returns
+    -------
+    list of Candidate
+        The same in the same order without the later duplicates; candidates on outputs, with data
+        transforms or with multi-column regressors are always kept.
+    """
     kept: list[Candidate] = []
     signatures: dict[tuple, list[np.ndarray]] = {}
     for c in cands:

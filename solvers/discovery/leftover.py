@@ -22,12 +22,38 @@ COLOURED_NOISE_SHARE = 0.5  # an output-path shape explained less than this by t
 
 
 def looks_like_coloured_noise(shape: ShapeResult) -> bool:
+    """Whether the most likely disturbance is on an output path and little of it is explained by the states.
+
+    Parameters
+    ----------
+    shape : ShapeResult
+        The shape step's estimates, most likely first.
+
+    Returns
+    -------
+    bool
+        True when the best estimate is on an output and explains less than `COLOURED_NOISE_SHARE`.
+    """
     best = shape.estimates[0]
     return best.equation.startswith("output ") and (best.share_explained or 0.0) < COLOURED_NOISE_SHARE
 
 
 def what_is_left(fit: FitResult, shape: ShapeResult) -> tuple[Unexplained | None, str]:
-    """(`unexplained` or None, a note or "") for the final fit and the shape learned at it."""
+    """(`unexplained` or None, a note or "") for the final fit and the shape learned at it.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The final fit (its RMSE per output).
+    shape : ShapeResult
+        The disturbance shape and noise level learned at that fit.
+
+    Returns
+    -------
+    tuple of (Unexplained or None, str)
+        An `Unexplained` report when some output's RMSE is above `UNEXPLAINED_RATIO` times its noise level
+        and the leftover does not look like coloured noise; else None, with a note in the latter case.
+    """
     ratios = {}
     for o, sigma in shape.noise_level.items():
         rmse = fit.metrics.rmse.get(o)
@@ -59,7 +85,26 @@ def _where(equation: str) -> str:
 
 def leftover_at(request, fit: FitResult, base: FitResult, base_shape: ShapeResult | None,
                 clock) -> tuple[Unexplained | None, str]:
-    """`what_is_left` at the final fit: the base fit's shape reused when nothing was added."""
+    """`what_is_left` at the final fit: the base fit's shape reused when nothing was added.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The final fit's request.
+    fit : FitResult
+        The final fit.
+    base : FitResult
+        The base fit (when `fit` is it, `base_shape` is reused).
+    base_shape : ShapeResult or None
+        The shape learned at the base fit.
+    clock : Clock
+        The request's budget (the shape step is timed and skipped when it is spent).
+
+    Returns
+    -------
+    tuple of (Unexplained or None, str)
+        As `what_is_left`; (None, why) when no shape could be estimated.
+    """
     from greyfit.solvers.discovery.shape import shape_at
     shape = base_shape if fit is base else None
     note = ""

@@ -10,6 +10,20 @@ from greyfit.solvers.errors import FitError
 
 
 def equation_names(screening: Screening, cand: Candidate) -> str:
+    """Where a candidate acts, for the report: its equations' states, then its outputs.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen (state and output names).
+    cand : Candidate
+        The candidate.
+
+    Returns
+    -------
+    str
+        E.g. ``"v"`` or ``"v; output y"``.
+    """
     parts = []
     if cand.equations:
         parts.append(", ".join(screening.states[i] for i in sorted(cand.equations)))
@@ -23,7 +37,26 @@ def validate(request: DiscoverRequest, model: Model, fit: FitResult, experiments
     """Simulation metrics on the validation experiments (initial states estimated on a leading window).
 
     `neutral`: parameters set to 0 there, those of record-specific terms (a step at t = 3 s of the
-    estimation record says nothing about t = 3 s of another record)."""
+    estimation record says nothing about t = 3 s of another record).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (its fit options).
+    model : Model
+        The model to validate.
+    fit : FitResult
+        Its fit (the shared parameter values are used).
+    experiments : list of Experiment
+        The validation experiments; empty: no validation.
+    neutral : set of str
+        Parameters set to 0 on the validation records.
+
+    Returns
+    -------
+    ValidationSummary or None
+        RMSE, fit percent and NRMSE per output; None without experiments or when the simulation fails.
+    """
     if not experiments:
         return None
     from greyfit.solvers.simulation.simulate import validation_metrics
@@ -37,6 +70,20 @@ def validate(request: DiscoverRequest, model: Model, fit: FitResult, experiments
 
 
 def validation_worse(before: ValidationSummary | None, after: ValidationSummary | None, tol: float) -> str:
+    """The outputs whose validation NRMSE got worse by more than a relative tolerance.
+
+    Parameters
+    ----------
+    before, after : ValidationSummary or None
+        Validation before and after a change.
+    tol : float
+        Relative tolerance (0.05: 5 % worse).
+
+    Returns
+    -------
+    str
+        "output: NRMSE a -> b" for each such output, joined by "; "; "" when none or either is None.
+    """
     if before is None or after is None:
         return ""
     worse = [f"{o}: NRMSE {before.nrmse[o]:.4g} -> {after.nrmse[o]:.4g}" for o in before.nrmse
@@ -45,6 +92,20 @@ def validation_worse(before: ValidationSummary | None, after: ValidationSummary 
 
 
 def summarize(fit: FitResult, validation: ValidationSummary | None = None) -> FitSummary:
+    """The before/after summary of a fit.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    validation : ValidationSummary or None
+        Its validation metrics, if any.
+
+    Returns
+    -------
+    FitSummary
+        Success, status, RMSE, fit percent, cost, AIC, BIC, whiteness per output and the validation.
+    """
     return FitSummary(success=fit.success, status=fit.status, rmse=fit.metrics.rmse,
                       fit_percent=fit.metrics.fit_percent, cost=fit.metrics.cost, aic=fit.metrics.aic,
                       bic=fit.metrics.bic, white={a.output: a.whiteness.passed for a in fit.residual_analysis},
@@ -52,6 +113,18 @@ def summarize(fit: FitResult, validation: ValidationSummary | None = None) -> Fi
 
 
 def public_scores(screening: Screening) -> list[CandidateScore]:
+    """The screen as the result shows it: the first-ranked variant of each family and scorer, at most 15.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen, ranked.
+
+    Returns
+    -------
+    list of CandidateScore
+        Effect, equation, term, explained variance, BIC drop, p-value and significance of each.
+    """
     best_per_family: dict[str, Scored] = {}
     for sc in screening.scored:
         best_per_family.setdefault(f"{sc.candidate.family}|{sc.scored_on}", sc)
@@ -63,6 +136,20 @@ def public_scores(screening: Screening) -> list[CandidateScore]:
 
 
 def added_inputs(request: DiscoverRequest, final: FitRequest) -> dict:
+    """The inputs the final model needs that the request's experiments did not have (a delayed input).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The original request.
+    final : FitRequest
+        The final fit's request.
+
+    Returns
+    -------
+    dict
+        Experiment name -> {input name: samples}, for the experiments that gained inputs.
+    """
     out = {}
     original = {e.name: set(e.inputs) for e in request.experiments}
     for exp in final.experiments:
@@ -73,7 +160,18 @@ def added_inputs(request: DiscoverRequest, final: FitRequest) -> dict:
 
 
 def steps_conclusion(steps) -> str:
-    """'added …' naming each step, and for an ambiguous one the law that explains the data as well."""
+    """'added …' naming each step, and for an ambiguous one the law that explains the data as well.
+
+    Parameters
+    ----------
+    steps : list of DiscoveryStep
+        The accepted steps.
+
+    Returns
+    -------
+    str
+        "added effect (description); ..." with the runner-up and how to separate them where ambiguous.
+    """
     parts = []
     for s in steps:
         text = f"{s.effect} ({s.description})"

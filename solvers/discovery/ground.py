@@ -38,7 +38,23 @@ MULTISTART_MAX_ITER = 100
 
 def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[FitRequest, FitResult, list[str]]:
     """(request, base fit, notes): the base fit refitted with finer steps and/or a multistart when it
-    warns as above; unchanged otherwise. Timed as the base fit."""
+    warns as above; unchanged otherwise. Timed as the base fit.
+
+    Parameters
+    ----------
+    fit_req : FitRequest
+        The base fit's request.
+    base : FitResult
+        The base fit.
+    clock : Clock
+        The discovery budget (the multistart is skipped once it is spent, and takes a share of what is left).
+
+    Returns
+    -------
+    tuple of (FitRequest, FitResult, list of str)
+        The request the search goes on with (finer `options.substeps` where they were raised), the base
+        fit it starts from, and notes saying what was refitted and why.
+    """
     notes: list[str] = []
     with clock.phase("base_fit"):
         fit_req, base = _finer_steps(fit_req, base, notes)

@@ -28,7 +28,25 @@ AR_MAX_ORDER = 20
 
 
 def residual_series(req: FitRequest, fit: FitResult) -> list[np.ndarray]:
-    """Weighted measured − simulated output, one series per experiment and output (NaN where missing)."""
+    """Weighted measured − simulated output, one series per experiment and output (NaN where missing).
+
+    Parameters
+    ----------
+    req : FitRequest
+        The fit's request.
+    fit : FitResult
+        The fit (estimates and initial states).
+
+    Returns
+    -------
+    list of numpy.ndarray
+        (n_e,) series, experiment-major then output, of the weighted output residual.
+
+    Raises
+    ------
+    FitError
+        When the model or data of the request do not compile or prepare.
+    """
     cm, data, layout, theta_s, x0s = fitted_values(req, fit)
     oem = OutputErrorModel(cm, data, layout, req.options)
     out = []
@@ -42,7 +60,25 @@ def residual_series(req: FitRequest, fit: FitResult) -> list[np.ndarray]:
 
 
 def output_residual(req: FitRequest, fit: FitResult) -> np.ndarray:
-    """The same residual at the measured samples in the scorers' row order (sample-major)."""
+    """The same residual at the measured samples in the scorers' row order (sample-major).
+
+    Parameters
+    ----------
+    req : FitRequest
+        The fit's request.
+    fit : FitResult
+        The fit.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n,) the finite residuals, experiments in order, within one the outputs of each sample together.
+
+    Raises
+    ------
+    FitError
+        When the model or data of the request do not compile or prepare.
+    """
     cm, data, *_ = fitted_values(req, fit)
     series = residual_series(req, fit)
     parts, k = [], 0
@@ -55,7 +91,20 @@ def output_residual(req: FitRequest, fit: FitResult) -> np.ndarray:
 
 
 def ar_coefficients(r: np.ndarray, max_order: int = AR_MAX_ORDER) -> np.ndarray:
-    """φ of the AR model of r with the smallest BIC (Yule-Walker by Levinson-Durbin: all orders at once)."""
+    """φ of the AR model of r with the smallest BIC (Yule-Walker by Levinson-Durbin: all orders at once).
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (n,) residual series (its mean is removed).
+    max_order : int
+        Largest order tried.
+
+    Returns
+    -------
+    numpy.ndarray
+        (p,) AR coefficients φ_1..φ_p; empty when order 0 is best (white) or r is constant.
+    """
     n = r.size
     x = r - r.mean()
     spec = np.fft.rfft(x, 2 * n)
@@ -78,7 +127,20 @@ def ar_coefficients(r: np.ndarray, max_order: int = AR_MAX_ORDER) -> np.ndarray:
 
 
 def whiten(r: np.ndarray, phi: np.ndarray) -> np.ndarray:
-    """e_t = r_t − Σ φ_k r_{t−k}, t ≥ p."""
+    """e_t = r_t − Σ φ_k r_{t−k}, t ≥ p.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        (n,) series.
+    phi : numpy.ndarray
+        (p,) AR coefficients.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n − p,) the whitened series.
+    """
     p = phi.size
     e = r[p:].copy()
     for k in range(1, p + 1):
@@ -89,7 +151,21 @@ def whiten(r: np.ndarray, phi: np.ndarray) -> np.ndarray:
 def refit_likelihood_ratio(old_req: FitRequest, old: FitResult, new_req: FitRequest,
                            new: FitResult) -> tuple[int | None, float | None]:
     """(largest AR order used, p-value) of the refit against the model before; (None, None) for
-    equation error or when a residual cannot be simulated."""
+    equation error or when a residual cannot be simulated.
+
+    Parameters
+    ----------
+    old_req, old : FitRequest, FitResult
+        The model before the new term, and its fit.
+    new_req, new : FitRequest, FitResult
+        The model with the new term, and its refit.
+
+    Returns
+    -------
+    tuple of (int or None, float or None)
+        The largest AR order the residuals were whitened with, and the p-value of the likelihood ratio
+        as χ²(number of new parameters, at least 1).
+    """
     if not simulates_outputs(new_req.method):
         return None, None
     try:

@@ -31,7 +31,27 @@ MAX_RELATIVE_MOVE = 0.5
 def gauss_newton_start(scorer: RegressionScorer, candidate, fit: FitResult, model: Model,
                        new_params: list[str]) -> Model:
     """`model` (the augmented one, declared parameters at the old fit) with initial values one
-    Gauss-Newton step away; `model` unchanged when the step cannot be formed."""
+    Gauss-Newton step away; `model` unchanged when the step cannot be formed.
+
+    Parameters
+    ----------
+    scorer : RegressionScorer
+        The regression the candidate was scored in (residual, Jacobian, trajectories).
+    candidate : Candidate
+        The candidate being refitted.
+    fit : FitResult
+        The fit the candidate was screened at.
+    model : Model
+        The augmented model, its declared parameters at the old fit's estimates.
+    new_params : list of str
+        Names of the parameters the candidate added, one per column.
+
+    Returns
+    -------
+    Model
+        A copy with the initial values of the free shared parameters moved by the (shortened) step and
+        clipped to their bounds; a new parameter whose step lands on a bound keeps its neutral start.
+    """
     try:
         values = _step(scorer, candidate, fit, model, new_params)
     except (RuntimeError, ValueError, np.linalg.LinAlgError, KeyError, IndexError):

@@ -28,7 +28,20 @@ class Score:
 
 
 def chi2_sf(x: float, k: int) -> float:
-    """Survival function of χ²(k): exact for k = 1, Wilson-Hilferty above."""
+    """Survival function of χ²(k): exact for k = 1, Wilson-Hilferty above.
+
+    Parameters
+    ----------
+    x : float
+        The statistic.
+    k : int
+        Degrees of freedom, ≥ 1.
+
+    Returns
+    -------
+    float
+        P(χ²(k) > x); 1 for x ≤ 0.
+    """
     if x <= 0:
         return 1.0
     if k == 1:
@@ -47,7 +60,20 @@ def effective_n(resid: np.ndarray, max_lag: int = 100) -> float:
     low-frequency power below the noise's. An AR model's spectrum at zero frequency corrects that
     but also reads a real effect's remaining misfit as noise, and lost the EMPS friction; the
     confirming refit's whitened likelihood ratio (`refit_test`) is the gate that holds the loop's
-    false positives at the nominal rate."""
+    false positives at the nominal rate.
+
+    Parameters
+    ----------
+    resid : numpy.ndarray
+        (n,) residual series (its mean is removed).
+    max_lag : int
+        Most lags looked at (also at most n // 4).
+
+    Returns
+    -------
+    float
+        The effective number of independent samples; n itself for a zero residual or n < 8.
+    """
     r = resid - resid.mean()
     n = r.size
     denom = float(r @ r)
@@ -91,29 +117,90 @@ class RegressionScorer:
 
     @property
     def n_base(self) -> int:
+        """Number of identifiable directions of the existing parameters (the rank of J).
+
+        Returns
+        -------
+        int
+            Columns of the orthonormal basis `q`.
+        """
         return self.q.shape[1]
 
     def _n_eff(self, resid: np.ndarray) -> float:
         return max(effective_n(resid), self.n_base + 10.0)
 
     def project(self, g: np.ndarray) -> np.ndarray:
-        """Column(s) with the linearised free parameters regressed out."""
+        """Column(s) with the linearised free parameters regressed out.
+
+        Parameters
+        ----------
+        g : numpy.ndarray
+            (rows,) or (rows, m) candidate column(s) in the residual's row order.
+
+        Returns
+        -------
+        numpy.ndarray
+            g − Q Qᵀ g, the same shape.
+        """
         return g - self.q @ (self.q.T @ g)
 
     def stack(self, regressor: dict | None, outputs: dict | None = None) -> np.ndarray | None:
-        """The candidate's column(s) in the residual's row order (each scorer has its own rows)."""
+        """The candidate's column(s) in the residual's row order (each scorer has its own rows).
+
+        Parameters
+        ----------
+        regressor : dict or None
+            Equation index -> per-experiment columns of the candidate (`Candidate.equations`).
+        outputs : dict or None
+            Output index -> per-experiment columns of an output-path candidate (`Candidate.outputs`).
+
+        Returns
+        -------
+        numpy.ndarray or None
+            (rows,) or (rows, m); None where the candidate has no column in this scorer.
+        """
         raise NotImplementedError
 
     def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
-        """Physical changes of the declared parameters from a step in the scorer's columns."""
+        """Physical changes of the declared parameters from a step in the scorer's columns.
+
+        Parameters
+        ----------
+        delta : numpy.ndarray
+            A step in the coordinates of the scorer's Jacobian columns.
+
+        Returns
+        -------
+        dict of str to float
+            Parameter label -> its change in physical units.
+        """
         raise NotImplementedError
 
     def trajectories(self) -> list[tuple]:
-        """(states, inputs, times, experiment name) the residual was computed on, per experiment."""
+        """(states, inputs, times, experiment name) the residual was computed on, per experiment.
+
+        Returns
+        -------
+        list of tuple
+            Per experiment: states (nx, n), inputs (nu, n), times (n,), the experiment's name.
+        """
         raise NotImplementedError
 
     def score(self, g: np.ndarray | None) -> Score | None:
-        """g: the stacked candidate column(s), (rows,) or (rows, m)."""
+        """The score test of adding the candidate column(s) g to the fit.
+
+        Parameters
+        ----------
+        g : numpy.ndarray or None
+            The stacked candidate column(s), (rows,) or (rows, m) (`stack`).
+
+        Returns
+        -------
+        Score or None
+            RSS before and after, sample and effective sizes, the share of the residual explained, the F
+            statistic and its p-value, the BIC drop, the first coefficient and the correlation with the
+            residual; None when g is missing, not finite, (nearly) in the span of J, or there is no residual.
+        """
         if g is None or not np.all(np.isfinite(g)):
             return None
         g = g.reshape(g.shape[0], -1)
@@ -142,6 +229,22 @@ class RegressionScorer:
 
         A column is added while its partial F-test (against the columns chosen so far) has
         p < alpha and it explains at least `min_gain` more of the residual variance.
+
+        Parameters
+        ----------
+        columns : numpy.ndarray
+            (rows, k) candidate columns in the residual's row order.
+        max_columns : int
+            Most columns chosen.
+        alpha : float
+            Significance of each partial test (1: gain alone decides).
+        min_gain : float
+            Smallest share of the residual sum of squares a new column must explain.
+
+        Returns
+        -------
+        list of int
+            Indices of the chosen columns, in the order chosen.
         """
         c0 = self.project(columns)
         chosen: list[int] = []
@@ -168,7 +271,22 @@ class RegressionScorer:
         return chosen
 
     def prune(self, columns: np.ndarray, chosen: list[int], min_gain: float) -> list[int]:
-        """Backward elimination: drop the column whose removal costs least while that is < min_gain."""
+        """Backward elimination: drop the column whose removal costs least while that is < min_gain.
+
+        Parameters
+        ----------
+        columns : numpy.ndarray
+            (rows, k) candidate columns.
+        chosen : list of int
+            Indices of the columns chosen so far.
+        min_gain : float
+            Share of the residual sum of squares below which a column's contribution is too small.
+
+        Returns
+        -------
+        list of int
+            The remaining indices, in their order in `chosen`.
+        """
         chosen = list(chosen)
         while chosen:
             full = self._rss(columns[:, chosen])

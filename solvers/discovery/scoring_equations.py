@@ -63,7 +63,33 @@ def _smooth_supplied(derivative: np.ndarray, t: np.ndarray, options: FitOptions)
 def build_trace(cm: CompiledModel, data: list[ExperimentData], params: list[np.ndarray],
                 simulated: list[np.ndarray], free: list[str], options: FitOptions,
                 use_measurements: bool = True) -> TraceData:
-    """Equation residuals from the measurements (`use_measurements`), or the bare fitted trajectory."""
+    """Equation residuals from the measurements (`use_measurements`), or the bare fitted trajectory.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The prepared experiments.
+    params : list of numpy.ndarray
+        (np,) full parameter vector per experiment, at the fit.
+    simulated : list of numpy.ndarray
+        (nx, n) simulated states per experiment.
+    free : list of str
+        The free parameters' names.
+    options : FitOptions
+        The derivative filter's window and order.
+    use_measurements : bool
+        True: directly measured states are replaced by their smoothed measurements (inputs smoothed
+        alike) and their equation residuals formed from the Savitzky-Golay derivative; False: the
+        simulated trajectory and raw inputs, no residual, every equation traced.
+
+    Returns
+    -------
+    TraceData
+        States, inputs, residuals (NaN where unknown), Jacobians ∂f/∂p, ∂f/∂u, ∂f/∂x along the
+        trajectory, and the traced equations (measured ones that depend on a free parameter).
+    """
     x_sym, u_sym = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu)
     p_sym, t_sym = ca.SX.sym("p", cm.np), ca.SX.sym("t")
     f = cm.rhs(x_sym, u_sym, p_sym, t_sym)
@@ -129,11 +155,28 @@ class EquationScorer(RegressionScorer):
         super().__init__(r[self.ok], jac[self.ok])
 
     def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
-        """Changes of the free parameters from a step in the scorer's columns (physical units)."""
+        """Changes of the free parameters from a step in the scorer's columns (physical units).
+
+        Parameters
+        ----------
+        delta : numpy.ndarray
+            (n_free,) step in the Jacobian's columns (∂f/∂θ of the free parameters, physical).
+
+        Returns
+        -------
+        dict of str to float
+            Free parameter name -> its change.
+        """
         return {name: float(d) for name, d in zip(self.trace.free, delta)}
 
     def trajectories(self):
-        """(states, inputs, times, experiment name) the equation residuals were computed on."""
+        """(states, inputs, times, experiment name) the equation residuals were computed on.
+
+        Returns
+        -------
+        list of tuple
+            Per experiment: states (nx, n), smoothed inputs (nu, n), times (n,), and "" for the name.
+        """
         tr = self.trace
         return [(x, u, t, "") for x, u, t in zip(tr.x, tr.u, tr.t)]
 
@@ -141,6 +184,19 @@ class EquationScorer(RegressionScorer):
         """Rows of the candidate's column(s) in the scorer's order; (rows,) or (rows, m).
 
         Output-path columns (`outputs`) have no equation residual to enter: None.
+
+        Parameters
+        ----------
+        regressor : dict of int to list of numpy.ndarray or None
+            Equation index -> per-experiment column(s), (n,) or (n, m); equations of the scorer it
+            does not name get zeros.
+        outputs : dict or None
+            Output-path columns; when given the result is None.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            The weighted rows at the scorer's finite residuals; None without an equation regressor.
         """
         if outputs or not regressor:
             return None

@@ -79,22 +79,63 @@ class OutputScorer(RegressionScorer):
 
     def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:
         """Physical changes of the shared free parameters from a step in the scorer's columns
-        (scaled θ, then free initial states)."""
+        (scaled θ, then free initial states).
+
+        Parameters
+        ----------
+        delta : numpy.ndarray
+            Step in the Jacobian's columns: scaled θ first, then the free initial states (ignored).
+
+        Returns
+        -------
+        dict of str to float
+            Label -> physical change, for the parameters shared by all experiments.
+        """
         layout = self.oem.layout
         return {label: float(delta[i] * layout.scale[i]) for i, label in enumerate(layout.labels)
                 if layout.experiment[i] is None}
 
     def trajectories(self):
-        """(states, inputs, times, experiment name) of the fitted simulation, per experiment."""
+        """(states, inputs, times, experiment name) of the fitted simulation, per experiment.
+
+        Returns
+        -------
+        list of tuple
+            Per experiment: simulated states (nx, n), inputs (nu, n), times (n,), the experiment's name.
+        """
         return [(x, d.u, d.t, d.name) for x, d in zip(self.states, self.oem.data)]
 
     def stack(self, regressor: dict[int, list[np.ndarray]] | None,
               outputs: dict[int, list[np.ndarray]] | None = None) -> np.ndarray | None:
-        """Output sensitivity column(s) of a term: forcing on equations and/or direct on outputs."""
+        """Output sensitivity column(s) of a term: forcing on equations and/or direct on outputs.
+
+        Parameters
+        ----------
+        regressor : dict of int to list of numpy.ndarray or None
+            Equation index -> per-experiment forcing column(s), (n,) or (n, m).
+        outputs : dict of int to list of numpy.ndarray or None
+            Output index -> per-experiment direct column(s) on that output.
+
+        Returns
+        -------
+        numpy.ndarray or None
+            Weighted ∂y/∂β at the measured samples, (rows,) or (rows, m); None when both are empty.
+        """
         return self.stack_many([(regressor, outputs)])[0]
 
     def stack_many(self, items: list[tuple[dict | None, dict | None]]) -> list[np.ndarray | None]:
-        """`stack` for many candidates with one propagation (the loop over samples is the cost)."""
+        """`stack` for many candidates with one propagation (the loop over samples is the cost).
+
+        Parameters
+        ----------
+        items : list of tuple of (dict or None, dict or None)
+            (regressor, outputs) of each candidate, as `stack` takes them.
+
+        Returns
+        -------
+        list of numpy.ndarray or None
+            One entry per item, as `stack` returns it.
+        """
         oem, cm = self.oem, self.oem.cm
         widths, vectors = [], []
         for regressor, outputs in items:
@@ -137,7 +178,24 @@ def propagate(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, for
     S_{k+1} = A_k S_k + D0_k f_k + D1_k f_{k+1}, ∂y_k = H_k S_k.
 
     The forcing terms and the outputs are evaluated for all samples at once; only the recursion in
-    A_k is a loop, one small product per sample (the loop, not the arithmetic, is the cost)."""
+    A_k is a loop, one small product per sample (the loop, not the arithmetic, is the cost).
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        (n − 1, nx, nx) step Jacobians A_k in the state.
+    d0, d1 : numpy.ndarray
+        (n − 1, nx, nx) step Jacobians in the disturbance at the start and end of each interval.
+    hx : numpy.ndarray
+        (n, ny, nx) output Jacobians H_k.
+    forcing : numpy.ndarray
+        (n, nx, w) forcing columns on the state equations.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, ny, w) output sensitivities.
+    """
     n = forcing.shape[0]
     drive = np.matmul(d0, forcing[:-1]) + np.matmul(d1, forcing[1:])
     sens = np.empty((n,) + forcing.shape[1:])

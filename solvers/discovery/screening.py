@@ -45,7 +45,26 @@ class Screening:
 
 
 def fitted_values(request: FitRequest, fit: FitResult):
-    """(compiled model, data, layout, scaled θ, initial states) of a fit."""
+    """(compiled model, data, layout, scaled θ, initial states) of a fit.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit's request.
+    fit : FitResult
+        The fit (estimates by label, initial states by experiment).
+
+    Returns
+    -------
+    tuple
+        (CompiledModel, list of ExperimentData, ParameterLayout, scaled θ (nθ,), per experiment a dict
+        state -> initial value, 0 where the fit gives none).
+
+    Raises
+    ------
+    FitError
+        When the request's model or data do not compile or prepare.
+    """
     cm = compile_model(request.model)
     data = prepare_experiments(request.experiments, cm)
     layout = build_layout(request.model, [d.name for d in data])
@@ -61,7 +80,31 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
            output_scorer: OutputScorer | None = None) -> Screening:
     """Score every candidate whose family is not in `exclude`; see the module docstring.
 
-    `output_scorer`: one already built at this fit (its sensitivities are most of a screen's cost)."""
+    Parameters
+    ----------
+    request : FitRequest
+        The fit's request.
+    fit : FitResult
+        The fit to screen at.
+    opts : DiscoveryOptions
+        Effects, user candidates, smoothing width, significance and smallest share explained.
+    exclude : set of str
+        Candidate families not to score (already added or rejected).
+    output_scorer : OutputScorer or None
+        One already built at this fit (its sensitivities are most of a screen's cost).
+
+    Returns
+    -------
+    Screening
+        The scored candidates ranked (`rank`), each marked significant at the Bonferroni level
+        `opts.significance` / tries with a physical sign and at least `opts.min_explained`; the notes,
+        which equations and outputs were scored, and the output scorer.
+
+    Raises
+    ------
+    FitError
+        When the request's model or data do not compile or prepare, or a user candidate does not compile.
+    """
     cm, data, layout, theta_s, x0s = fitted_values(request, fit)
     oem = OutputErrorModel(cm, data, layout, request.options)
     params = [np.asarray(layout.full(e, theta_s), dtype=float).ravel() for e in range(len(data))]
@@ -139,7 +182,18 @@ def rank(scored: list[Scored]) -> list[Scored]:
     effects when one of them explains at least half as much (a change in time is true of this record
     only, and the linearised score understates a nonlinear term such as a sharp tanh more than a
     step), and behind any structural effect only a refit can judge. A catch-all coefficient that
-    switches at a threshold goes behind a named law that explains at least half as much."""
+    switches at a threshold goes behind a named law that explains at least half as much.
+
+    Parameters
+    ----------
+    scored : list of Scored
+        The scored candidates.
+
+    Returns
+    -------
+    list of Scored
+        The same, sorted best first.
+    """
     structural = [sc.score.explained for sc in scored if sc.significant and not sc.candidate.record_specific
                   and not sc.candidate.refit_only and not sc.candidate.generic]
     best = max(structural, default=0.0)

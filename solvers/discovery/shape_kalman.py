@@ -36,6 +36,13 @@ class Linearised:
 
     @property
     def n(self) -> int:
+        """Number of samples of the experiment.
+
+        Returns
+        -------
+        int
+            Columns of `r`.
+        """
         return self.r.shape[1]
 
 
@@ -112,7 +119,21 @@ def _run_forward(lin: Linearised, q: float):
 
 
 def log_likelihood(lins: list[Linearised], q: float) -> tuple[float, float]:
-    """(concentrated log-likelihood, σ̂²) of the random-walk intensity q over all experiments."""
+    """(concentrated log-likelihood, σ̂²) of the random-walk intensity q over all experiments.
+
+    Parameters
+    ----------
+    lins : list of Linearised
+        The linearised model of each experiment.
+    q : float
+        Random-walk intensity of the disturbance, in units of σ².
+
+    Returns
+    -------
+    tuple of (float, float)
+        The log-likelihood with σ² concentrated out (up to a constant), and σ̂², the measurement noise
+        variance of the weighted output residual.
+    """
     wss, logf, count = 0.0, 0.0, 0.0
     for lin in lins:
         *_, v, f, _ = _run_forward(lin, q)
@@ -124,7 +145,20 @@ def log_likelihood(lins: list[Linearised], q: float) -> tuple[float, float]:
 
 
 def smooth(lin: Linearised, q: float) -> np.ndarray:
-    """Smoothed z_k (m, n) = E[z_k | all data] for intensity q."""
+    """Smoothed z_k (m, n) = E[z_k | all data] for intensity q.
+
+    Parameters
+    ----------
+    lin : Linearised
+        The linearised model of one experiment.
+    q : float
+        Random-walk intensity of the disturbance, in units of σ².
+
+    Returns
+    -------
+    numpy.ndarray
+        (nx + 1, n) smoothed [δx; d] at every sample.
+    """
     nx, ny, n = lin.b.shape[0], lin.r.shape[0], lin.n
     m = nx + 1
     z0, p0, zs, ps, v, f, k = _run_forward(lin, q)
@@ -141,7 +175,20 @@ def smooth(lin: Linearised, q: float) -> np.ndarray:
 def best_intensity(lins: list[Linearised], grid=tuple(10.0 ** np.arange(-8, 5, 2))) -> tuple[float, float, float]:
     """(q, log-likelihood, σ̂²) maximising the likelihood: a grid every two decades, then one decade
     and half a decade either side of the best (the likelihood is smooth and unimodal in log q on
-    every case measured)."""
+    every case measured).
+
+    Parameters
+    ----------
+    lins : list of Linearised
+        The linearised model of each experiment.
+    grid : tuple of float
+        The first grid of intensities (10⁻⁸ .. 10⁴ every two decades).
+
+    Returns
+    -------
+    tuple of (float, float, float)
+        The best q, its log-likelihood and σ̂².
+    """
     scored = [(q, *log_likelihood(lins, q)) for q in grid]
     for step in (10.0, np.sqrt(10.0)):
         q0 = max(scored, key=lambda s: s[1])[0]

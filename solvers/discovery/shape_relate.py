@@ -36,7 +36,24 @@ class ShapeEstimate:
 
 
 def candidate_variables(state_names, states, input_names, inputs) -> dict[str, list[np.ndarray]]:
-    """States, inputs, products of two of them and differences of a state and an input."""
+    """States, inputs, products of two of them and differences of a state and an input.
+
+    Parameters
+    ----------
+    state_names : list of str
+        The states' names.
+    states : list of numpy.ndarray
+        (nx, n) states per experiment.
+    input_names : list of str
+        The inputs' names.
+    inputs : list of numpy.ndarray
+        (nu, n) inputs per experiment.
+
+    Returns
+    -------
+    dict of str to list of numpy.ndarray
+        Name ("x", "u", "x*u", "x-u") -> its (n,) samples per experiment.
+    """
     base = {n: [x[i] for x in states] for i, n in enumerate(state_names)}
     ins = {n: [u[j] for u in inputs] for j, n in enumerate(input_names)}
     out = {**base, **ins}
@@ -51,7 +68,18 @@ def candidate_variables(state_names, states, input_names, inputs) -> dict[str, l
 
 
 def spline_basis(z: np.ndarray) -> np.ndarray:
-    """[z, z², z³, (z - κ)³₊ …] on z standardised, knots at quantiles (a natural choice for any law)."""
+    """[z, z², z³, (z - κ)³₊ …] on z standardised, knots at quantiles (a natural choice for any law).
+
+    Parameters
+    ----------
+    z : numpy.ndarray
+        (n,) samples of the variable.
+
+    Returns
+    -------
+    numpy.ndarray
+        (n, 3 + KNOTS) basis columns.
+    """
     s = np.std(z)
     zs = (z - np.mean(z)) / (s if s > 0 else 1.0)
     knots = np.quantile(zs, np.linspace(0, 1, KNOTS + 2)[1:-1])
@@ -60,7 +88,20 @@ def spline_basis(z: np.ndarray) -> np.ndarray:
 
 
 def explained_share(d: np.ndarray, columns: np.ndarray) -> tuple[float, np.ndarray]:
-    """(R² of d on [1, columns], fitted values) by least squares."""
+    """(R² of d on [1, columns], fitted values) by least squares.
+
+    Parameters
+    ----------
+    d : numpy.ndarray
+        (n,) the series to explain.
+    columns : numpy.ndarray
+        (n, k) regressors (a constant is added).
+
+    Returns
+    -------
+    tuple of (float, numpy.ndarray)
+        R² (0 when d is constant) and the (n,) fitted values.
+    """
     a = np.column_stack([np.ones(d.size), columns])
     a = a / np.maximum(np.abs(a).max(axis=0), 1e-300)
     # normal equations with a whisper of ridge: a few columns, thousands of rows, many variables to
@@ -74,7 +115,19 @@ def explained_share(d: np.ndarray, columns: np.ndarray) -> tuple[float, np.ndarr
 
 
 def relate(est: ShapeEstimate) -> None:
-    """Fill `variable`, `share_explained`, `law` and `alternatives` of an estimate."""
+    """Fill `variable`, `share_explained`, `law` and `alternatives` of an estimate.
+
+    Left unchanged when d̂ has too few samples, is not finite or is constant, or no variable can be used.
+
+    Parameters
+    ----------
+    est : ShapeEstimate
+        One channel's estimate; changed in place.
+
+    Returns
+    -------
+    None
+    """
     d = np.concatenate(est.d)
     if d.size < 3 * (KNOTS + 4) or not np.all(np.isfinite(d)) or np.std(d) == 0:
         return
@@ -126,8 +179,34 @@ def shape_agreement(estimate: ShapeEstimate, candidate: list[np.ndarray] | np.nd
 
 
 def public_samples(series: list[np.ndarray], stride: int) -> list[list[float]]:
+    """Every `stride`-th sample of each series, as plain floats for the result.
+
+    Parameters
+    ----------
+    series : list of numpy.ndarray
+        One series per experiment.
+    stride : int
+        Keep every stride-th sample (`thinning`).
+
+    Returns
+    -------
+    list of list of float
+        The thinned series.
+    """
     return [[float(v) for v in np.asarray(s)[::stride]] for s in series]
 
 
 def thinning(n_max: int) -> int:
+    """The stride that brings `n_max` samples down to at most `MAX_PUBLIC_SAMPLES`.
+
+    Parameters
+    ----------
+    n_max : int
+        The longest experiment's number of samples.
+
+    Returns
+    -------
+    int
+        The stride, ≥ 1.
+    """
     return max(1, int(np.ceil(n_max / MAX_PUBLIC_SAMPLES)))

@@ -97,6 +97,23 @@ class ShapeModel:
                            [xn, ca.jacobian(xn, xs), ca.jacobian(xn, ds)])
 
     def linearise(self, e: int, ch: Channel, track: Track) -> Linearised:
+        """The disturbed model linearised along a trajectory, in the smoother's form.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        ch : Channel
+            Where the disturbance enters (a state equation or an output path).
+        track : Track
+            The trajectory (states (nx, n), disturbance (n,)) to linearise about.
+
+        Returns
+        -------
+        Linearised
+            Per-sample A_k, the disturbance column b_k (in units of `disturbance_scale`), the gap c_k,
+            weighted H_k, the weighted output residual with its mask, and the diffuse prior of z_0.
+        """
         cm, d = self.cm, self.data[e]
         nx, ny, n = cm.nx, cm.ny, d.n
         u0, u1, t0, dt = self.oem.step_inputs(d, 0, n - 1)
@@ -136,7 +153,22 @@ class ShapeModel:
         return (PRIOR_SCALE * np.append(sx, 1.0)) ** 2
 
     def residual(self, e: int, ch: Channel, track: Track) -> np.ndarray:
-        """Weighted output residual (ny, n) of the disturbed model along a trajectory."""
+        """Weighted output residual (ny, n) of the disturbed model along a trajectory.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        ch : Channel
+            Where the disturbance enters (on an output path it is added to that output).
+        track : Track
+            The trajectory.
+
+        Returns
+        -------
+        numpy.ndarray
+            (ny, n) weighted measured − modelled outputs (NaN where not measured).
+        """
         d = self.data[e]
         y = self.oem.numeric_outputs(e, track.x, self.params[e])
         if ch.on_output:
@@ -147,7 +179,21 @@ class ShapeModel:
 
 def disturbance_scale(sm: ShapeModel, ch: Channel) -> float:
     """The size d is measured in: the output's spread, or the RMS rate of change of the state
-    (over all experiments, so that one intensity serves them all)."""
+    (over all experiments, so that one intensity serves them all).
+
+    Parameters
+    ----------
+    sm : ShapeModel
+        The fitted model and its simulations.
+    ch : Channel
+        The channel.
+
+    Returns
+    -------
+    float
+        1/weight of the output for an output path; else the RMS of the state's rate of change along
+        the simulations (1 when that is zero or not finite).
+    """
     if ch.on_output:
         return float(1.0 / sm.weights[ch.index])
     rates = np.concatenate([np.diff(x[ch.index]) / np.diff(d.t) for x, d in zip(sm.simulated, sm.data)])
@@ -158,7 +204,18 @@ def disturbance_scale(sm: ShapeModel, ch: Channel) -> float:
 def channels(sm: ShapeModel) -> list[Channel]:
     """Every state equation, and the output paths: all of them with a few outputs; with many, only
     outputs that are not a state measured directly (that state's equation stands in for it, and each
-    channel costs a smoother whose work grows with outputs × states²)."""
+    channel costs a smoother whose work grows with outputs × states²).
+
+    Parameters
+    ----------
+    sm : ShapeModel
+        The fitted model.
+
+    Returns
+    -------
+    list of Channel
+        One per state equation, then one per output path kept (all when ny ≤ `MAX_DIRECT_PATHS`).
+    """
     cm = sm.cm
     out = [Channel(name=s, index=i, on_output=False) for i, s in enumerate(cm.states)]
     paths = [j for j, o in enumerate(cm.outputs) if cm.ny <= MAX_DIRECT_PATHS or o not in cm.direct_outputs]
@@ -254,6 +311,26 @@ def estimate_shape(request: FitRequest, fit: FitResult) -> ShapeResult:
 
 
 def to_public(sm: ShapeModel, estimates: list[ShapeEstimate], best: Channel, noise: dict) -> Discrepancy:
+    """The shape step's result as the schema's `Discrepancy`, series thinned.
+
+    Parameters
+    ----------
+    sm : ShapeModel
+        The fitted model and its data.
+    estimates : list of ShapeEstimate
+        Every channel's estimate, most likely first.
+    best : Channel
+        The most likely channel (its smoothed states are reported).
+    noise : dict
+        Output -> measurement-noise std.
+
+    Returns
+    -------
+    Discrepancy
+        Per channel its likelihood, intensity, residual share and samples (with the variable and law
+        where related), the noise level and the best channel's states, each series thinned to at most
+        `MAX_PUBLIC_SAMPLES` per experiment.
+    """
     stride = thinning(max(d.n for d in sm.data))
     names = [d.name for d in sm.data]
 
@@ -271,7 +348,23 @@ def to_public(sm: ShapeModel, estimates: list[ShapeEstimate], best: Channel, noi
 
 
 def shape_at(request: FitRequest, fit: FitResult, clock) -> tuple[ShapeResult | None, str]:
-    """`estimate_shape` timed as the "shape" phase; (None, why) where it cannot run."""
+    """`estimate_shape` timed as the "shape" phase; (None, why) where it cannot run.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The request the fit answered.
+    fit : FitResult
+        The fit.
+    clock : Clock
+        The discovery budget; nothing is estimated once it is spent.
+
+    Returns
+    -------
+    tuple of (ShapeResult or None, str)
+        The shape and ""; or None with the reason (a difference-equation model, a record shorter than
+        `MIN_SAMPLES`, a failure of the smoother), or None and "" for a failed fit or a spent budget.
+    """
     if request.model.discrete is not None:
         return None, "no shape estimated: the model is a difference equation (the shape step needs an ODE)"
     if fit.quality == "failed" or not clock.allows():

@@ -65,7 +65,30 @@ def _silent(phase: str, candidate: str, refits: int) -> None:
 def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> DiscoveryResult:
     """Fit, find and add missing effects, refit; see the module docstring for the tests used.
 
-    `progress(phase, candidate, refits)`, if given, is called as the search moves on."""
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The model, the estimation and validation experiments, the fit method and options, and the
+        discovery options (effects, user candidates, significance, budgets).
+    progress : Progress or None
+        ``progress(phase, candidate, refits)``, if given, is called as the search moves on (phase
+        "base_fit", "screening", "refit" or "done"); for a progress line, never for control.
+
+    Returns
+    -------
+    DiscoveryResult
+        The conclusion, before/after summaries (estimation and validation), the accepted steps with
+        their evidence, the rejected candidates, the first screen, notes, the augmented model and its
+        fit, what is left unexplained with the learned disturbance shape, and the timings.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a user candidate names no state, reuses a name or does not compile, or the model does not
+        compile; the field is named.
+    DataError
+        When the experiments do not fit the model (from the base fit).
+    """
     opts = request.discovery
     tell = progress or _silent
     clock = Clock(opts.time_budget_s)
@@ -124,6 +147,19 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
 
 
 def check_user_candidates(request: DiscoverRequest) -> None:
+    """Check the user's candidates before anything is fitted.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The request; its `discovery.candidates` are checked against its model.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a candidate's equation is not a state, its parameter is already a name in the model, or its
+        term does not compile (`discovery.candidates[i].equation` / `.parameter` / `.term`).
+    """
     import casadi as ca
     model = request.model
     names = set(model.states) | set(model.inputs) | {p.name for p in model.parameters}
@@ -142,6 +178,18 @@ def check_user_candidates(request: DiscoverRequest) -> None:
 # --- reasons to stop ------------------------------------------------------------------------------
 
 def unusable_fit(fit: FitResult) -> str:
+    """Why a fit cannot be screened from, or "".
+
+    Parameters
+    ----------
+    fit : FitResult
+        The current fit.
+
+    Returns
+    -------
+    str
+        The reason when the fit failed or its cost is not finite; else "".
+    """
     if fit.quality == "failed":
         return (f"nothing screened: the fit of the declared model failed ({fit.solver.return_status}: "
                 f"{fit.message}); its residual would point at the solver, not at a missing effect — fix the fit "
@@ -152,6 +200,19 @@ def unusable_fit(fit: FitResult) -> str:
 
 
 def nothing_to_refit(screening: Screening) -> str:
+    """Why a screen gives nothing to refit, or "".
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen.
+
+    Returns
+    -------
+    str
+        "" when some candidate is significant; else why not (nothing could be scored, or the best
+        candidate's share, p-value and the Bonferroni level).
+    """
     if not screening.equations_scored and not screening.outputs_scored:
         return ("nothing could be scored: no state is measured directly (the equation screen needs one) and "
                 "the method is equation_error (the output screen needs a simulation); use single_shooting or "
@@ -169,6 +230,20 @@ def nothing_to_refit(screening: Screening) -> str:
 
 
 def no_confirmation(state: LoopState, screening: Screening) -> str:
+    """Why no refit confirmed a candidate, or "" when a step was added earlier.
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far (steps, rejected candidates, refits left).
+    screening : Screening
+        The last screen.
+
+    Returns
+    -------
+    str
+        The reason (the refit budget spent, or every significant candidate rejected), or "".
+    """
     if state.steps:
         return ""
     if state.refits_left <= 0:
@@ -195,7 +270,24 @@ def _where_scored(screening: Screening) -> str:
 def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening,
                       tell: Progress = _silent) -> bool:
     """Refit significant candidates best first, each beside its contenders (`discriminate`), until one
-    is added or the budget is spent."""
+    is added or the budget is spent.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request.
+    state : LoopState
+        The search so far; updated with the accepted step or the rejections.
+    screening : Screening
+        The screen, ranked.
+    tell : Progress
+        Progress callback, told of every refit.
+
+    Returns
+    -------
+    bool
+        True when a candidate was added.
+    """
     for sc in [s for s in screening.scored if s.significant]:
         if sc.candidate.family in state.tried:
             continue

@@ -43,7 +43,25 @@ BACKED_BY_VALIDATION = 0.2   # a move is backed when the validation error falls 
 
 
 def discriminate(request: DiscoverRequest, state: LoopState, screening: Screening, lead: Scored) -> bool:
-    """Refit `lead` and its contenders, keep the best by whitened BIC and validation; True if one is added."""
+    """Refit `lead` and its contenders, keep the best by whitened BIC and validation; True if one is added.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, validation experiments).
+    state : LoopState
+        The search so far (model, fit, steps, refits left, budget).
+        Updated: tried families, rejected candidates, and the accepted step.
+    screening : Screening
+        The screen the candidate came from.
+    lead : Scored
+        The best significant candidate not yet tried.
+
+    Returns
+    -------
+    bool
+        True when a candidate was accepted.
+    """
     groups = contenders(screening, lead, state)
     state.tried.update(g[0].candidate.family for g in groups)
     before_val = _validation_now(request, state)
@@ -76,7 +94,20 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
 def variants_of(screening: Screening, sc: Scored) -> list[Scored]:
     """What is refitted for a candidate: a smoothed switch once at its widest significant width (the
     width is refined after, `confirm.refine_width`); a family with variants (input delays) its two
-    best; anything else itself."""
+    best; anything else itself.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen.
+    sc : Scored
+        The candidate.
+
+    Returns
+    -------
+    list of Scored
+        The variants to refit (one or two).
+    """
     fam = sc.candidate.family
     siblings = [s for s in screening.scored if s.significant and s.candidate.family == fam
                 and s.scored_on == sc.scored_on]
@@ -91,7 +122,22 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
     """The leader's variants and those of every significant candidate of another family within
     `MARGIN` of its explained variance, by screening BIC drop; catch-alls only beside a catch-all
     leader; an approximating series member whose projected column equals an earlier one's is the same
-    hypothesis."""
+    hypothesis.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen, ranked.
+    lead : Scored
+        The leader.
+    state : LoopState
+        The search so far (families already tried are left out).
+
+    Returns
+    -------
+    list of list of Scored
+        At most `MAX_CONTENDERS` groups, the leader's first, each the variants to refit (`variants_of`).
+    """
     floor = (1 - MARGIN) * lead.score.explained
     chosen = [lead]
     seen = {lead.candidate.family}
@@ -134,7 +180,26 @@ def _same_hypothesis(a: Scored, b: Scored) -> bool:
 
 def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
            screening: Screening) -> tuple[Refitted, list[RunnerUp], str, str | None]:
-    """(winner, runners-up, verdict, what would separate them) among refits that passed the gates."""
+    """(winner, runners-up, verdict, what would separate them) among refits that passed the gates.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, validation experiments).
+    state : LoopState
+        The search so far.
+    kept : list of Refitted
+        The refits that passed, in screening order.
+    screening : Screening
+        The screen the candidate came from.
+
+    Returns
+    -------
+    tuple of (Refitted, list of RunnerUp, str, str or None)
+        The winner (lowest whitened BIC unless the validation records clearly prefer the second), the
+        others as runners-up with their ΔBIC and outcome, the verdict ("identified" or "ambiguous"), and
+        for an ambiguous one what data would separate them.
+    """
     bics = whitened_bics(kept)
     # an exact tie (equivalent laws) keeps the screening order: the leader first
     order = sorted(range(len(kept)), key=lambda i: (round(bics[i], 3), i))
@@ -177,7 +242,19 @@ def _validation_tells(a: float | None, b: float | None, tol: float) -> str | Non
 
 def whitened_bics(kept: list[Refitted]) -> list[float]:
     """BIC of each refit on its output residuals whitened by the AR model of the plainly best one's
-    residual (per experiment and output), so every refit is judged under the same noise model."""
+    residual (per experiment and output), so every refit is judged under the same noise model.
+
+    Parameters
+    ----------
+    kept : list of Refitted
+        The refits to compare.
+
+    Returns
+    -------
+    list of float
+        One BIC per refit (inf where its residual cannot be simulated; the plain BICs when the
+        reference's cannot).
+    """
     ref = min(kept, key=lambda r: bic(r.fit))
     try:
         ref_series = residual_series(ref.request, ref.fit)
@@ -227,7 +304,27 @@ def _validation_objection(request: DiscoverRequest, r: Refitted, before: Validat
 
 def catch_all_objection(request: DiscoverRequest, state: LoopState, r: Refitted,
                         before_val: ValidationSummary | None, screening: Screening) -> RejectedCandidate | None:
-    """Why a refitted catch-all is not kept (see the module docstring), or None."""
+    """Why a refitted catch-all is not kept (see the module docstring), or None.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, validation experiments).
+    state : LoopState
+        The search so far (model, fit, steps, refits left, budget).
+    r : Refitted
+        The refitted candidate.
+    before_val : ValidationSummary or None
+        Validation of the model before the candidate.
+    screening : Screening
+        The screen the candidate came from.
+
+    Returns
+    -------
+    RejectedCandidate or None
+        A "parsimony" rejection when the candidate is a catch-all that piles a small coefficient onto an
+        accepted effect, does not improve the validation records, or is a stand-in; None otherwise.
+    """
     c = r.sc.candidate
     if not c.catch_all:
         return None
@@ -255,7 +352,26 @@ def stand_in_verdict(request: DiscoverRequest, state: LoopState, r: Refitted, ve
                      before_val: ValidationSummary | None) -> tuple[str, str]:
     """A named law added after the first step that moves the declared parameters far outside their
     intervals approximates something else, unless the validation records back the move (their error
-    falls by `BACKED_BY_VALIDATION`): (verdict, note for the description)."""
+    falls by `BACKED_BY_VALIDATION`): (verdict, note for the description).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, validation experiments).
+    state : LoopState
+        The search so far (model, fit, steps, refits left, budget).
+    r : Refitted
+        The refitted candidate.
+    verdict : str
+        The verdict so far ("identified" or "ambiguous").
+    before_val : ValidationSummary or None
+        Validation of the model before the candidate.
+
+    Returns
+    -------
+    tuple of (str, str)
+        ("approximates", a note naming the moves) for such a law; else the verdict unchanged and "".
+    """
     if not state.steps or r.sc.candidate.catch_all:
         return verdict, ""
     moved = moved_parameters(request, state, r, before_val)
@@ -268,7 +384,24 @@ def moved_parameters(request: DiscoverRequest, state: LoopState, r: Refitted,
                      before_val: ValidationSummary | None) -> str:
     """The declared parameters the refit moved by more than STAND_IN_SIGMAS standard errors of the fit
     before and STAND_IN_RELATIVE of their value, as text ('' when none, or when the validation records
-    back the move: a second effect may well correct what the first left biased)."""
+    back the move: a second effect may well correct what the first left biased).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, validation experiments).
+    state : LoopState
+        The search so far (model, fit, steps, refits left, budget).
+    r : Refitted
+        The refitted candidate.
+    before_val : ValidationSummary or None
+        Validation of the model before the candidate.
+
+    Returns
+    -------
+    str
+        "p old -> new (±stderr before)" for each such parameter, joined by ", "; or "".
+    """
     a, b = _mean_nrmse(before_val), _mean_nrmse(r.validation)
     if a is not None and b is not None and b < (1 - BACKED_BY_VALIDATION) * a:
         return ""
@@ -285,7 +418,20 @@ def moved_parameters(request: DiscoverRequest, state: LoopState, r: Refitted,
 
 def separation_hint(a: Candidate, others: list[Candidate]) -> str:
     """What data would tell the chosen candidate apart from those as good on these data: the hint for
-    the first of another kind (sensor against state, a law against a change in time), else the first."""
+    the first of another kind (sensor against state, a law against a change in time), else the first.
+
+    Parameters
+    ----------
+    a : Candidate
+        The chosen candidate.
+    others : list of Candidate
+        Those as good on these data (at least one).
+
+    Returns
+    -------
+    str
+        The hint: another operating level or output, a second record, or a wider range of the variables.
+    """
     b = next((o for o in others if bool(o.outputs) != bool(a.outputs) or o.record_specific != a.record_specific),
              others[0])
     if bool(a.outputs) != bool(b.outputs):

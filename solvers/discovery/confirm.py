@@ -55,7 +55,22 @@ class LoopState:
 
 
 def screen_state(state: LoopState, opts: DiscoveryOptions, exclude: set[str]) -> Screening:
-    """Screen at the current fit, timed, reusing the output sensitivities if this fit was screened."""
+    """Screen at the current fit, timed, reusing the output sensitivities if this fit was screened.
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far; its cached output scorer is reused and replaced.
+    opts : DiscoveryOptions
+        The discovery options.
+    exclude : set of str
+        Candidate families not to score.
+
+    Returns
+    -------
+    Screening
+        The screen (`screening.screen`).
+    """
     cached = state.scorer_at[1] if state.scorer_at is not None and state.scorer_at[0] is state.fit else None
     with state.clock.phase("screening"):
         screening = screen(state.request, state.fit, opts, exclude, cached)
@@ -82,7 +97,25 @@ def run_refit(state: LoopState, req: FitRequest) -> FitResult:
     A Gauss-Newton refit that runs out of iterations is polished with the exact Hessian from where
     it stopped: with a sharp tanh, Gauss-Newton reaches the answer and then crawls without meeting
     the tolerance (measured: 50 iterations and more, parameters already within 0.1 %), where Newton
-    converges in 5-8."""
+    converges in 5-8.
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far (its clock caps `max_cpu_time` and times the refit).
+    req : FitRequest
+        The refit's request.
+
+    Returns
+    -------
+    FitResult
+        The refit, or its polished form when that did not fail or has the lower BIC.
+
+    Raises
+    ------
+    FitError
+        When the request's model or data do not compile or prepare (from `fit_model`).
+    """
     with state.clock.phase("refits"):
         fit = fit_model(_within_budget(state, req))
         if (fit.solver.return_status == "Maximum_Iterations_Exceeded" and req.options.hessian == "gauss_newton"
@@ -104,7 +137,24 @@ def _within_budget(state: LoopState, req: FitRequest) -> FitRequest:
 
 
 def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored) -> tuple[Model, list[str], FitRequest]:
-    """(augmented model with its start values, new parameter names, refit request) of a candidate."""
+    """(augmented model with its start values, new parameter names, refit request) of a candidate.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (its declared model, for a fresh start).
+    state : LoopState
+        The search so far (the current model, fit and request).
+    sc : Scored
+        The scored candidate.
+
+    Returns
+    -------
+    tuple of (Model, list of str, FitRequest)
+        The model with the candidate, started at the current estimates (or the declared values) and one
+        Gauss-Newton step on where the step can be formed; the new parameters' names; the refit request
+        with the candidate's data and capped options (`refit_options`).
+    """
     c = sc.candidate
     start = with_declared_start(state.model, request.model) if c.fresh_start else \
         with_estimates(state.model, state.fit)
@@ -137,7 +187,26 @@ class Refitted:
 def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
                     screening: Screening) -> Refitted | RejectedCandidate:
     """Refit with the candidate (the best of its variants) and apply the evidence gates; the
-    validation records are simulated but not yet judged (`discriminate` compares contenders)."""
+    validation records are simulated but not yet judged (`discriminate` compares contenders).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (model, request, fit, steps, refits left, budget).
+        Its refits left are counted down.
+    variants : list of Scored
+        The candidate's variants to refit (`discriminate.variants_of`); the best refit is judged.
+    screening : Screening
+        The screen the candidate came from.
+
+    Returns
+    -------
+    Refitted or RejectedCandidate
+        The refit with its evidence and validation; or why it was rejected ("refit_error", "cpu_limit",
+        "solver_failed", "evidence").
+    """
     opts = request.discovery
     best = None
     errors = []
@@ -190,7 +259,22 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
 
 def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> ValidationSummary | None:
     """The refitted model on the validation records, with the record-specific terms (steps, drifts in
-    the estimation record's time) switched off: their clock does not carry over to new data."""
+    the estimation record's time) switched off: their clock does not carry over to new data.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (model, request, fit, steps, refits left, budget).
+    r : Refitted
+        The refitted candidate.
+
+    Returns
+    -------
+    ValidationSummary or None
+        Its validation metrics; None without validation records or when they cannot be simulated.
+    """
     c = r.sc.candidate
     exps = request.validation
     for prior in [*state.accepted, c]:   # inputs added by earlier steps (a delayed input), then this one's
@@ -203,7 +287,26 @@ def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> V
 
 def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
                       screening: Screening) -> RejectedCandidate | None:
-    """Refit with the candidate (the best of its variants); None when kept, else why it was not."""
+    """Refit with the candidate (the best of its variants); None when kept, else why it was not.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (model, request, fit, steps, refits left, budget).
+        The candidate is accepted into it when kept.
+    variants : list of Scored
+        The candidate's variants to refit (`discriminate.variants_of`); the best refit is judged.
+    screening : Screening
+        The screen the candidate came from.
+
+    Returns
+    -------
+    RejectedCandidate or None
+        None when kept; else the rejection (as `refit_candidate`, or "validation" when the validation
+        records got worse).
+    """
     r = refit_candidate(request, state, variants, screening)
     if isinstance(r, RejectedCandidate):
         return r
@@ -221,7 +324,25 @@ def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list
 def accept(request: DiscoverRequest, state: LoopState, r: Refitted, screening: Screening, note: str = "",
            **verdict) -> None:
     """Add the refitted candidate as a step; `verdict`: the step's verdict, runners_up, separate_by;
-    `note` is appended to its description."""
+    `note` is appended to its description.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (model, request, fit, steps, refits left, budget).
+        Updated in place: the step, the model, fit, request and validation; a smoothed switch's width is
+        refined and superseded steps are dropped after.
+    r : Refitted
+        The refitted candidate.
+    screening : Screening
+        The screen the candidate came from.
+    note : str
+        Appended to the step's description in parentheses; "" for none.
+    **verdict
+        `verdict`, `runners_up` and `separate_by` of the `DiscoveryStep`.
+    """
     sc, c = r.sc, r.sc.candidate
     state.steps.append(DiscoveryStep(
         effect=c.effect, equation=equation_names(screening, c), term=c.term,
@@ -252,7 +373,20 @@ def refine_width(request: DiscoverRequest, state: LoopState, sc: Scored, model_b
     residual with the physical sign, and its refit lowers the BIC (at most two swaps).
 
     At the refitted model the current width's column is in the span of its own parameter, so a
-    sibling's score measures exactly what a change of width would explain."""
+    sibling's score measures exactly what a change of width would explain.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (model, request, fit, steps, refits left, budget).
+        Updated in place when a width is swapped (the last step, model, fit, request, validation).
+    sc : Scored
+        The scored candidate just accepted.
+    model_before : Model
+        The model before that candidate was added.
+    """
     opts = request.discovery
     current = state.accepted[-1]
     for _ in range(2):
@@ -314,7 +448,17 @@ def refine_width(request: DiscoverRequest, state: LoopState, sc: Scored, model_b
 def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
     """An earlier step whose parameter lost its evidence once a later effect came in is dropped,
     when the model without it is as good (BIC within `min_bic_drop`): e.g. a stiffness that switches
-    with |y|, taken first, and then a cubic spring that explains it properly."""
+    with |y|, taken first, and then a cubic spring that explains it properly.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (model, request, fit, steps, refits left, budget).
+        Updated in place: a dropped step moves to `rejected` ("superseded") and the model is refitted
+        without it.
+    """
     opts = request.discovery
     if any(c.transform_experiments for c in state.accepted):
         return   # the data were rewritten for a delayed input: no replay
@@ -351,11 +495,37 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
 
 
 def new_parameters(fit: FitResult, names: list[str]) -> list[NewParameter]:
+    """The new parameters of a step as the result reports them.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The refit.
+    names : list of str
+        The new parameters' names.
+
+    Returns
+    -------
+    list of NewParameter
+        Name, value, standard error and 95 % interval of each.
+    """
     return [NewParameter(name=n, value=fit.parameters[n].value, stderr=fit.parameters[n].stderr,
                          ci95=fit.parameters[n].ci95) for n in names]
 
 
 def bic(fit: FitResult) -> float:
+    """A fit's BIC, infinite where it has none.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+
+    Returns
+    -------
+    float
+        `fit.metrics.bic`, or inf when it is None.
+    """
     return float("inf") if fit.metrics.bic is None else fit.metrics.bic
 
 
@@ -364,7 +534,20 @@ def _rank_refit(fit: FitResult) -> tuple[bool, float]:
 
 
 def with_declared_start(model: Model, declared: Model) -> Model:
-    """The model with the user's initial values for the declared parameters (a fresh start)."""
+    """The model with the user's initial values for the declared parameters (a fresh start).
+
+    Parameters
+    ----------
+    model : Model
+        The model (possibly augmented).
+    declared : Model
+        The user's declared model.
+
+    Returns
+    -------
+    Model
+        A copy whose parameters declared in `declared` start at their declared values; the others unchanged.
+    """
     start = {p.name: p.value for p in declared.parameters}
     return model.model_copy(update={"parameters": [p.model_copy(update={"value": start.get(p.name, p.value)})
                                                    for p in model.parameters]})
@@ -373,7 +556,23 @@ def with_declared_start(model: Model, declared: Model) -> Model:
 def refit_options(req: FitRequest, cand: Candidate, beta: float):
     """A confirming refit starts next to its answer: a real effect converges in a few dozen iterations,
     so the budget is capped (one that does not is reported as not converged, not as evidence).
-    More RK4 substeps when the new term is stiff (a sharp tanh): |λ|·h ≤ RK4_STEP_LIMIT."""
+    More RK4 substeps when the new term is stiff (a sharp tanh): |λ|·h ≤ RK4_STEP_LIMIT.
+
+    Parameters
+    ----------
+    req : FitRequest
+        The current fit's request.
+    cand : Candidate
+        The candidate (its `stiffness` per unit coefficient).
+    beta : float
+        The candidate's screened coefficient.
+
+    Returns
+    -------
+    FitOptions
+        The options with `max_iter` capped at `REFIT_MAX_ITER` and, for a simulating method with a
+        fixed-step integrator and a stiff term, `substeps` raised (at most 100).
+    """
     opts = req.options.model_copy(update={"max_iter": min(req.options.max_iter, REFIT_MAX_ITER)})
     if not simulates_outputs(req.method) or not integrator_of(opts).fixed_step or cand.stiffness == 0:
         return opts
@@ -386,7 +585,20 @@ def refit_options(req: FitRequest, cand: Candidate, beta: float):
 
 
 def with_estimates(model: Model, fit: FitResult) -> Model:
-    """The model with its parameters' initial values set to the fitted ones (inside the bounds)."""
+    """The model with its parameters' initial values set to the fitted ones (inside the bounds).
+
+    Parameters
+    ----------
+    model : Model
+        The model.
+    fit : FitResult
+        A fit of it (per-experiment parameters keep their declared start).
+
+    Returns
+    -------
+    Model
+        A copy with the initial values set and clipped to the bounds.
+    """
     params = []
     for p in model.parameters:
         est = fit.parameters.get(p.name)
@@ -398,6 +610,20 @@ def with_estimates(model: Model, fit: FitResult) -> Model:
 
 
 def t_value_of(fit: FitResult, names: list[str]) -> float | None:
+    """The smallest |value|/stderr among some parameters.
+
+    Parameters
+    ----------
+    fit : FitResult
+        The fit.
+    names : list of str
+        The parameters' names (all must be in the fit).
+
+    Returns
+    -------
+    float or None
+        The smallest t-value; None without names or when one has no (or a zero) standard error.
+    """
     if not names:
         return None
     vals = []
@@ -412,7 +638,25 @@ def t_value_of(fit: FitResult, names: list[str]) -> float | None:
 def correlation_after(sc: Scored, new_req: FitRequest, new_fit: FitResult, screening: Screening) -> float | None:
     """Correlation of the refitted model's output residual with the candidate's column (was: corr_before).
     One simulation of the refitted model; the column is the one screened. None where it is not
-    defined."""
+    defined.
+
+    Parameters
+    ----------
+    sc : Scored
+        The candidate as screened.
+    new_req : FitRequest
+        The refit's request.
+    new_fit : FitResult
+        The refit.
+    screening : Screening
+        The screen (its output scorer gives the column).
+
+    Returns
+    -------
+    float or None
+        The correlation; None for a candidate not scored on the outputs, without an output scorer, on
+        a size mismatch, a constant column or residual, or when the refit cannot be simulated.
+    """
     try:
         if sc.scored_on != "outputs" or screening.output_scorer is None:
             return None

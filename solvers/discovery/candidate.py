@@ -193,8 +193,8 @@ class LibraryContext:
         Returns
         -------
         list of str
-            The states (its own first among them in model order) and then the inputs whose Jacobian
-            entries are nonzero somewhere along the trajectory.
+            The states (its own always, in model order) and then the inputs whose Jacobian entries are
+            nonzero somewhere along the trajectory.
         """
         i = self.states.index(eq)
         cm = self.trace.cm

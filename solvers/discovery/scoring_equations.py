@@ -82,7 +82,7 @@ def build_trace(cm: CompiledModel, data: list[ExperimentData], params: list[np.n
     use_measurements : bool
         True: directly measured states are replaced by their smoothed measurements (inputs smoothed
         alike) and their equation residuals formed from the Savitzky-Golay derivative; False: the
-        simulated trajectory and raw inputs, no residual, every equation traced.
+        simulated trajectory and raw inputs, residuals NaN, every equation traced.
 
     Returns
     -------

@@ -64,9 +64,9 @@ def cost_residual(re, im, g: np.ndarray, weight: np.ndarray, cost: str):
     weight : numpy.ndarray
         (N,) weights from `data_weights` (not used by "log", whose rows are relative already).
     cost : str
-        "log": log-magnitude and phase of model/measured; "log1p_abs_error": the weighted error pair
-        scaled to squared norm log(1 + |w·d|)²; else ("complex", "relative_complex") the weighted
-        real and imaginary errors.
+        "log": log-magnitude and phase of model/measured; "log1p_abs_error": the error pair d scaled
+        so that its squared norm is w²·log(1 + |d|)² (w the common weight); else ("complex",
+        "relative_complex") the weighted real and imaginary errors.
 
     Returns
     -------

@@ -112,7 +112,8 @@ def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, op
     OnlineRun
         Estimates (M, nη) after every update, their covariances (M, nη, nη) for the forgetting and
         decreasing-gain laws (None for constant trace and constant gain), the a-priori innovations
-        (M, neq), a label naming the gain law, the effective window 1/(1 − λ) (M for λ = 1) and λ.
+        (M, neq), a label naming the gain law, the effective window 1/(1 − λ) (at most M; M for λ = 1)
+        and λ.
     """
     m, neq, n = phi.shape
     law = opts.gain_law

@@ -88,7 +88,8 @@ def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitW
     list of FitWarning
         One ``missing_effect_likely`` warning with up to `TOP_CANDIDATES` significant candidates
         (scored on the outputs); one ``lack_of_fit_not_screened`` warning with the reason when the
-        screen is skipped or fails; else an empty list.
+        model is outside the screen's scope (discrete, prefiltered, time-varying or per-experiment
+        parameters), the fit is too large, or the screen fails; else an empty list.
     """
     why = _why_not_screened(request, result)
     if why is None:

@@ -142,7 +142,8 @@ def substeps_retry(request, result):
     tuple of (FitRequest, PreprocessingReport) or None
         The request started from the estimates (clipped into the bounds) with twice the suggested
         substeps (at least one more, at most `MAX_SUBSTEPS`), and the report saying so; None when the
-        substeps were given, already refitted, or not coarse.
+        substeps were given, the fit was already refitted, the step is not coarse, or the substeps
+        are already at `MAX_SUBSTEPS`.
     """
     report = result.preprocessing
     coarse = [w for w in result.warnings if w.code == "integration_step_coarse"]

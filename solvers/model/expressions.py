@@ -476,7 +476,7 @@ def unparse(node: Node) -> str:
     Returns
     -------
     str
-        Text that parses back to the same AST.
+        The expression in the grammar of this module; it parses back to the same expression.
     """
     def wrap(child: Node, text: str, prec: int) -> str:
         return f"({text})" if _precedence(child) < prec else text

@@ -267,7 +267,7 @@ def run_profiles(problem, options, outcome, layout, ndata: int, nvarys: int, cov
     """
     if not options.profile:
         return None
-    from greyfit.solvers.methods.shooting_curvature import make_warm_solver
+    from greyfit.solvers.methods.shooting.hybrid import make_warm_solver
     ctx = ProfileContext(problem, make_warm_solver(problem, options), np.asarray(outcome.w, dtype=float),
                          float(outcome.cost), layout.scale, ndata, nvarys, options.confidence_level,
                          options.max_cpu_time)

@@ -85,7 +85,7 @@ class LeastSquaresProblem:
 
     def constraint_curvature(self, lam_g: ca.MX) -> ca.MX | None:
         """What the Gauss-Newton Hessian adds for the constraints (nlp.py): multiple shooting's
-        gap curvature (solvers/methods/shooting_curvature.py); None elsewhere (JᵀJ alone, as always).
+        gap curvature (solvers/methods/shooting/hybrid.py); None elsewhere (JᵀJ alone, as always).
 
         Parameters
         ----------

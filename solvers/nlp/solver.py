@@ -31,7 +31,7 @@ class LeastSquaresSolver:
     def __init__(self, problem: LeastSquaresProblem, options: FitOptions, curvature: bool = True,
                  ipopt: dict | None = None):
         """`curvature`: add the problem's constraint curvature to Gauss-Newton (multiple shooting);
-        `ipopt`: extra Ipopt options (solvers/methods/shooting_curvature.py)."""
+        `ipopt`: extra Ipopt options (solvers/methods/shooting/hybrid.py)."""
         self.problem = problem
         w, r = problem.w, problem.residual
         nlp = {"x": w, "f": 0.5 * ca.sumsqr(r), "g": problem.g}

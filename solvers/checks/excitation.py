@@ -65,8 +65,9 @@ def information_warnings(jac: np.ndarray, labels: list[str]) -> list[FitWarning]
         code="poor_excitation",
         message=(f"the data do not determine every parameter at the initial guess (information "
                  f"condition {condition:.1e}); null directions: {'; '.join(nulls)}. "
-                 "Excite the system more richly (steps plus several sinusoids whose summed spectrum is flat over the band "
-                 "of interest, as in *Digital simulation and parameter estimation for multivariable systems*) or fix "
+                 "Excite the system more richly (steps plus several sinusoids whose summed spectrum is flat "
+                 "over the band of interest, as in 'Digital simulation and parameter estimation for "
+                 "multivariable systems') or fix "
                  "some of: " + ", ".join(names)),
         detail={"condition": condition, "null_directions": nulls, "parameters": names})]
 

@@ -5,7 +5,7 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${1:-.venv/bin/python}
-BIN=$(dirname "$PY")
+BIN=$(cd "$(dirname "$PY")" && pwd)   # absolute: mypy and import-linter run from the stage
 
 echo "lint: ruff"
 "$BIN/ruff" check --quiet .
@@ -21,8 +21,8 @@ done
 find "$stage" -name __pycache__ -prune -exec rm -rf {} +
 
 echo "lint: mypy greyfit.schemas greyfit.solvers"
-(cd "$stage" && "$OLDPWD/$BIN/mypy" --config-file "$OLDPWD/pyproject.toml" --cache-dir "$OLDPWD/build/mypy_cache" \
+(cd "$stage" && "$BIN/mypy" --config-file "$OLDPWD/pyproject.toml" --cache-dir "$OLDPWD/build/mypy_cache" \
     -p greyfit.schemas -p greyfit.solvers)
 
 echo "lint: import-linter"
-(cd "$stage" && PYTHONPATH=. "$OLDPWD/$BIN/lint-imports" "$OLDPWD/pyproject.toml" --no-cache)
+(cd "$stage" && PYTHONPATH=. "$BIN/lint-imports" "$OLDPWD/pyproject.toml" --no-cache)

@@ -21,7 +21,22 @@ LEVEL = 0.01   # family-wise false-alarm rate of each test on a white residual
 
 
 def rmse_and_fit(measured: np.ndarray, residual: np.ndarray) -> tuple[float, float]:
-    """RMSE and MATLAB `compare` NRMSE fit % over the finite samples."""
+    """RMSE and MATLAB `compare` NRMSE fit % over the finite samples.
+
+    Parameters
+    ----------
+    measured : numpy.ndarray
+        Measured output, shape (N,).
+    residual : numpy.ndarray
+        Residual (simulated − measured or the reverse; only its size matters), shape (N,).
+
+    Returns
+    -------
+    rmse : float
+        Root mean square of the residual; NaN without a finite sample.
+    fit : float
+        100 (1 − ‖r‖ / ‖y − ȳ‖) in percent; NaN for a constant measurement or no finite sample.
+    """
     ok = np.isfinite(measured) & np.isfinite(residual)
     if not ok.all():
         measured, residual = measured[ok], residual[ok]
@@ -80,13 +95,38 @@ def sidak_z(level: float, tested: int) -> float:
     """Per-lag two-sided normal quantile so that `tested` independent lags all pass with 1 - level.
 
     Šidák's inequality makes it conservative (never above `level`) for correlated lags too.
+
+    Parameters
+    ----------
+    level : float
+        Family-wise false-alarm rate, in (0, 1).
+    tested : int
+        Number of lags tested at once (at least 1 is used).
+
+    Returns
+    -------
+    float
+        z such that P(|Z| > z) = 1 − (1 − level)^(1/tested).
     """
     per_lag = -math.expm1(math.log1p(-level) / max(tested, 1))   # 1 - (1 - level)^(1/m), no cancellation
     return NormalDist().inv_cdf(1.0 - per_lag / 2.0)
 
 
 def max_abs_p_value(z: float, tested: int) -> float:
-    """Family-wise p-value of max |Z_k| = z over `tested` independent standard normal lags."""
+    """Family-wise p-value of max |Z_k| = z over `tested` independent standard normal lags.
+
+    Parameters
+    ----------
+    z : float
+        The largest |correlation| in units of its standard deviation under the null.
+    tested : int
+        Number of lags.
+
+    Returns
+    -------
+    float
+        1 − (1 − P(|Z| > z))^tested, in [0, 1].
+    """
     per_lag = math.erfc(z / math.sqrt(2.0))          # P(|Z| > z), accurate in the far tail
     return float(-math.expm1(tested * math.log1p(-min(per_lag, 1.0))) if per_lag < 1.0 else 1.0)
 
@@ -97,6 +137,25 @@ def max_correlation_test(values: np.ndarray, n: int, lags: int, variance_factor:
 
     Under the null each value is ≈ N(0, variance_factor/n) (Bartlett); `bound` is the per-lag band,
     so a bar that leaves it in a plot is what fails the test.
+
+    Parameters
+    ----------
+    values : numpy.ndarray
+        Correlation per tested lag, shape (n_lags,).
+    n : int
+        Number of samples the correlations were computed from.
+    lags : int
+        Largest lag, reported with the test.
+    variance_factor : float, optional
+        Variance of √n times a correlation under the null (1 for a white residual; never taken below 1).
+    level : float, optional
+        Family-wise false-alarm rate.
+
+    Returns
+    -------
+    ResidualTest
+        The largest |value|, the per-lag band, the lags, whether it passed, the p-value and the level;
+        a passed test with zero band when nothing was tested or `n` ≤ 0.
     """
     tested = int(values.size)
     return _test(float(np.max(np.abs(values))) if tested else 0.0, variance_factor, n, tested, lags, level)
@@ -128,7 +187,20 @@ def _bartlett_factors(acf_residual: np.ndarray, acf_inputs: np.ndarray) -> np.nd
 
 def residual_analysis(output: str, segments: list[tuple[np.ndarray, np.ndarray, dict[str, np.ndarray]]],
                       ) -> ResidualAnalysis:
-    """Per output; `segments` holds (measured, residual, inputs) per experiment, gaps removed."""
+    """Per output; `segments` holds (measured, residual, inputs) per experiment, gaps removed.
+
+    Parameters
+    ----------
+    output : str
+        Name of the output.
+    segments : list of tuple
+        Per experiment, (measured (N,), residual (N,), inputs by name (N,) each).
+
+    Returns
+    -------
+    ResidualAnalysis
+        As `residual_analyses` for this one output.
+    """
     return residual_analyses([output], [segments])[0]
 
 
@@ -138,7 +210,24 @@ def residual_analyses(outputs: list[str], segments: list[list[tuple[np.ndarray, 
 
     The outputs of one experiment that see the same samples of the inputs (every output of a
     record without gaps) are correlated in one batched FFT, and each input's autocorrelation is
-    computed once for all of them."""
+    computed once for all of them.
+
+    Parameters
+    ----------
+    outputs : list of str
+        Names of the outputs.
+    segments : list of list of tuple
+        Per output, per experiment: (measured (N,), residual (N,), inputs by name (N,) each).
+        Experiments with at most 2·`MAX_LAGS` finite residuals do not enter the correlations.
+
+    Returns
+    -------
+    list of ResidualAnalysis
+        Per output: RMSE and fit %, the residual's autocorrelation and whiteness test, its
+        cross-correlation with each input and the independence tests (bands widened by Bartlett's
+        factor for a coloured residual); the correlations are averaged over the experiments weighted by
+        their samples.
+    """
     lags_of = [MAX_LAGS if any(np.isfinite(r).sum() > 2 * MAX_LAGS for _, r, _ in segs) else 0
                for segs in segments]
     acf = [np.zeros(lags + 1) for lags in lags_of]

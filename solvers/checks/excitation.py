@@ -20,6 +20,25 @@ def information_warnings(jac: np.ndarray, labels: list[str]) -> list[FitWarning]
     """Condition and every null direction of JᵀJ (column-equilibrated) at the initial guess.
 
     Raises DataError when no column of J is nonzero: nothing at all can be identified.
+
+    Parameters
+    ----------
+    jac : numpy.ndarray
+        Jacobian of the weighted residual at the initial guess, shape (n_residuals, n_variables).
+    labels : list of str
+        Name of each column (free parameters and initial states).
+
+    Returns
+    -------
+    list of FitWarning
+        An ``initial_simulation_diverged`` warning when `jac` is not finite; a ``poor_excitation``
+        warning with the condition, the null directions (condition limit `START_CONDITION_LIMIT`) and
+        the parameters involved; else an empty list.
+
+    Raises
+    ------
+    DataError
+        When every column of `jac` is zero; names ``experiments``.
     """
     if not np.all(np.isfinite(jac)):
         return [FitWarning(code="initial_simulation_diverged",
@@ -46,7 +65,9 @@ def information_warnings(jac: np.ndarray, labels: list[str]) -> list[FitWarning]
         code="poor_excitation",
         message=(f"the data do not determine every parameter at the initial guess (information "
                  f"condition {condition:.1e}); null directions: {'; '.join(nulls)}. "
-                 "Excite the system more richly (steps plus several sinusoids, seed 002) or fix "
+                 "Excite the system more richly (steps plus several sinusoids whose summed spectrum is flat "
+                 "over the band of interest, as in 'Digital simulation and parameter estimation for "
+                 "multivariable systems') or fix "
                  "some of: " + ", ".join(names)),
         detail={"condition": condition, "null_directions": nulls, "parameters": names})]
 
@@ -63,6 +84,20 @@ def persistent_excitation_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) ->
 
     A constant input has order 1 (it excites the static gain only); a sinusoid 2; an n-th order
     linear system needs an input of order 2n to be identified from steady excitation (seed 003).
+
+    Parameters
+    ----------
+    u : numpy.ndarray
+        The input series, shape (N,).
+    max_order : int, optional
+        Largest order examined.
+
+    Returns
+    -------
+    int
+        The order, 0 to `max_order`: 0 for an all-zero input, 1 for a record shorter than
+        2·`max_order` samples; an order counts when the smallest eigenvalue of its block exceeds
+        `PE_RATIO` times the largest.
     """
     n = u.size
     if n < 2 * max_order or not np.any(u):
@@ -101,6 +136,21 @@ def input_warnings(inputs: dict[str, list[np.ndarray]], interpolation: str,
 
     `coupled` names, per input, the free parameters that act on it (∂²f/∂u∂p ≠ 0): those an
     input of low order leaves poorly determined.
+
+    Parameters
+    ----------
+    inputs : dict of str to list of numpy.ndarray
+        Per input name, its series in each experiment.
+    interpolation : str
+        The input interpolation of the fit; roughness is reported only under ``"foh"``.
+    coupled : dict of str to list of str or None, optional
+        Per input, the free parameters acting on it.
+
+    Returns
+    -------
+    list of FitWarning
+        ``input_not_exciting`` for an input of persistent excitation order ≤ 1 in every experiment,
+        ``input_faster_than_sampling`` for an input whose effective ω·Δt exceeds `ROUGH_INPUT`.
     """
     out = []
     for name, series in inputs.items():
@@ -138,7 +188,24 @@ def _roughness(u: np.ndarray) -> float:
 
 
 def step_size_warning(max_rate: float, dt: float, substeps: int, integrator: str) -> list[FitWarning]:
-    """RK4 with |λ|·h above ~0.5 per step is inaccurate on the model's fastest mode."""
+    """RK4 with |λ|·h above ~0.5 per step is inaccurate on the model's fastest mode.
+
+    Parameters
+    ----------
+    max_rate : float
+        |λ| of the model's fastest mode, in 1/s.
+    dt : float
+        Sample step, in s.
+    substeps : int
+        Integrator steps per sample.
+    integrator : str
+        Name of the integrator; only fixed-step ones are checked.
+
+    Returns
+    -------
+    list of FitWarning
+        One ``integration_step_coarse`` warning with the substeps that bring |λ|h to 0.25, or none.
+    """
     if not INTEGRATORS[integrator].fixed_step or not np.isfinite(max_rate):
         return []
     h = dt / substeps

@@ -22,7 +22,38 @@ ACTIVE_TOLERANCE = 1e-6
 def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                      options: FitOptions, problem, eep: EquationErrorProblem | None,
                      oem: OutputErrorModel | None) -> list[FitWarning]:
-    """Excitation of the parameters at the initial guess and of every input (before solving)."""
+    """Excitation of the parameters at the initial guess and of every input (before solving).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The prepared experiments.
+    layout : ParameterLayout
+        Layout of the free parameters (their initial values are the guess).
+    options : FitOptions
+        Fit options (the input interpolation).
+    problem : LeastSquaresProblem
+        The fit's NLP; its Jacobian at the guess is used for equation error.
+    eep : EquationErrorProblem or None
+        The equation-error problem, when the method is equation error.
+    oem : OutputErrorModel or None
+        The output-error model otherwise; its sensitivities at the guess are used (NaN when the
+        simulation runs away), and a simulation failure there is not recorded.
+
+    Returns
+    -------
+    list of FitWarning
+        As `information_warnings` followed by `input_warnings`.
+
+    Raises
+    ------
+    DataError
+        As `information_warnings`.
+    ValueError
+        When neither `eep` nor `oem` is given (a caller's error).
+    """
     theta_s = layout.initial / layout.scale
     if eep is not None:
         jac, _ = problem.evaluate_jacobian(problem.initial_guess(layout.initial))
@@ -50,7 +81,20 @@ def _runs_away(oem: OutputErrorModel, layout: ParameterLayout) -> bool:
 
 
 def input_parameters(cm: CompiledModel, layout: ParameterLayout) -> dict[str, list[str]]:
-    """Per input, the free parameters that act on it in some equation (∂²f/∂u∂p ≠ 0)."""
+    """Per input, the free parameters that act on it in some equation (∂²f/∂u∂p ≠ 0).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model (the structural part is computed once per model).
+    layout : ParameterLayout
+        Layout of the free parameters.
+
+    Returns
+    -------
+    dict of str to list of str
+        Per input name, the sorted names of the free parameters acting on it.
+    """
     acting = cm.derive(("input_parameters",), lambda: _parameters_on_inputs(cm))
     free = set(layout.base_names)
     return {name: sorted(acting[name] & free) for name in cm.inputs}
@@ -68,7 +112,28 @@ def _parameters_on_inputs(cm: CompiledModel) -> dict[str, set[str]]:
 
 def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                          theta_s: np.ndarray, states: list[np.ndarray], options: FitOptions) -> list[FitWarning]:
-    """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step."""
+    """Largest |eigenvalue| of ∂f/∂x along the fitted trajectory against the RK4 step.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The prepared experiments.
+    layout : ParameterLayout
+        Layout of the free parameters.
+    theta_s : numpy.ndarray
+        Fitted scaled parameters, shape (n_theta,).
+    states : list of numpy.ndarray
+        Fitted state trajectory of each experiment, shape (nx, N).
+    options : FitOptions
+        Fit options (integrator and substeps).
+
+    Returns
+    -------
+    list of FitWarning
+        As `step_size_warning`; empty for an adaptive integrator or a discrete-time model.
+    """
     if not integrator_of(options).fixed_step or cm.model.discrete is not None:   # no integration step to judge
         return []
     rate, dt = fastest_rate(cm, data, layout, theta_s, states)
@@ -77,7 +142,20 @@ def fastest_rate_warning(cm: CompiledModel, data: list[ExperimentData], layout: 
 
 def fastest_rate(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                  theta_s: np.ndarray, states: list[np.ndarray]) -> tuple[float, float]:
-    """(largest |eigenvalue| of ∂f/∂x at up to 20 points of each trajectory, smallest median step)."""
+    """(largest |eigenvalue| of ∂f/∂x at up to 20 points of each trajectory, smallest median step).
+
+    Parameters
+    ----------
+    cm, data, layout, theta_s, states
+        As in `fastest_rate_warning`.
+
+    Returns
+    -------
+    rate : float
+        Largest |eigenvalue| of ∂f/∂x at the finite points, in 1/time unit (0 when none is finite).
+    dt : float
+        Smallest median sample step over the experiments.
+    """
     jac_fn = cm.derive(("dfdx_columns",), lambda: Columns(_state_jacobian(cm)))
     rate, dt = 0.0, np.inf
     for e, d in enumerate(data):
@@ -101,7 +179,25 @@ def _state_jacobian(cm: CompiledModel) -> ca.Function:
 
 def row_keys(data: list[ExperimentData], eep: EquationErrorProblem | None,
              cm: CompiledModel) -> tuple[np.ndarray, np.ndarray]:
-    """(sample key, experiment) of every residual row, in the order of the covariance Jacobian."""
+    """(sample key, experiment) of every residual row, in the order of the covariance Jacobian.
+
+    Parameters
+    ----------
+    data : list of ExperimentData
+        The prepared experiments.
+    eep : EquationErrorProblem or None
+        The equation-error problem (rows per used sample and equation), or None for output error
+        (rows per measured output sample, sample-major).
+    cm : CompiledModel
+        The compiled model.
+
+    Returns
+    -------
+    sample_keys : numpy.ndarray
+        Per row, its sample index offset by the samples of the preceding experiments.
+    experiment_keys : numpy.ndarray
+        Per row, the index of its experiment.
+    """
     keys, exps, base = [], [], 0
     for e, d in enumerate(data):
         if eep is not None:
@@ -115,7 +211,23 @@ def row_keys(data: list[ExperimentData], eep: EquationErrorProblem | None,
 
 
 def active_constraints(cm: CompiledModel, layout: ParameterLayout, theta_s: np.ndarray) -> list[str]:
-    """User constraints (inequalities) that hold with equality at the solution."""
+    """User constraints (inequalities) that hold with equality at the solution.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model with its constraint function.
+    layout : ParameterLayout
+        Layout of the free parameters.
+    theta_s : numpy.ndarray
+        Fitted scaled parameters, shape (n_theta,).
+
+    Returns
+    -------
+    list of str
+        The texts of the inequality constraints with |g| ≤ `ACTIVE_TOLERANCE` × max(1, max |p|) in
+        some experiment, in declaration order.
+    """
     if cm.constraint is None:
         return []
     texts = list(cm.model.constraints)
@@ -134,7 +246,25 @@ def _size(cm: CompiledModel, layout: ParameterLayout, e: int, theta_s: np.ndarra
 
 
 def state_peaks(oem: OutputErrorModel, states: list[np.ndarray], theta_guess: np.ndarray):
-    """(max |x| per state at the solution, the same for a simulation at the initial guess)."""
+    """(max |x| per state at the solution, the same for a simulation at the initial guess).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (a simulation failure at the guess is not recorded).
+    states : list of numpy.ndarray
+        Fitted state trajectory of each experiment, shape (nx, N).
+    theta_guess : numpy.ndarray
+        Initial physical parameters.
+
+    Returns
+    -------
+    fitted : numpy.ndarray
+        Largest |x| per state over the fitted trajectories, shape (nx,).
+    guess : numpy.ndarray
+        The same at the initial guess, at least the state scale; inf for a state whose simulation
+        there is not finite.
+    """
     fitted = np.max(np.abs(np.hstack(states)), axis=1)
     failures = len(oem.simulation_failures)
     sims = oem.simulate(theta_guess, [oem.x0_guess(e) for e in range(len(oem.data))])

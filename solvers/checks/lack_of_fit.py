@@ -32,7 +32,19 @@ NEGLIGIBLE_MISFIT = 1e-3     # residual RMS over the output's spread below which
 
 def negligible_residual(result: FitResult) -> bool:
     """Every output fitted to within NEGLIGIBLE_MISFIT of its spread (fit % above 99.9): any
-    effect left in the residual moves the outputs by less than that."""
+    effect left in the residual moves the outputs by less than that.
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit's result; its `metrics.fit_percent` is read.
+
+    Returns
+    -------
+    bool
+        True when there is at least one output and every output's fit % is at least
+        100 (1 − `NEGLIGIBLE_MISFIT`).
+    """
     fits = list(result.metrics.fit_percent.values())
     return bool(fits) and all(f is not None and f >= 100.0 * (1.0 - NEGLIGIBLE_MISFIT) for f in fits)
 
@@ -58,7 +70,27 @@ def _why_not_screened(request: FitRequest, result: FitResult) -> str | None:
 
 
 def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
-    """`missing_effect_likely` with the top significant candidates, or `lack_of_fit_not_screened`."""
+    """`missing_effect_likely` with the top significant candidates, or `lack_of_fit_not_screened`.
+
+    Only shooting fits of continuous models with constant shared parameters and no prefilter are
+    screened, and only when the fit did not fail, estimated something, leaves a non-negligible
+    residual and is small enough (`MAX_SCREENED_VALUES`).
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request.
+    result : FitResult
+        Its result.
+
+    Returns
+    -------
+    list of FitWarning
+        One ``missing_effect_likely`` warning with up to `TOP_CANDIDATES` significant candidates
+        (scored on the outputs); one ``lack_of_fit_not_screened`` warning with the reason when the
+        model is outside the screen's scope (discrete, prefiltered, time-varying or per-experiment
+        parameters), the fit is too large, or the screen fails; else an empty list.
+    """
     why = _why_not_screened(request, result)
     if why is None:
         return []

@@ -49,6 +49,23 @@ def _warning(output: str, test: str, ratio: float, bound: float, noise: float, r
 
 
 def high_frequency_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
+    """The high-frequency test: a white residual significantly above the noise level of the data.
+
+    Applied per output with at least `MIN_SAMPLES` measured samples and a passed whiteness test; the
+    noise variance is the mean of `quality.noise_level`² over the records.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request (its measured outputs).
+    result : FitResult
+        Its result (RMSE and whiteness per output).
+
+    Returns
+    -------
+    list of FitWarning
+        One ``residual_above_noise`` warning per output whose RMSE² / σ² exceeds the bound.
+    """
     out = []
     for a in result.residual_analysis:
         series = [_series(e.outputs[a.output]) for e in request.experiments if a.output in e.outputs]
@@ -67,6 +84,21 @@ def high_frequency_warnings(request: FitRequest, result: FitResult) -> list[FitW
 
 
 def validation_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
+    """The validation test: the RMSE on the validation records significantly above the fit's own.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request (its validation records).
+    result : FitResult
+        Its result, with `validation` metrics.
+
+    Returns
+    -------
+    list of FitWarning
+        One ``validation_misfit`` warning per output whose variance ratio exceeds the bound (at least
+        `VALIDATION_FLOOR`); empty without validation.
+    """
     if result.validation is None:
         return []
     out = []
@@ -100,6 +132,24 @@ def _replicate_groups(request: FitRequest) -> list[list[int]]:
 
 
 def replicate_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
+    """The replicate test: the residual significantly above the noise shown by replicated records.
+
+    Records with the same time grid, inputs and initial state are replicates; the scaled
+    differences from their mean estimate σ².
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request (its experiments).
+    result : FitResult
+        Its result (RMSE per output).
+
+    Returns
+    -------
+    list of FitWarning
+        One ``residual_above_noise`` warning per output with at least `MIN_SAMPLES` replicate
+        differences whose variance ratio exceeds the bound (at least `REPLICATE_FLOOR`).
+    """
     groups = _replicate_groups(request)
     out = []
     for name, rmse in result.metrics.rmse.items():
@@ -122,7 +172,21 @@ def replicate_warnings(request: FitRequest, result: FitResult) -> list[FitWarnin
 
 
 def noise_level_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
-    """`residual_above_noise` / `validation_misfit` where the data give a noise estimate."""
+    """`residual_above_noise` / `validation_misfit` where the data give a noise estimate.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request.
+    result : FitResult
+        Its result.
+
+    Returns
+    -------
+    list of FitWarning
+        The high-frequency, validation and replicate warnings; none for equation error, a failed fit,
+        a negligible residual, or a fit with every parameter fixed.
+    """
     if request.method == FitMethod.equation_error:
         return []   # its channels are smoothed derivatives, not the measured outputs
     if result.quality == "failed" or negligible_residual(result):

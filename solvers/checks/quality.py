@@ -67,6 +67,16 @@ def noise_level(y: np.ndarray) -> float:
 
     A smooth signal adds little to Δ²y when it is sampled finely, so this bounds from above the
     white-noise part of the data; no model is needed.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        A measured series, NaN where missing, shape (N,).
+
+    Returns
+    -------
+    float
+        √(mean(Δ²y²)/6) over the finite samples (taken in order, gaps closed); NaN with fewer than 5.
     """
     y = y[np.isfinite(y)]
     if y.size < 5:
@@ -195,7 +205,22 @@ def _at_start_only(w: FitWarning) -> FitWarning:
 
 
 def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
-    """Attach warnings and the quality verdict; `success` becomes converged and good."""
+    """Attach warnings and the quality verdict; `success` becomes converged and good.
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit's result before the checks.
+    q : QualityInputs
+        What the checks need from the fit (convergence, costs, covariance, Jacobian, measured series,
+        state peaks, simulation failures, warnings from before the fit, active constraints).
+
+    Returns
+    -------
+    FitResult
+        A copy with the warnings, `quality`, `success`, `status` and (when suspect) the message set,
+        and every NaN/inf replaced by null.
+    """
     warnings = list(q.before)
     if not q.converged:
         warnings.append(FitWarning(code="not_converged", message=result.message,
@@ -220,7 +245,25 @@ def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
 
 
 def verdict(message: str, warnings: list[FitWarning], converged: bool) -> dict:
-    """The fields of a result that follow from its warnings: quality, success, status, message."""
+    """The fields of a result that follow from its warnings: quality, success, status, message.
+
+    Parameters
+    ----------
+    message : str
+        The result's message; for a converged suspect result the suspect codes are appended (an
+        earlier suffix replaced).
+    warnings : list of FitWarning
+        All the result's warnings.
+    converged : bool
+        Whether the optimiser converged.
+
+    Returns
+    -------
+    dict
+        Update for `FitResult.model_copy`: `warnings`, `quality` (``failed`` for a code in
+        `FAILED_CODES`, else ``suspect`` for one in `SUSPECT_CODES`, else ``good``), `success`,
+        `status` and, when suspect and converged, `message`.
+    """
     codes = {w.code for w in warnings}
     quality = "failed" if codes & FAILED_CODES else "suspect" if codes & SUSPECT_CODES else "good"
     update = {"warnings": warnings, "quality": quality, "success": quality == "good",
@@ -232,7 +275,21 @@ def verdict(message: str, warnings: list[FitWarning], converged: bool) -> dict:
 
 
 def requalify(result: FitResult, more: list[FitWarning]) -> FitResult:
-    """The result with `more` warnings added and its verdict recomputed (checks run after `assess_fit`)."""
+    """The result with `more` warnings added and its verdict recomputed (checks run after `assess_fit`).
+
+    Parameters
+    ----------
+    result : FitResult
+        A result already assessed.
+    more : list of FitWarning
+        Warnings from later checks.
+
+    Returns
+    -------
+    FitResult
+        A copy with the warnings appended and the verdict recomputed; `result` itself when `more` is
+        empty.
+    """
     if not more:
         return result
     converged = not any(w.code == "not_converged" for w in result.warnings)
@@ -251,5 +308,16 @@ def _plain(value):
 def finite_result(result: FitResult) -> FitResult:
     """The result with every NaN/inf replaced by null (JSON has neither; the schema allows null
     exactly where a value can be undefined): pydantic writes them as null, and reading the text
-    back is one pass in its Rust core instead of a walk over every number in Python."""
+    back is one pass in its Rust core instead of a walk over every number in Python.
+
+    Parameters
+    ----------
+    result : FitResult
+        A result that may hold NaN or inf.
+
+    Returns
+    -------
+    FitResult
+        A new result read back from its JSON.
+    """
     return FitResult.model_validate_json(result.model_dump_json(fallback=_plain))

@@ -26,7 +26,21 @@ SHOOTING = (FitMethod.single_shooting, FitMethod.multiple_shooting)
 
 
 def substeps_for(rate: float, dt: float) -> int:
-    """Least RK4 steps per sample interval with |λ|·h ≤ TARGET_RATE_STEP (1 to MAX_SUBSTEPS)."""
+    """Least RK4 steps per sample interval with |λ|·h ≤ TARGET_RATE_STEP (1 to MAX_SUBSTEPS).
+
+    Parameters
+    ----------
+    rate : float
+        |λ| of the fastest mode, in 1/time unit.
+    dt : float
+        Sample interval, in the same time unit.
+
+    Returns
+    -------
+    int
+        ceil(|λ| dt / `TARGET_RATE_STEP`) clipped to [1, `MAX_SUBSTEPS`]; 1 for a non-finite or
+        non-positive rate.
+    """
     if not (math.isfinite(rate) and math.isfinite(dt)) or rate <= 0:
         return 1
     return int(min(max(math.ceil(rate * dt / TARGET_RATE_STEP), 1), MAX_SUBSTEPS))
@@ -61,7 +75,31 @@ def _guess_states(cm, data, layout, options, substeps: int) -> list[np.ndarray]:
 
 
 def choose_substeps(request, report: PreprocessingReport | None):
-    """(request with options.substeps chosen, report saying so); unchanged where it does not apply."""
+    """(request with options.substeps chosen, report saying so); unchanged where it does not apply.
+
+    Applies to shooting fits with RK4 of continuous models without time-varying parameters whose
+    request did not give `options.substeps`.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The prepared fit request.
+    report : PreprocessingReport or None
+        The preprocessing report so far.
+
+    Returns
+    -------
+    request : FitRequest
+        A copy with the chosen `options.substeps`, or the request itself.
+    report : PreprocessingReport or None
+        A copy with `substeps` and `substeps_note` set, or the report unchanged.
+
+    Raises
+    ------
+    ModelDefinitionError, DataError
+        When the model does not compile or the experiments do not fit it (as `compile_model`,
+        `prepare_experiments`).
+    """
     if not _applies(request):
         return request, report
     cm = compile_model(request.model)
@@ -90,7 +128,23 @@ def substeps_retry(request, result):
 
     The choice is made at the initial guess; a fit that ends at a much faster model (a rough
     guess) is refitted once from its estimates with the substeps the post-fit check suggests.
-    None when the request gave its substeps or the step is fine."""
+    None when the request gave its substeps or the step is fine.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The request that was fitted.
+    result : FitResult
+        Its result, with its warnings and preprocessing report.
+
+    Returns
+    -------
+    tuple of (FitRequest, PreprocessingReport) or None
+        The request started from the estimates (clipped into the bounds) with twice the suggested
+        substeps (at least one more, at most `MAX_SUBSTEPS`), and the report saying so; None when the
+        substeps were given, the fit was already refitted, the step is not coarse, or the substeps
+        are already at `MAX_SUBSTEPS`.
+    """
     report = result.preprocessing
     coarse = [w for w in result.warnings if w.code == "integration_step_coarse"]
     if not coarse or report is None or report.substeps is None or report.substeps_note is None \

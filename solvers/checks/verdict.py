@@ -14,7 +14,18 @@ from greyfit.solvers.checks.quality import requalify
 
 
 def held_input_warnings(report: PreprocessingReport | None) -> list[FitWarning]:
-    """`input_held_fitted_linear` where the request forced foh on inputs that look held."""
+    """`input_held_fitted_linear` where the request forced foh on inputs that look held.
+
+    Parameters
+    ----------
+    report : PreprocessingReport or None
+        The preprocessing report; its ``input_looks_held`` hints are turned into warnings.
+
+    Returns
+    -------
+    list of FitWarning
+        One warning per such hint.
+    """
     hints = [h for h in (report.hints if report else []) if h.code == "input_looks_held"]
     return [FitWarning(
         code="input_held_fitted_linear",
@@ -27,7 +38,20 @@ def held_input_warnings(report: PreprocessingReport | None) -> list[FitWarning]:
 def review_fit(request: FitRequest, result: FitResult) -> FitResult:
     """`result` with the lack-of-fit and input-handling warnings added and its verdict recomputed.
 
-    `request` is the prepared one (preprocessed, interpolation and substeps resolved)."""
+    `request` is the prepared one (preprocessed, interpolation and substeps resolved).
+
+    Parameters
+    ----------
+    request : FitRequest
+        The prepared fit request.
+    result : FitResult
+        The result assessed by `assess_fit`.
+
+    Returns
+    -------
+    FitResult
+        As `requalify` with the held-input, missing-effect and noise-level warnings.
+    """
     more = held_input_warnings(result.preprocessing)
     more += missing_effect_warnings(request, result) + noise_level_warnings(request, result)
     return requalify(result, more)

@@ -5,7 +5,23 @@ import numpy as np
 
 
 def savgol_coefficients(window: int, order: int, deriv: int) -> np.ndarray:
-    """Savitzky-Golay convolution weights for the `deriv`-th derivative at the window centre."""
+    """Savitzky-Golay convolution weights for the `deriv`-th derivative at the window centre.
+
+    Parameters
+    ----------
+    window : int
+        Odd number of samples in the window.
+    order : int
+        Degree of the local polynomial.
+    deriv : int
+        Order of the derivative (0: the smoothed value).
+
+    Returns
+    -------
+    numpy.ndarray
+        Weights c_j for the offsets j = −window//2 .. window//2, shape (window,); the derivative
+        weights are per unit sample step (divide by Δt for time units).
+    """
     half = window // 2
     k = np.arange(-half, half + 1, dtype=float)
     vander = np.vander(k, order + 1, increasing=True)
@@ -18,6 +34,26 @@ def smooth_and_differentiate(y: np.ndarray, t: np.ndarray, window: int, order: i
 
     Uniform sampling uses a Savitzky-Golay filter; non-uniform sampling falls back to central
     differences of the raw series, and says so.
+
+    Parameters
+    ----------
+    y : numpy.ndarray
+        Measured series, shape (N,).
+    t : numpy.ndarray
+        Sample times, shape (N,).
+    window : int
+        Window length in samples (an even one is raised by one).
+    order : int
+        Degree of the Savitzky-Golay polynomial.
+
+    Returns
+    -------
+    smooth : numpy.ndarray
+        Smoothed series, shape (N,) (a copy of `y` under central differences).
+    deriv : numpy.ndarray
+        dy/dt in units of y per time unit, shape (N,).
+    description : str
+        The filter used, e.g. ``savitzky_golay(window=11, order=3)``.
     """
     window = window if window % 2 else window + 1
     dt = np.diff(t)
@@ -50,7 +86,18 @@ def smooth_and_differentiate(y: np.ndarray, t: np.ndarray, window: int, order: i
 
 
 def interval_weights(c: np.ndarray) -> np.ndarray:
-    """Weights K_i Δt of the 2h intervals of a centred (2h+1)-sample derivative stencil c·Δt."""
+    """Weights K_i Δt of the 2h intervals of a centred (2h+1)-sample derivative stencil c·Δt.
+
+    Parameters
+    ----------
+    c : numpy.ndarray
+        Derivative stencil per unit sample step, shape (2h+1,), summing to zero.
+
+    Returns
+    -------
+    numpy.ndarray
+        Weight of each interval between consecutive samples of the window, shape (2h,).
+    """
     half = c.size // 2
     tail = np.cumsum(c[::-1])[::-1]            # tail[j] = Σ_{m ≥ j} c_m  (index j = offset + half)
     head = np.cumsum(c)                        # head[j] = Σ_{m ≤ j} c_m
@@ -70,6 +117,25 @@ def kernel_averages(signals: np.ndarray, t: np.ndarray, window: int, order: int,
 
     `signals` is (m, N); `held` treats them as constant over each interval (zoh inputs), else as
     linear (trapezoid: foh inputs, states). NaN where the derivative is NaN (half-window edges).
+
+    Parameters
+    ----------
+    signals : numpy.ndarray
+        Signals to average, shape (m, N) (a 1-D series is taken as one row).
+    t : numpy.ndarray
+        Sample times, shape (N,).
+    window : int
+        Window length of the derivative in samples (an even one is raised by one).
+    order : int
+        Degree of the Savitzky-Golay polynomial.
+    held : bool
+        Constant over each interval if True, linear between samples if False.
+
+    Returns
+    -------
+    numpy.ndarray
+        The averages, shape (m, N). For non-uniform or short records, the averages matching
+        `numpy.gradient`'s stencils (no NaN edges).
     """
     signals = np.atleast_2d(np.asarray(signals, dtype=float))
     window = window if window % 2 else window + 1
@@ -109,6 +175,21 @@ def trapezoid_correction(averages: np.ndarray, derivatives: np.ndarray, t: np.nd
     large and the plain trapezoid biased (0.4 % on the pole of the issue-#8 test). With held
     inputs ẋ jumps at the samples and D[x] does not estimate ẍ inside the intervals: not used.
     Uniform sampling only (non-uniform records keep the trapezoid).
+
+    Parameters
+    ----------
+    averages : numpy.ndarray
+        Trapezoid averages ⟨K, x⟩, shape (m, N).
+    derivatives : numpy.ndarray
+        Derivative estimates D[x] of the same signals, shape (m, N).
+    t : numpy.ndarray
+        Sample times, shape (N,).
+
+    Returns
+    -------
+    numpy.ndarray
+        Corrected averages, shape (m, N), NaN at the first and last sample; `averages` unchanged for
+        non-uniform records or fewer than 3 samples.
     """
     dt = np.diff(t)
     if t.size < 3 or not np.allclose(dt, dt.mean(), rtol=1e-6, atol=0):

@@ -28,10 +28,24 @@ class ExperimentData:
 
     @property
     def n(self) -> int:
+        """Number of samples.
+
+        Returns
+        -------
+        int
+            Length of the time grid `t`.
+        """
         return self.t.size
 
     @property
     def mask(self) -> np.ndarray:
+        """Where outputs were measured.
+
+        Returns
+        -------
+        numpy.ndarray
+            Boolean array, shape (ny, N): True where `y` is finite.
+        """
         return np.isfinite(self.y)
 
 
@@ -58,7 +72,32 @@ def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
 
 
 def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> ExperimentData:
-    """Validate one experiment; every error names `experiments[i].<field>`."""
+    """Validate one experiment; every error names `experiments[i].<field>`.
+
+    Parameters
+    ----------
+    exp : Experiment
+        The experiment as received.
+    cm : CompiledModel
+        The compiled model the experiment must fit (inputs, outputs, states).
+    index : int
+        Position of the experiment in the request, for the field paths.
+
+    Returns
+    -------
+    ExperimentData
+        Time grid, inputs (nu, N), outputs (ny, N) with NaN for missing samples, known initial states
+        by state index, and measured derivatives by state index. An ARMAX input fed by a measured
+        output is filled from that output.
+
+    Raises
+    ------
+    DataError
+        On a time grid that is not finite, too large or not strictly increasing; an unknown or
+        missing input; an unknown output or one with every sample null; a series of the wrong length,
+        with a non-finite value, a magnitude above `MAX_ABS_VALUE` or (inputs) a missing sample; an
+        unknown or non-finite initial state; a derivative of an unknown state.
+    """
     base = f"experiments[{index}]"
     t = np.asarray(exp.time, dtype=float)
     if not np.all(np.isfinite(t)):
@@ -124,7 +163,28 @@ def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> Experi
 
 def prepare_experiments(experiments: list[Experiment], cm: CompiledModel,
                         require_outputs: bool = True) -> list[ExperimentData]:
-    """Checked arrays of every experiment; `require_outputs=False` when nothing is fitted (simulation)."""
+    """Checked arrays of every experiment; `require_outputs=False` when nothing is fitted (simulation).
+
+    Parameters
+    ----------
+    experiments : list of Experiment
+        The experiments as received.
+    cm : CompiledModel
+        The compiled model.
+    require_outputs : bool, optional
+        Require every model output to have data in at least one experiment.
+
+    Returns
+    -------
+    list of ExperimentData
+        One per experiment, in order (see `prepare_experiment`).
+
+    Raises
+    ------
+    DataError
+        On a duplicated experiment name (``experiments[i].name``), on an output without data in any
+        experiment (``experiments[*].outputs.<name>``), or as `prepare_experiment`.
+    """
     names = [e.name for e in experiments]
     for i, name in enumerate(names):
         if names.index(name) != i:
@@ -139,7 +199,20 @@ def prepare_experiments(experiments: list[Experiment], cm: CompiledModel,
 
 
 def fill_missing(series: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """Linear interpolation over NaN gaps (used only to initialise, never to fit)."""
+    """Linear interpolation over NaN gaps (used only to initialise, never to fit).
+
+    Parameters
+    ----------
+    series : numpy.ndarray
+        Series with NaN at missing samples (at least one finite), shape (N,).
+    t : numpy.ndarray
+        Sample times, shape (N,).
+
+    Returns
+    -------
+    numpy.ndarray
+        A copy with the gaps filled linearly (held constant beyond the first and last finite sample).
+    """
     ok = np.isfinite(series)
     if ok.all():
         return series.copy()

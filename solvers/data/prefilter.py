@@ -30,7 +30,20 @@ SETTLING_TIME_CONSTANTS = 5
 
 
 def lowpass_discrete(x: np.ndarray, a: float) -> np.ndarray:
-    """y[k] = a y[k-1] + (1 − a) x[k] along the last axis, started at rest on x[0]."""
+    """y[k] = a y[k-1] + (1 − a) x[k] along the last axis, started at rest on x[0].
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Signals, samples along the last axis, shape (..., N).
+    a : float
+        Pole of the filter, a_f = exp(−2π f_c Ts), in [0, 1).
+
+    Returns
+    -------
+    numpy.ndarray
+        Filtered signals, same shape as `x`.
+    """
     y = np.empty_like(x)
     y[..., 0] = x[..., 0]
     for k in range(1, x.shape[-1]):
@@ -39,7 +52,22 @@ def lowpass_discrete(x: np.ndarray, a: float) -> np.ndarray:
 
 
 def lowpass_continuous(x: np.ndarray, t: np.ndarray, omega: float) -> np.ndarray:
-    """Exact response of z' = ω(x − z) to x linear between samples, started at rest on x[0]."""
+    """Exact response of z' = ω(x − z) to x linear between samples, started at rest on x[0].
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Signals, samples along the last axis, shape (..., N).
+    t : numpy.ndarray
+        Sample times, shape (N,).
+    omega : float
+        Cut-off angular frequency ω = 2π f_c, in rad per time unit.
+
+    Returns
+    -------
+    numpy.ndarray
+        Filtered signals, same shape as `x`.
+    """
     z = np.empty_like(x)
     z[..., 0] = x[..., 0]
     dt = np.diff(t)
@@ -56,13 +84,55 @@ def _settling_samples(spec: Prefilter, t: np.ndarray) -> int:
 
 
 def is_linear_in_states_and_inputs(cm: CompiledModel) -> bool:
+    """Whether the model's right-hand side is affine in its states and inputs.
+
+    The state-variable filter commutes exactly only with such a model; for others it is an
+    approximation, and the prefilter's note says so.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+
+    Returns
+    -------
+    bool
+        True when ∂f/∂(x, u) depends on neither x, u nor t.
+    """
     x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
     z = ca.vertcat(x, u)
     return not ca.depends_on(ca.jacobian(cm.rhs(x, u, p, t), z), ca.vertcat(z, t))
 
 
 def apply_prefilter(cm: CompiledModel, data: list[ExperimentData], spec: Prefilter) -> tuple[list[ExperimentData], str]:
-    """Filtered copies of the experiments and a description for `solver.derivative_filter`."""
+    """Filtered copies of the experiments and a description for `solver.derivative_filter`.
+
+    Outputs and inputs are filtered alike; for a continuous-time model the derivatives of the
+    directly measured states come from the filter itself. The first samples, while the filter
+    settles (5 time constants per order), are set missing.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model (discrete or continuous time).
+    data : list of ExperimentData
+        Prepared experiments with complete outputs.
+    spec : Prefilter
+        Cut-off frequency `cutoff_hz` (Hz) and `order` of the filter.
+
+    Returns
+    -------
+    data : list of ExperimentData
+        Filtered copies, outputs NaN during the settling samples.
+    note : str
+        What was applied, noting when the model is not linear in its states and inputs.
+
+    Raises
+    ------
+    DataError
+        When an experiment has missing output samples (``experiments[e].outputs``), or is too short
+        for the filter to settle (``experiments[e].time``).
+    """
     discrete = cm.model.discrete
     out = []
     for e, d in enumerate(data):

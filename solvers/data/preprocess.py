@@ -19,6 +19,16 @@ def anti_alias_taps(q: int) -> np.ndarray:
     """Low-pass FIR for decimation by q: Hamming-windowed sinc, 20q+1 taps, cut-off 1/q of Nyquist.
 
     The same design as ``scipy.signal.firwin(20*q + 1, 1/q, window="hamming")`` (unit gain at DC).
+
+    Parameters
+    ----------
+    q : int
+        Decimation factor, ≥ 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        The filter taps, shape (20q + 1,), summing to 1.
     """
     n = FIR_TAPS_PER_FACTOR * q
     k = np.arange(n + 1) - n / 2
@@ -31,6 +41,18 @@ def zero_phase_filter(x: np.ndarray, taps: np.ndarray) -> np.ndarray:
 
     The ends are extended by odd reflection about the first and last sample (as `filtfilt` does),
     so that a trend does not bend at the edges.
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Complete series, shape (N,), longer than half the filter.
+    taps : numpy.ndarray
+        Symmetric FIR taps of odd length.
+
+    Returns
+    -------
+    numpy.ndarray
+        Filtered series, shape (N,).
     """
     half = (taps.size - 1) // 2
     left = 2 * x[0] - x[half:0:-1]
@@ -58,7 +80,34 @@ def _trend(t: np.ndarray, y: np.ndarray, kind: str) -> tuple[np.ndarray, list[fl
 
 
 def preprocess_experiment(exp: Experiment, where: str) -> tuple[Experiment, ExperimentPreprocessing]:
-    """The experiment with its `preprocess` applied (and removed), and a report of what was done."""
+    """The experiment with its `preprocess` applied (and removed), and a report of what was done.
+
+    Applied in this order: window, detrend (of inputs and outputs), decimate with the zero-phase
+    anti-alias filter.
+
+    Parameters
+    ----------
+    exp : Experiment
+        An experiment whose `preprocess` is set.
+    where : str
+        Field path of the experiment (e.g. ``experiments[0]``), named in the errors.
+
+    Returns
+    -------
+    experiment : Experiment
+        The preprocessed experiment, `preprocess` set to None.
+    report : ExperimentPreprocessing
+        Samples in and out, the window, the removed trends and the decimation with its filter.
+
+    Raises
+    ------
+    ValueError
+        When `exp.preprocess` is None (a caller's error, not a user's).
+    DataError
+        When a series' length differs from the time grid's, the window keeps fewer than 2 samples,
+        a linear detrend meets given derivatives, or decimation meets non-uniform sampling, a record
+        shorter than the filter or missing samples; the field is named.
+    """
     spec = exp.preprocess
     if spec is None:   # `preprocess_experiments` passes such experiments through unchanged
         raise ValueError(f"{where} has no preprocess to apply")
@@ -121,7 +170,19 @@ def looks_piecewise_constant(u: np.ndarray) -> bool:
 
     A smooth signal sampled and converted to floats practically never repeats a value exactly; a
     digital controller's output updated every k-th sample repeats (k-1)/k of the time whatever its
-    levels. A signal held at the sampling rate itself repeats nothing and cannot be recognised."""
+    levels. A signal held at the sampling rate itself repeats nothing and cannot be recognised.
+
+    Parameters
+    ----------
+    u : numpy.ndarray
+        The input series, NaN where missing, shape (N,).
+
+    Returns
+    -------
+    bool
+        True when at least half the steps repeat the value exactly, or 30-50 % do and the signal has
+        at most 10 levels; False for fewer than 10 finite samples or a constant signal.
+    """
     u = u[np.isfinite(u)]
     span = float(np.ptp(u)) if u.size else 0.0
     if u.size < 10 or span == 0:
@@ -142,7 +203,19 @@ def _variation(values) -> float:
 
 
 def held_inputs(experiments: list[Experiment]) -> dict[str, tuple[bool, float]]:
-    """Per input: (looks piecewise constant in every record that has it, total variation/spread)."""
+    """Per input: (looks piecewise constant in every record that has it, total variation/spread).
+
+    Parameters
+    ----------
+    experiments : list of Experiment
+        The records.
+
+    Returns
+    -------
+    dict of str to tuple of (bool, float)
+        Per input name: whether it looks held in every record, and its total variation over its
+        spread summed over the records.
+    """
     held: dict[str, tuple[bool, float]] = {}
     for exp in experiments:
         for name, values in exp.inputs.items():
@@ -158,7 +231,22 @@ def choose_interpolation(held: dict[str, tuple[bool, float]]) -> tuple[str, dict
     One interpolation serves every input of a fit. Where held and smooth inputs are mixed, the one
     that misreads less is chosen: a held input read as a ramp and a smooth one read as held are
     both off by |Δu|·Δt/2 over an interval, the first at its switches only, the second everywhere;
-    so the total variation (over the spread) of the inputs each choice misreads decides."""
+    so the total variation (over the spread) of the inputs each choice misreads decides.
+
+    Parameters
+    ----------
+    held : dict of str to tuple of (bool, float)
+        As `held_inputs` returns.
+
+    Returns
+    -------
+    mode : str
+        ``"zoh"`` or ``"foh"``.
+    per_input : dict of str to str
+        The same mode for each input.
+    why : str
+        The reason, for the preprocessing report.
+    """
     steps = sorted(n for n, (h, _) in held.items() if h)
     smooth = sorted(n for n, (h, _) in held.items() if not h)
     if not steps or not smooth:
@@ -178,7 +266,20 @@ def choose_interpolation(held: dict[str, tuple[bool, float]]) -> tuple[str, dict
 
 
 def input_hints(experiments: list[Experiment], options: FitOptions) -> list[Hint]:
-    """A hint per input that looks piecewise constant while inputs are interpolated linearly."""
+    """A hint per input that looks piecewise constant while inputs are interpolated linearly.
+
+    Parameters
+    ----------
+    experiments : list of Experiment
+        The records.
+    options : FitOptions
+        The fit options; hints are given only when `input_interpolation` is ``"foh"``.
+
+    Returns
+    -------
+    list of Hint
+        One ``input_looks_held`` hint naming every such input, or none.
+    """
     if options.input_interpolation != "foh":
         return []
     held = sorted(name for name, (looks, _) in held_inputs(experiments).items() if looks)
@@ -193,7 +294,24 @@ def input_hints(experiments: list[Experiment], options: FitOptions) -> list[Hint
 
 def resolve_interpolation(request, experiments: list[Experiment]):
     """(request with 'auto' replaced by the chosen interpolation, per input, why) — unchanged and
-    the requested one per input when the request chose."""
+    the requested one per input when the request chose.
+
+    Parameters
+    ----------
+    request : pydantic.BaseModel
+        A request whose `options` has `input_interpolation`.
+    experiments : list of Experiment
+        The records whose inputs decide (estimation and validation).
+
+    Returns
+    -------
+    request : pydantic.BaseModel
+        A copy with the chosen interpolation, or the request itself.
+    per_input : dict of str to str
+        The interpolation of each input.
+    why : str or None
+        Why ``auto`` chose as it did; None when the request chose.
+    """
     options = request.options
     held = held_inputs(experiments)
     if options.input_interpolation != "auto":
@@ -205,7 +323,27 @@ def resolve_interpolation(request, experiments: list[Experiment]):
 
 def preprocess_experiments(experiments: list[Experiment], field: str = "experiments",
                            ) -> tuple[list[Experiment], list[ExperimentPreprocessing]]:
-    """Apply each experiment's `preprocess`; experiments without one pass unchanged."""
+    """Apply each experiment's `preprocess`; experiments without one pass unchanged.
+
+    Parameters
+    ----------
+    experiments : list of Experiment
+        The records.
+    field : str, optional
+        Field of the request holding them (``experiments`` or ``validation``), for the error paths.
+
+    Returns
+    -------
+    experiments : list of Experiment
+        The records, preprocessed where asked.
+    reports : list of ExperimentPreprocessing
+        One report per preprocessed record.
+
+    Raises
+    ------
+    DataError
+        As `preprocess_experiment`.
+    """
     out, reports = [], []
     for i, exp in enumerate(experiments):
         if exp.preprocess is None:
@@ -218,6 +356,20 @@ def preprocess_experiments(experiments: list[Experiment], field: str = "experime
 
 
 def preprocessing_report(reports: list[ExperimentPreprocessing], hints: list[Hint]) -> PreprocessingReport | None:
+    """The preprocessing report, or None when there is nothing to report.
+
+    Parameters
+    ----------
+    reports : list of ExperimentPreprocessing
+        Per-record reports.
+    hints : list of Hint
+        Hints on the data.
+
+    Returns
+    -------
+    PreprocessingReport or None
+        None when both lists are empty.
+    """
     return PreprocessingReport(experiments=reports, hints=hints) if reports or hints else None
 
 
@@ -226,6 +378,24 @@ def prepare_request(request):
     `input_interpolation: auto` resolved, report).
 
     Works for any request with `experiments`, `validation` (optional) and `options`.
+
+    Parameters
+    ----------
+    request : pydantic.BaseModel
+        A fit, simulate or similar request.
+
+    Returns
+    -------
+    request : pydantic.BaseModel
+        The prepared request (the same object when nothing changed).
+    report : PreprocessingReport or None
+        Per-record reports, hints, and the interpolation of each input with the reason when the
+        request's options have `input_interpolation`; else None when there is nothing to report.
+
+    Raises
+    ------
+    DataError
+        As `preprocess_experiment`, with ``experiments[i]`` or ``validation[i]`` in the field.
     """
     experiments, reports = preprocess_experiments(request.experiments, "experiments")
     update = {"experiments": experiments}

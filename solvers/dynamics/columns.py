@@ -52,6 +52,13 @@ class Columns:
 
     @property
     def compiled(self) -> bool:
+        """Whether the compiled sample loop is in use (False: CasADi's map evaluates).
+
+        Returns
+        -------
+        bool
+            True once the Function's compiled library has been loaded through ctypes.
+        """
         return self._driver is not None
 
     def __call__(self, *args, n: int, accumulate: bool = False) -> list[np.ndarray]:
@@ -119,7 +126,27 @@ class Columns:
 
 def nonzeros(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
     """The nonzeros of each output of `fn`, written by CasADi straight into numpy arrays (its
-    FunctionBuffer): no DM result to convert. Inputs: dense, one number per nonzero, column-major."""
+    FunctionBuffer): no DM result to convert. Inputs: dense, one number per nonzero, column-major.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The Function to evaluate.
+    args : list of numpy.ndarray
+        One array per input of `fn`, holding exactly `fn.nnz_in(i)` numbers (flattened column-major).
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One flat array per output of `fn`, of length `fn.nnz_out(i)`.
+
+    Raises
+    ------
+    ValueError
+        When an input holds a different number of values than its input's nonzeros.
+    RuntimeError
+        When the evaluation of `fn` fails.
+    """
     buf, run = fn.buffer()   # per call: a Function's buffer is not to be shared between threads
     args = [np.ascontiguousarray(a, dtype=float).ravel(order="F") for a in args]
     for i, a in enumerate(args):
@@ -137,7 +164,25 @@ def nonzeros(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
 
 def evaluate(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
     """`nonzeros` of a Function with dense outputs, each in its shape (converting a DM result took
-    as long as evaluating it: 9 ms for the 8000 × 16 Jacobian of seed 000's seat record)."""
+    as long as evaluating it: 9 ms for the 8000 × 16 Jacobian of seed 000's seat record).
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        A Function whose outputs are dense.
+    args : list of numpy.ndarray
+        One array per input, as for `nonzeros`.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One array per output, reshaped (column-major) to `fn.size_out(i)`.
+
+    Raises
+    ------
+    ValueError, RuntimeError
+        As `nonzeros`.
+    """
     return [flat.reshape(fn.size_out(i), order="F") for i, flat in enumerate(nonzeros(fn, args))]
 
 

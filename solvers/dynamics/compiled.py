@@ -95,15 +95,36 @@ _lock = threading.Lock()
 
 
 def mode() -> str:
+    """The compile policy from `GREYFIT_COMPILE`.
+
+    Returns
+    -------
+    str
+        ``"auto"``, ``"always"`` or ``"never"``; an unset or unknown value gives ``"auto"``.
+    """
     value = os.environ.get("GREYFIT_COMPILE", "auto").strip().lower()
     return value if value in ("auto", "always", "never") else "auto"
 
 
 def cache_dir() -> Path:
+    """The folder of the compiled libraries on disk.
+
+    Returns
+    -------
+    pathlib.Path
+        ``$GREYFIT_CACHE_DIR/compiled``, or ``~/.cache/greyfit/compiled`` when the variable is unset.
+    """
     return Path(os.environ.get("GREYFIT_CACHE_DIR") or Path.home() / ".cache" / "greyfit") / "compiled"
 
 
 def compiler() -> str | None:
+    """The C compiler found on PATH (``$CC``, default ``gcc``); the search is cached.
+
+    Returns
+    -------
+    str or None
+        Full path of the compiler, or None where none is found.
+    """
     return _which(os.environ.get("CC", "gcc"))
 
 
@@ -123,7 +144,21 @@ _keys: "OrderedDict[int, tuple[ca.Function, str]]" = OrderedDict()
 
 
 def function_key(fn: ca.Function) -> str:
-    """Hash of the Function's graph; remembered per Function object (serialising costs ~ms)."""
+    """Hash of the Function's graph; remembered per Function object (serialising costs ~ms).
+
+    The hash covers the serialised graph, the CasADi version, the compiler flags and the columns
+    driver, so a change to any of them builds a new library.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The Function to identify.
+
+    Returns
+    -------
+    str
+        The first 24 hex digits of the SHA-256 of that text.
+    """
     known = _keys.get(id(fn))
     if known is not None and known[0] is fn:
         return known[1]
@@ -136,7 +171,19 @@ def function_key(fn: ca.Function) -> str:
 
 
 def loaded(fn: ca.Function) -> ca.Function | None:
-    """The compiled Function of `fn` if this process has loaded it already (no policy weighing)."""
+    """The compiled Function of `fn` if this process has loaded it already (no policy weighing).
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The interpreted Function.
+
+    Returns
+    -------
+    casadi.Function or None
+        The loaded external Function (now marked most recently used), or None when it is not loaded,
+        the mode is ``never`` or there is no compiler.
+    """
     if mode() == "never" or compiler() is None:
         return None
     key = function_key(fn)
@@ -161,6 +208,21 @@ def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bo
     """(Function to use, whether it is compiled C) for `fn`, evaluated about `evaluations` times.
 
     Never raises for a missing compiler or a failed compile: the interpreted `fn` is returned.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The interpreted Function.
+    evaluations : float, optional
+        Expected number of evaluations; with the graph's size it decides whether compiling in the
+        foreground repays the compile (see `library`).
+
+    Returns
+    -------
+    function : casadi.Function
+        The compiled external Function, or `fn` itself.
+    is_compiled : bool
+        Whether `function` is compiled C.
     """
     ready = loaded(fn)
     if ready is not None:
@@ -173,7 +235,24 @@ def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bo
 
 def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
     """The compiled library of `fn` (built now, found on disk, or None while it is built in the
-    background / where nothing can be compiled), under the policy of `GREYFIT_COMPILE`."""
+    background / where nothing can be compiled), under the policy of `GREYFIT_COMPILE`.
+
+    In ``auto`` mode, the library is built now when the instructions of `fn` times `evaluations`
+    reach `FOREGROUND_WORK`; otherwise a background build is started (unless one is running or a
+    failed one is still backing off) and None is returned.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The interpreted Function.
+    evaluations : float, optional
+        Expected number of evaluations of `fn`.
+
+    Returns
+    -------
+    pathlib.Path or None
+        Path of the shared library, or None as described above (also when a foreground build fails).
+    """
     how = mode()
     if how == "never" or compiler() is None:
         return None
@@ -218,7 +297,20 @@ def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:
 
 def prune_disk_cache(folder: Path, keep: Path | None = None) -> int:
     """Delete the oldest libraries of `folder` until it holds at most `GREYFIT_CACHE_MAX_BYTES`,
-    sparing `keep` and any built in the last KEEP_RECENT_S. Returns how many were deleted."""
+    sparing `keep` and any built in the last KEEP_RECENT_S. Returns how many were deleted.
+
+    Parameters
+    ----------
+    folder : pathlib.Path
+        The cache folder holding the ``*.so`` libraries.
+    keep : pathlib.Path or None, optional
+        A library never to delete (the one just built).
+
+    Returns
+    -------
+    int
+        Number of libraries deleted (0 when the folder cannot be listed).
+    """
     try:
         entries = [(p.stat().st_mtime, p.stat().st_size, p) for p in folder.glob("*.so")]
     except OSError:

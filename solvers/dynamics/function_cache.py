@@ -15,6 +15,20 @@ class FunctionCache:
         self.items: OrderedDict[tuple, ca.Function] = OrderedDict()
 
     def get(self, key: tuple, build) -> ca.Function:
+        """The Function stored under `key`, built by `build()` on a miss; the oldest beyond `size` dropped.
+
+        Parameters
+        ----------
+        key : tuple
+            Identifies the derived Function (e.g. its kind and record length).
+        build : callable
+            No-argument callable returning the Function; called only on a miss.
+
+        Returns
+        -------
+        casadi.Function
+            The cached or newly built Function, now the most recently used.
+        """
         if key in self.items:
             self.items.move_to_end(key)
             return self.items[key]

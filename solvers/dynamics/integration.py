@@ -22,7 +22,25 @@ def _input_at(u0, u1, tau, interpolation: str):
 
 
 def make_step(cm: CompiledModel, options: FitOptions) -> ca.Function:
-    """Function step(x, u0, u1, p, t0, dt) -> x(t0 + dt), built once per model and options."""
+    """Function step(x, u0, u1, p, t0, dt) -> x(t0 + dt), built once per model and options.
+
+    Cached on the compiled model under the integrator, substeps and input interpolation; a stand-in
+    model (not a `CompiledModel`) gets a fresh one each call.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model (or a stand-in with the same interface).
+    options : FitOptions
+        Fit options; `integrator`, `substeps` and `input_interpolation` shape the step.
+
+    Returns
+    -------
+    casadi.Function
+        The one-interval step: the inputs at the interval's ends u0, u1, parameters p, start time t0
+        and interval length dt map the state x to the state at t0 + dt. For a discrete-time model,
+        the difference equation itself.
+    """
     if not isinstance(cm, CompiledModel):   # a stand-in (e.g. discovery's disturbed model)
         return _make_step(cm, options)
     key = ("step", options.integrator, options.substeps, options.input_interpolation)
@@ -95,5 +113,16 @@ INTEGRATORS: dict[str, Integrator] = {i.name: i for i in (
 
 
 def integrator_of(options: FitOptions) -> Integrator:
-    """The record of the integrator `options` name."""
+    """The record of the integrator `options` name.
+
+    Parameters
+    ----------
+    options : FitOptions
+        Fit options; `integrator` names the integrator.
+
+    Returns
+    -------
+    Integrator
+        Its entry in `INTEGRATORS` (whether it is fixed-step and symbolic, and its step builder).
+    """
     return INTEGRATORS[options.integrator]

@@ -29,12 +29,44 @@ class CovarianceEstimate:
 
 def null_directions(eigval: np.ndarray, eigvec: np.ndarray, labels: list[str],
                     limit: float = CONDITION_LIMIT) -> list[str]:
-    """Every eigen-direction whose eigenvalue is below λmax/limit, as a named combination."""
+    """Every eigen-direction whose eigenvalue is below λmax/limit, as a named combination.
+
+    Parameters
+    ----------
+    eigval : numpy.ndarray
+        Eigenvalues of the (equilibrated) information matrix in ascending order, shape (n,).
+    eigvec : numpy.ndarray
+        The matching eigenvectors as columns, shape (n, n).
+    labels : list of str
+        Name of each variable (row of `eigvec`).
+    limit : float, optional
+        Condition limit: a direction is null when its eigenvalue is at most λmax / `limit`.
+
+    Returns
+    -------
+    list of str
+        One combination per null direction, as `combination` writes it.
+    """
     top = max(float(eigval[-1]), 1e-300)
     return [combination(eigvec[:, k], labels) for k in range(eigval.size) if eigval[k] <= top / limit]
 
 
 def combination(vector: np.ndarray, labels: list[str]) -> str:
+    """A direction written as its largest terms, e.g. ``+0.71*k -0.70*c``.
+
+    Parameters
+    ----------
+    vector : numpy.ndarray
+        Direction in the variables, shape (n,).
+    labels : list of str
+        Name of each variable.
+
+    Returns
+    -------
+    str
+        Up to six terms with |coefficient| > 0.1, largest first; the name of the largest entry alone
+        when none exceeds 0.1.
+    """
     order = np.argsort(-np.abs(vector))
     terms = [f"{vector[i]:+.2f}*{labels[i]}" for i in order if abs(vector[i]) > 0.1][:6]
     return " ".join(terms) if terms else labels[int(order[0])]
@@ -49,17 +81,43 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
 
     Parameters
     ----------
-    jac : (ndata, ncols) Jacobian of the weighted residual w.r.t. the scaled decision variables;
+    jac : numpy.ndarray
+        (ndata, ncols) Jacobian of the weighted residual w.r.t. the scaled decision variables;
         the first `n_params` columns are parameters, the rest nuisance variables (initial states).
-    residual : weighted residual at the solution.
-    labels, values, scale : per column; values in physical units, physical = scale * scaled.
-    keep : columns to include (parameters on an active bound are left out, reported as such).
-    groups : the output (or equation) of each residual row, a non-negative integer. Each group gets
-        its own noise variance s_g² = r_gᵀr_g / (n_g (1 - p/n)) and the covariance is the sandwich (JᵀJ)⁻¹ JᵀSJ (JᵀJ)⁻¹,
-        S = diag(s_g²): the fit's weights (1/std of each output by default) need not match the
-        noise levels. With one group this is the usual σ²(JᵀJ)⁻¹.
-    sample_keys, experiment_keys, robust : with `robust`, the reported matrix is the HAC
-        (Newey-West) covariance of `solvers.robust_covariance`, the classical one kept beside it.
+    residual : numpy.ndarray
+        Weighted residual at the solution, shape (ndata,).
+    labels : list of str
+        Name of each column.
+    values : numpy.ndarray
+        Value of each column in physical units, shape (ncols,).
+    scale : numpy.ndarray
+        Scale of each column, physical = scale * scaled, shape (ncols,).
+    keep : numpy.ndarray
+        Boolean mask of the columns to include (parameters on an active bound are left out, reported
+        as such).
+    n_params : int
+        Number of leading columns that are parameters.
+    level : float, optional
+        Confidence level of the intervals (Student-t with ndata − nfree degrees of freedom).
+    groups : numpy.ndarray or None, optional
+        The output (or equation) of each residual row, a non-negative integer. Each group gets
+        its own noise variance s_g² = r_gᵀr_g / (n_g (1 - p/n)) and the covariance is the sandwich
+        (JᵀJ)⁻¹ JᵀSJ (JᵀJ)⁻¹, S = diag(s_g²): the fit's weights (1/std of each output by default) need
+        not match the noise levels. With one group this is the usual σ²(JᵀJ)⁻¹.
+    sample_keys, experiment_keys : numpy.ndarray or None, optional
+        Per row, the sample (increasing in time) and the experiment it belongs to; used with `robust`.
+    robust : bool, optional
+        With `robust` (and both keys given), the reported matrix is the HAC (Newey-West) covariance of
+        `solvers/inference/robust_covariance.py`, the classical one kept beside it.
+
+    Returns
+    -------
+    CovarianceEstimate
+        Covariance, standard errors and confidence intervals of the kept parameters in physical units,
+        with the condition number of the equilibrated information matrix. Where no covariance can be
+        given (non-finite Jacobian, no free variable, no degree of freedom, overflow, a (near-)singular
+        information matrix, a degenerate result) `matrix` is None and `note` says why; a singular
+        matrix also lists its `null_directions`.
     """
     cols = np.flatnonzero(keep)
     j = jac[:, cols]
@@ -132,5 +190,17 @@ def _intervals(cov: np.ndarray, cols, labels, values, level: float, dof: int):
 
 
 def correlation_from(cov: np.ndarray) -> np.ndarray:
+    """Correlation matrix of a covariance matrix.
+
+    Parameters
+    ----------
+    cov : numpy.ndarray
+        Covariance matrix with positive diagonal, shape (n, n).
+
+    Returns
+    -------
+    numpy.ndarray
+        cov[i, j] / (sd[i] sd[j]), shape (n, n).
+    """
     sd = np.sqrt(np.diag(cov))
     return cov / np.outer(sd, sd)

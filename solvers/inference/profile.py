@@ -51,6 +51,20 @@ class ProfileContext:
 
 
 def check_profile_names(names: list[str], labels: list[str]) -> None:
+    """Check that every name in `options.profile` is a free parameter of the fit.
+
+    Parameters
+    ----------
+    names : list of str
+        The requested parameter names (`options.profile`).
+    labels : list of str
+        The free parameters' labels (per-experiment copies as ``name[experiment]``).
+
+    Raises
+    ------
+    DataError
+        On the first name that is not a free parameter; names ``options.profile[k]``.
+    """
     for k, name in enumerate(names):
         if name not in labels:
             raise DataError(f"'{name}' is not a free parameter (free: {labels}); profile a free parameter "
@@ -65,7 +79,19 @@ def colour_adjustment(cov) -> dict[str, float]:
     faster than the information the data hold, and the profile interval is as narrow as the
     classical Wald interval (coverage 41-65 % measured in issue 22). Scaling the threshold by this
     ratio (an adjusted likelihood ratio, Chandler & Bate 2007) makes a quadratic profile's interval
-    the HAC interval, and keeps the profile's asymmetry elsewhere."""
+    the HAC interval, and keeps the profile's asymmetry elsewhere.
+
+    Parameters
+    ----------
+    cov : CovarianceEstimate
+        The fit's covariance; its `robust_bandwidth` is set when the HAC covariance is reported.
+
+    Returns
+    -------
+    dict of str to float
+        (se_HAC / se_classical)² per parameter with both standard errors finite and non-zero; empty
+        when the classical covariance is reported.
+    """
     if cov.robust_bandwidth is None:
         return {}
     out = {}
@@ -80,7 +106,30 @@ def profile_parameters(ctx: ProfileContext, names: list[str], labels: list[str],
                        stderr: dict[str, float | None],
                        adjustment: dict[str, float] | None = None) -> dict[str, ProfileInterval]:
     """Profile interval of each of `names`; `adjustment`: per name, the factor the threshold is
-    scaled by (`colour_adjustment`)."""
+    scaled by (`colour_adjustment`).
+
+    Parameters
+    ----------
+    ctx : ProfileContext
+        The problem, a warm solver, the NLP solution and cost, the parameter scales, the data and
+        variable counts, the confidence level and the CPU-time budget.
+    names : list of str
+        Parameters to profile; each must be in `labels`.
+    labels : list of str
+        Label of each scaled θ entry.
+    stderr : dict of str to float or None
+        Classical standard error per label (physical units); sets the first step, else 10 % of
+        max(|θ̂|, 1) in scaled units.
+    adjustment : dict of str to float or None, optional
+        Per name, the factor the threshold ½t²σ² is scaled by.
+
+    Returns
+    -------
+    dict of str to ProfileInterval
+        Per name: the interval ends (None where the profile stays below the threshold), the visited
+        values (physical units) and re-optimised costs, the threshold, notes and the adjustment used.
+        Without a degree of freedom or a finite cost, an empty profile with a note.
+    """
     adjustment = adjustment or {}
     dof = ctx.ndata - ctx.nvarys
     out = {}
@@ -191,10 +240,34 @@ def _refine(ctx: ProfileContext, i: int, inside, outside, delta: float):
 
 
 def run_profiles(problem, options, outcome, layout, ndata: int, nvarys: int, cov) -> dict | None:
-    """`result.profile` for `options.profile` (None when empty); called by `fit_model`."""
+    """`result.profile` for `options.profile` (None when empty); called by `fit_model`.
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+        The fit's NLP.
+    options : FitOptions
+        Fit options: `profile`, `confidence_level`, `max_cpu_time` and the solver settings.
+    outcome : NlpOutcome
+        The fit's NLP solution.
+    layout : ParameterLayout
+        The parameter layout (labels and scales of θ).
+    ndata : int
+        Number of residuals.
+    nvarys : int
+        Number of fitted variables.
+    cov : CovarianceEstimate
+        The fit's covariance: its classical standard errors set the first steps, its HAC ones the
+        threshold adjustment.
+
+    Returns
+    -------
+    dict of str to ProfileInterval or None
+        As `profile_parameters`; None when `options.profile` is empty.
+    """
     if not options.profile:
         return None
-    from greyfit.solvers.methods.shooting_curvature import make_warm_solver
+    from greyfit.solvers.methods.shooting.hybrid import make_warm_solver
     ctx = ProfileContext(problem, make_warm_solver(problem, options), np.asarray(outcome.w, dtype=float),
                          float(outcome.cost), layout.scale, ndata, nvarys, options.confidence_level,
                          options.max_cpu_time)

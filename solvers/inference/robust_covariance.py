@@ -19,7 +19,24 @@ MAX_RHO = 0.97   # an AR(1) coefficient near 1 makes the plug-in bandwidth explo
 
 
 def scores_by_sample(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray):
-    """Score s_t = J_tᵀ r_t summed over the rows that share a sample; keys sorted ascending."""
+    """Score s_t = J_tᵀ r_t summed over the rows that share a sample; keys sorted ascending.
+
+    Parameters
+    ----------
+    jac : numpy.ndarray
+        Weighted residual Jacobian, shape (rows, columns).
+    residual : numpy.ndarray
+        Weighted residual, shape (rows,).
+    sample_keys : numpy.ndarray
+        Integer sample key of each row.
+
+    Returns
+    -------
+    keys : numpy.ndarray
+        The distinct sample keys, ascending, shape (T,).
+    scores : numpy.ndarray
+        The score of each sample, shape (T, columns).
+    """
     products = jac * residual[:, None]
     if sample_keys.size and np.all(sample_keys[1:] >= sample_keys[:-1]):   # rows already in time order
         starts = np.flatnonzero(np.r_[True, sample_keys[1:] != sample_keys[:-1]])
@@ -40,7 +57,20 @@ def scores_by_sample(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndar
 
 
 def andrews_bandwidth(blocks: list[np.ndarray]) -> float:
-    """Andrews' AR(1) plug-in bandwidth for the Bartlett kernel, pooled over the score components."""
+    """Andrews' AR(1) plug-in bandwidth for the Bartlett kernel, pooled over the score components.
+
+    Parameters
+    ----------
+    blocks : list of numpy.ndarray
+        The score per experiment, each of shape (T_e, columns); blocks shorter than 3 samples do
+        not enter the AR(1) estimate.
+
+    Returns
+    -------
+    float
+        Bandwidth L in samples, at most half the total number of samples; 0 when no block is long
+        enough or no component has an AR(1) estimate.
+    """
     total = sum(b.shape[0] for b in blocks)
     used = [b for b in blocks if b.shape[0] >= 3]
     if not used:
@@ -65,10 +95,22 @@ def hac_meat(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray,
 
     Parameters
     ----------
-    jac, residual : weighted residual Jacobian (rows × columns) and residual at the solution.
-    sample_keys : integer per row, increasing with time inside an experiment; rows sharing a key
+    jac : numpy.ndarray
+        Weighted residual Jacobian at the solution, shape (rows, columns).
+    residual : numpy.ndarray
+        Weighted residual at the solution, shape (rows,).
+    sample_keys : numpy.ndarray
+        Integer per row, increasing with time inside an experiment; rows sharing a key
         (several outputs at one sample) are one observation of the score.
-    experiment_keys : integer per row, the experiment it belongs to.
+    experiment_keys : numpy.ndarray
+        Integer per row, the experiment it belongs to; lags never cross experiments.
+
+    Returns
+    -------
+    meat : numpy.ndarray
+        The long-run covariance Ω of the score, summed over experiments, shape (columns, columns).
+    bandwidth : float
+        The Andrews bandwidth L in samples (the Bartlett sum uses floor(L) lags).
     """
     keys, scores = scores_by_sample(jac, residual, sample_keys)
     if not experiment_keys.size or np.all(experiment_keys == experiment_keys[0]):   # one experiment

@@ -6,7 +6,20 @@ from statistics import NormalDist
 
 
 def student_t_quantile(q: float, dof: float) -> float:
-    """Quantile of Student's t (exact for 1 and 2 dof, Cornish-Fisher expansion above: <1e-4 rel. for dof ≥ 5)."""
+    """Quantile of Student's t (exact for 1 and 2 dof, Cornish-Fisher expansion above: <1e-4 rel. for dof ≥ 5).
+
+    Parameters
+    ----------
+    q : float
+        Probability, in (0, 1).
+    dof : float
+        Degrees of freedom.
+
+    Returns
+    -------
+    float
+        The q-quantile; NaN when `dof` ≤ 0.
+    """
     if dof <= 0:
         return math.nan
     if dof == 1:
@@ -22,7 +35,24 @@ def student_t_quantile(q: float, dof: float) -> float:
 
 
 def information_criteria(rss: float, ndata: int, nvarys: int) -> tuple[float, float]:
-    """(AIC, BIC) of a Gaussian least-squares fit, as lmfit reports them."""
+    """(AIC, BIC) of a Gaussian least-squares fit, as lmfit reports them.
+
+    Parameters
+    ----------
+    rss : float
+        Residual sum of squares (floored at 1e-300 before the logarithm).
+    ndata : int
+        Number of residuals.
+    nvarys : int
+        Number of fitted variables.
+
+    Returns
+    -------
+    aic : float
+        n log(rss/n) + 2 k.
+    bic : float
+        n log(rss/n) + log(n) k.
+    """
     rss = max(rss, 1e-300)
     chi = ndata * math.log(rss / ndata)
     return chi + 2 * nvarys, chi + math.log(ndata) * nvarys

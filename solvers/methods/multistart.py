@@ -22,7 +22,7 @@ import numpy as np
 from greyfit.schemas.fit import AlternativeOptimum, FitOptions, FitWarning
 from greyfit.solvers.inference.statistics import student_t_quantile
 from greyfit.solvers.methods.shooting import OutputErrorModel
-from greyfit.solvers.methods.shooting_curvature import make_solver
+from greyfit.solvers.methods.shooting.hybrid import make_solver
 from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
 from greyfit.solvers.nlp.solver import LeastSquaresSolver, NlpOutcome, solve_linear_least_squares

@@ -37,29 +37,75 @@ class CompiledModel:
     derived: dict[tuple, object] = field(default_factory=dict, init=False, repr=False, compare=False)
 
     def derive(self, key: tuple, build):
-        """What `build()` makes from this model (Functions, structure facts), built on first use."""
+        """What `build()` makes from this model (Functions, structure facts), built on first use.
+
+        Parameters
+        ----------
+        key : tuple
+            Names what is derived (e.g. ``("step", integrator, substeps, interpolation)``).
+        build : callable
+            No-argument callable making it; called only the first time `key` is asked for.
+
+        Returns
+        -------
+        object
+            The cached result of `build()`.
+        """
         if key not in self.derived:
             self.derived[key] = build()
         return self.derived[key]
 
     @property
     def nx(self) -> int:
+        """Number of states.
+
+        Returns
+        -------
+        int
+        """
         return len(self.states)
 
     @property
     def nu(self) -> int:
+        """Number of inputs.
+
+        Returns
+        -------
+        int
+        """
         return len(self.inputs)
 
     @property
     def np(self) -> int:
+        """Number of parameters (fixed and free) in the full physical parameter vector.
+
+        Returns
+        -------
+        int
+        """
         return len(self.parameters)
 
     @property
     def ny(self) -> int:
+        """Number of outputs.
+
+        Returns
+        -------
+        int
+        """
         return len(self.outputs)
 
     def equation_parameters(self) -> dict[str, set[str]]:
-        """Which parameters each state equation depends on, definitions expanded."""
+        """Which parameters each state equation depends on, definitions expanded.
+
+        Read from the sparsity of ∂f/∂p, computed once per model.
+
+        Returns
+        -------
+        dict of str to set of str
+            Per state name, the names of the parameters its equation depends on (a copy the caller may
+            change).
+        """
         deps = self.derive(("equation_parameters",), self._equation_parameters)
         return {s: set(v) for s, v in deps.items()}   # a copy: callers may change theirs
 
@@ -73,7 +119,19 @@ class CompiledModel:
 
 
 def guard_notes(cm: CompiledModel) -> list[FitWarning]:
-    """The info warning that roots and logarithms were guarded near 0 (none if there are none)."""
+    """The info warning that roots and logarithms were guarded near 0 (none if there are none).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model; `guarded` lists the guarded sub-expressions.
+
+    Returns
+    -------
+    list of FitWarning
+        One ``singular_derivative_guarded`` warning naming the expressions and the guard's epsilon,
+        or an empty list.
+    """
     if not cm.guarded:
         return []
     return [FitWarning(
@@ -97,6 +155,23 @@ def compile_model(model: Model) -> CompiledModel:
 
     A worker keeps the last models it compiled (keyed by their full JSON): a batch of fits of one
     model parses it once, and the Functions built from it (steps, compiled C) are found again.
+
+    Parameters
+    ----------
+    model : Model
+        The model as received.
+
+    Returns
+    -------
+    CompiledModel
+        The CasADi form: f(x, u, p, t), h(x, u, p, t), the constraint function g(p) and the names;
+        the cached one when the same model was compiled before.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When an equation, output, definition or constraint does not parse or uses an unknown name,
+        or the model has no output; `field` names it.
     """
     key = model.model_dump_json()
     if key in _COMPILED:

@@ -20,10 +20,30 @@ def compile_constraints(texts: list[str], env: Mapping[str, object], allowed: se
 
     Parameters
     ----------
-    texts : the constraint texts; errors name ``{field}[i]``.
-    env : names -> CasADi expressions or numbers, as for `to_casadi`.
-    allowed : the names a constraint may use (parameters, constants, parameter-only definitions).
-    forbidden : symbols a constraint must not depend on once definitions are expanded (x, u, t).
+    texts : list of str
+        The constraint texts; errors name ``{field}[i]``.
+    env : Mapping
+        Names -> CasADi expressions or numbers, as for `to_casadi`.
+    allowed : set of str
+        The names a constraint may use (parameters, constants, parameter-only definitions).
+    field : str
+        Field path of the constraint list, e.g. ``model.constraints``.
+    forbidden : casadi.SX or None, optional
+        Symbols a constraint must not depend on once definitions are expanded (x, u, t).
+
+    Returns
+    -------
+    g : list of casadi.SX
+        One expression per constraint, ≥ 0 (or = 0) where it holds: lhs − rhs for ``>``, ``>=``,
+        ``==``, rhs − lhs for ``<``, ``<=``.
+    equality : numpy.ndarray
+        Boolean per constraint, True for ``==``.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a text does not parse, is not a comparison (or is ``!=``), uses a name outside
+        `allowed`, or depends on `forbidden` symbols; names ``{field}[i]``.
     """
     g, equality = [], []
     for i, text in enumerate(texts):

@@ -20,18 +20,57 @@ SAMPLE_TIME_RTOL = 1e-6
 
 
 def is_discrete(cm: CompiledModel) -> bool:
+    """Whether the model is a discrete-time (difference equation) model.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+
+    Returns
+    -------
+    bool
+        True when `model.discrete` is set.
+    """
     return cm.model.discrete is not None
 
 
 def make_discrete_step(cm: CompiledModel) -> ca.Function:
-    """step(x, u0, u1, p, t0, dt) -> f(x, u0, p, t0): the same signature as the ODE integrators."""
+    """step(x, u0, u1, p, t0, dt) -> f(x, u0, p, t0): the same signature as the ODE integrators.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        A compiled discrete-time model.
+
+    Returns
+    -------
+    casadi.Function
+        The step; `u1` and `dt` are accepted and unused.
+    """
     x, u0, u1 = ca.SX.sym("x", cm.nx), ca.SX.sym("u0", cm.nu), ca.SX.sym("u1", cm.nu)
     p, t0, dt = ca.SX.sym("p", cm.np), ca.SX.sym("t0"), ca.SX.sym("dt")
     return ca.Function("step", [x, u0, u1, p, t0, dt], [cm.rhs(x, u0, p, t0)])
 
 
 def check_sample_time(cm: CompiledModel, data: list[ExperimentData]) -> None:
-    """Every experiment must be sampled at exactly the model's Ts."""
+    """Every experiment must be sampled at exactly the model's Ts.
+
+    Does nothing for a continuous-time model.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The prepared experiments.
+
+    Raises
+    ------
+    DataError
+        When a time step differs from `model.discrete.sample_time` by more than `SAMPLE_TIME_RTOL`
+        relative; names ``experiments[e].time``.
+    """
     if cm.model.discrete is None:
         return
     ts = cm.model.discrete.sample_time
@@ -47,7 +86,18 @@ def check_sample_time(cm: CompiledModel, data: list[ExperimentData]) -> None:
 
 
 def delay_sources(cm: CompiledModel) -> dict[int, tuple[str, int]]:
-    """State index -> ('state' | 'input', index) for states whose equation is a plain name."""
+    """State index -> ('state' | 'input', index) for states whose equation is a plain name.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+
+    Returns
+    -------
+    dict of int to tuple of (str, int)
+        For each delay state, whether its source is a state or an input, and the source's index.
+    """
     out = {}
     for i, s in enumerate(cm.states):
         node = parse(cm.model.equations[s], f"equations.{s}")
@@ -59,7 +109,29 @@ def delay_sources(cm: CompiledModel) -> dict[int, tuple[str, int]]:
 
 
 def state_series(cm: CompiledModel, d: ExperimentData, e: int) -> np.ndarray:
-    """(nx, N) states: measured directly, or delay states rebuilt by shifting their source."""
+    """(nx, N) states: measured directly, or delay states rebuilt by shifting their source.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        A compiled discrete-time model.
+    d : ExperimentData
+        The prepared experiment.
+    e : int
+        Index of the experiment, for the error's field path.
+
+    Returns
+    -------
+    numpy.ndarray
+        State series, shape (nx, N); NaN where a measurement is missing and at the first sample of a
+        delay state.
+
+    Raises
+    ------
+    DataError
+        When a state is neither measured directly nor a delay of a known signal; names
+        ``experiments[e].outputs``.
+    """
     x = np.full((cm.nx, d.n), np.nan)
     known = set()
     for out, state in cm.direct_outputs.items():
@@ -87,7 +159,29 @@ def state_series(cm: CompiledModel, d: ExperimentData, e: int) -> np.ndarray:
 
 
 def next_state_data(cm: CompiledModel, d: ExperimentData, e: int) -> tuple[np.ndarray, np.ndarray]:
-    """(x[k], x[k+1]) as (nx, N) arrays; x[k+1] of the last sample is NaN."""
+    """(x[k], x[k+1]) as (nx, N) arrays; x[k+1] of the last sample is NaN.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        A compiled discrete-time model.
+    d : ExperimentData
+        The prepared experiment.
+    e : int
+        Index of the experiment, for the error's field path.
+
+    Returns
+    -------
+    x : numpy.ndarray
+        States x[k], shape (nx, N), as `state_series`.
+    next : numpy.ndarray
+        States x[k+1], shape (nx, N).
+
+    Raises
+    ------
+    DataError
+        As `state_series`.
+    """
     x = state_series(cm, d, e)
     nxt = np.full_like(x, np.nan)
     nxt[:, :-1] = x[:, 1:]
@@ -100,6 +194,20 @@ def armax_start(model, data: list[ExperimentData]):
     At a = b = c = 0 the predictor's output is zero, so ∂ŷ/∂a_i = −y[k−i] and ∂ŷ/∂c_i = y[k−i] are
     collinear and the start tells nothing apart; the ARX estimate (c = 0) is the classical start of
     the prediction-error fit. Declared non-zero guesses and fixed parameters are kept.
+
+    Parameters
+    ----------
+    model : Model
+        The model; only an ARMAX template's model is changed.
+    data : list of ExperimentData
+        Prepared experiments; the measured output enters as the input ``<output>_measured``.
+
+    Returns
+    -------
+    Model
+        A copy with the ARX estimates (clipped into the bounds) as the values of the free a, b
+        parameters declared at 0; `model` itself when it is not ARMAX or the data are too few for
+        the regression.
     """
     tpl = model.template
     if tpl is None or tpl.kind != "armax":

@@ -52,6 +52,25 @@ class Token:
 
 
 def tokenize(text: str, where: str) -> list[Token]:
+    """Split an expression into number, name and operator tokens, ending with an ``end`` token.
+
+    Parameters
+    ----------
+    text : str
+        The expression, at most `MAX_LENGTH` characters.
+    where : str
+        Field path named in the errors (e.g. ``equations.x``).
+
+    Returns
+    -------
+    list of Token
+        The tokens with their 1-based columns.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When the text is too long or holds a character outside the grammar (the column is named).
+    """
     if len(text) > MAX_LENGTH:
         raise ModelDefinitionError(
             f"expression has {len(text)} characters, the limit is {MAX_LENGTH}; split it with definitions",
@@ -193,7 +212,26 @@ class _Parser:
 
 
 def parse(text: str, where: str) -> Node:
-    """Parse `text` into an AST; errors name `where` and the column."""
+    """Parse `text` into an AST; errors name `where` and the column.
+
+    Parameters
+    ----------
+    text : str
+        The expression, in the grammar of this module.
+    where : str
+        Field path named in the errors.
+
+    Returns
+    -------
+    Node
+        The AST as nested tuples: ``("num", value)``, ``("name", name, column)``, ``("neg", child)``,
+        ``("bin" | "cmp", op, left, right)``, ``("call", function, args, column)``.
+
+    Raises
+    ------
+    ModelDefinitionError
+        On a syntax error, an unknown function, a wrong argument count or nesting beyond `MAX_DEPTH`.
+    """
     return _Parser(text, where).parse()
 
 
@@ -232,6 +270,18 @@ def _postorder(node: Node, combine: Callable):
 
 
 def names_in(node: Node) -> set[str]:
+    """Every name an AST refers to (variables, parameters, constants).
+
+    Parameters
+    ----------
+    node : Node
+        An AST from `parse`.
+
+    Returns
+    -------
+    set of str
+        The names of its ``name`` nodes (function names are not included).
+    """
     found: set[str] = set()
     stack = [node]
     while stack:
@@ -332,6 +382,28 @@ def to_casadi(node: Node, env: Mapping[str, object], where: str, guards: list[st
     Sub-expressions of numbers only are folded to numbers (and refused if not finite and real).
     With a list `guards`, roots and logarithms of non-constant arguments are guarded near 0
     (`_guarded`) and each is recorded there as "<where>: <sub-expression>".
+
+    Parameters
+    ----------
+    node : Node
+        An AST from `parse`.
+    env : Mapping
+        Names -> CasADi expressions or numbers; ``pi`` and ``e`` are known besides.
+    where : str
+        Field path named in the errors.
+    guards : list of str or None, optional
+        Collects the guarded sub-expressions (appended to in place); None: no guard.
+
+    Returns
+    -------
+    casadi.SX or casadi.MX or float
+        The expression, or a number when `node` involves numbers only.
+
+    Raises
+    ------
+    ModelDefinitionError
+        On a name neither in `env` nor a constant, or a constant sub-expression that is not finite
+        and real.
     """
     def combine(current: Node, args: list):
         kind = current[0]
@@ -357,7 +429,25 @@ def to_casadi(node: Node, env: Mapping[str, object], where: str, guards: list[st
 
 
 def compile_expression(text: str, env: Mapping[str, object], where: str, guards: list[str] | None = None):
-    """Parse and compile in one go."""
+    """Parse and compile in one go.
+
+    Parameters
+    ----------
+    text : str
+        The expression.
+    env, where, guards
+        As in `to_casadi`.
+
+    Returns
+    -------
+    casadi.SX or casadi.MX or float
+        As `to_casadi`.
+
+    Raises
+    ------
+    ModelDefinitionError
+        As `parse` and `to_casadi`.
+    """
     return to_casadi(parse(text, where), env, where, guards)
 
 
@@ -376,7 +466,18 @@ def _number_text(value: float) -> str:
 
 
 def unparse(node: Node) -> str:
-    """AST back to grammar text (parenthesised where precedence needs it)."""
+    """AST back to grammar text (parenthesised where precedence needs it).
+
+    Parameters
+    ----------
+    node : Node
+        An AST from `parse`.
+
+    Returns
+    -------
+    str
+        The expression in the grammar of this module; it parses back to the same expression.
+    """
     def wrap(child: Node, text: str, prec: int) -> str:
         return f"({text})" if _precedence(child) < prec else text
 
@@ -402,7 +503,22 @@ def unparse(node: Node) -> str:
 
 
 def substitute(node: Node, name: str, replacement: Node) -> Node:
-    """Replace every occurrence of the name `name` by the AST `replacement`."""
+    """Replace every occurrence of the name `name` by the AST `replacement`.
+
+    Parameters
+    ----------
+    node : Node
+        The AST to rewrite (not changed in place).
+    name : str
+        The name to replace.
+    replacement : Node
+        The AST put in its place.
+
+    Returns
+    -------
+    Node
+        The rewritten AST.
+    """
     def combine(current: Node, kids: list) -> Node:
         kind = current[0]
         if kind == "name":

@@ -15,11 +15,32 @@ class DeclaresParameters(Protocol):
     """A model's declared parameters: an ODE `Model`, a transfer function or a linearised model."""
 
     @property
-    def parameters(self) -> Sequence[Parameter]: ...
+    def parameters(self) -> Sequence[Parameter]:
+        """The declared parameters, in declaration order.
+
+        Returns
+        -------
+        Sequence of Parameter
+            Each with its name, value, bounds and whether it is fixed or per experiment.
+        """
+        ...
 
 
 def nominal_scale(value: float, lower: float | None, upper: float | None) -> float:
-    """A scale that brings the parameter to O(1) for the solver."""
+    """A scale that brings the parameter to O(1) for the solver.
+
+    Parameters
+    ----------
+    value : float
+        The parameter's initial value.
+    lower, upper : float or None
+        Its bounds, None where there is none.
+
+    Returns
+    -------
+    float
+        |value| when non-zero, else the largest finite non-zero |bound|, else 1.
+    """
     if value != 0:
         return abs(value)
     finite = [abs(b) for b in (lower, upper) if b is not None and math.isfinite(b) and b != 0]
@@ -46,17 +67,66 @@ class ParameterLayout:
 
     @property
     def size(self) -> int:
+        """Number of entries of θ (free parameters and per-experiment copies).
+
+        Returns
+        -------
+        int
+        """
         return len(self.labels)
 
     def physical(self, theta_scaled: np.ndarray) -> np.ndarray:
+        """Physical values of the entries of θ.
+
+        Parameters
+        ----------
+        theta_scaled : numpy.ndarray
+            Scaled decision vector θ, shape (n_theta,).
+
+        Returns
+        -------
+        numpy.ndarray
+            θ times the scale, shape (n_theta,).
+        """
         return np.asarray(theta_scaled).ravel() * self.scale
 
     def full(self, e: int, theta_scaled):
-        """p_e as a numpy vector or a CasADi expression, depending on θ."""
+        """p_e as a numpy vector or a CasADi expression, depending on θ.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        theta_scaled : numpy.ndarray or casadi.MX or casadi.SX
+            Scaled decision vector θ, n_theta entries.
+
+        Returns
+        -------
+        numpy.ndarray or casadi expression
+            ``offset + matrix[e] @ θ``: the full physical parameter vector of experiment e, np entries.
+        """
         return self.offset + self.matrix[e] @ theta_scaled
 
 
 def build_layout(model: DeclaresParameters, experiment_names: list[str]) -> ParameterLayout:
+    """The layout of the free parameters of `model` over the experiments.
+
+    Each free parameter is one entry of θ, or one per experiment where it is `per_experiment`
+    (labelled ``name[experiment]``); fixed parameters enter as the constant offset.
+
+    Parameters
+    ----------
+    model : DeclaresParameters
+        Anything declaring `parameters` (an ODE model, a transfer function, a linearised model).
+    experiment_names : list of str
+        Names of the experiments, in order.
+
+    Returns
+    -------
+    ParameterLayout
+        Labels, scales, initial values and bounds (physical units) of θ, the fixed offset and one
+        (np, n_theta) matrix per experiment.
+    """
     names = [p.name for p in model.parameters]
     labels, base, exps, scale, init, lo, hi = [], [], [], [], [], [], [],
     offset = np.zeros(len(names))

@@ -37,7 +37,31 @@ def _affine(expr: ca.SX, sym: ca.SX) -> bool:
 
 
 def linear_form(cm: CompiledModel, layout: ParameterLayout, equations: list[int]) -> LinearForm:
-    """θ when the equations are affine in θ, else the LTI coefficients η = c(θ)."""
+    """θ when the equations are affine in θ, else the LTI coefficients η = c(θ).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    layout : ParameterLayout
+        Layout of the free parameters θ (the first experiment's map is used).
+    equations : list of int
+        Indices of the state equations the estimator uses.
+
+    Returns
+    -------
+    LinearForm
+        With ``mapped=False`` the model and layout unchanged; else a model whose parameters are the
+        θ-dependent coefficients ``c_<state>_<regressor>`` of the states, inputs and constant term
+        (started at their values for the initial θ), its layout, and the map θ -> (η, ∂η/∂θ).
+
+    Raises
+    ------
+    ModelDefinitionError
+        When the equations are neither affine in θ nor linear in the states and inputs
+        (``model.equations``), or have fewer θ-dependent coefficients than free parameters
+        (``model.parameters``).
+    """
     x, u, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("t")
     theta = ca.vertcat(*[ca.SX.sym(label) for label in layout.labels])   # physical free parameters
     p = ca.DM(layout.offset) + ca.DM(layout.matrix[0]) @ (theta / ca.DM(layout.scale))
@@ -143,6 +167,32 @@ def to_physical(form: LinearForm, eta: np.ndarray, cov_eta: np.ndarray | None, t
 
     `cov_eta` (M, nη, nη) or None; `weight_cov` is the covariance whose inverse weights the fit
     (the final one, so that every sample is mapped the same way); `theta_start` (nθ,) or (nθ, M).
+
+    Parameters
+    ----------
+    form : LinearForm
+        A mapped linear form (with its coefficient map).
+    eta : numpy.ndarray
+        Coefficient estimates, one column per sample, shape (nη, M).
+    cov_eta : numpy.ndarray or None
+        Their covariances, shape (M, nη, nη).
+    theta_start : numpy.ndarray
+        Start of the Gauss-Newton fit, shape (nθ,) or (nθ, M).
+    weight_cov : numpy.ndarray or None, optional
+        Covariance whose inverse weights the fit; when missing, not finite or ill-conditioned
+        (condition ≥ 1e14), the weight is diag(1/scale²) of the form's layout.
+
+    Returns
+    -------
+    theta : numpy.ndarray
+        Physical parameters per column, shape (nθ, M).
+    cov_theta : numpy.ndarray or None
+        Their covariances G Σ_η Gᵀ, shape (M, nθ, nθ); None without `cov_eta` or when CᵀWC is singular.
+
+    Raises
+    ------
+    TypeError
+        When `form` estimates θ itself (it has no coefficient map).
     """
     n_eta, m = eta.shape
     if weight_cov is not None and np.all(np.isfinite(weight_cov)) and np.linalg.cond(weight_cov) < 1e14:

@@ -35,7 +35,21 @@ class VaryingParameter:
     names: list[str]             # the expanded parameters, in order
 
     def basis(self, t) -> list:
-        """B_j(t) for CasADi or numpy t."""
+        """B_j(t) for CasADi or numpy t.
+
+        Piecewise constant: the indicator of each segment between knots; piecewise linear: the hat
+        function of each knot (the first and last held flat outside the knot range).
+
+        Parameters
+        ----------
+        t : casadi.SX or casadi.MX or numpy.ndarray or float
+            Time(s) to evaluate at.
+
+        Returns
+        -------
+        list
+            One basis value (or expression / array like `t`) per expanded parameter, in `names` order.
+        """
         k = self.knots
         fmin = ca.fmin if isinstance(t, (ca.SX, ca.MX)) else np.minimum
         fmax = ca.fmax if isinstance(t, (ca.SX, ca.MX)) else np.maximum
@@ -52,7 +66,20 @@ class VaryingParameter:
         return out
 
     def differences(self, v):
-        """Relative first differences (constant) or slope changes x span (linear) of the values v."""
+        """Relative first differences (constant) or slope changes x span (linear) of the values v.
+
+        Parameters
+        ----------
+        v : sequence
+            The expanded parameters' values (numbers or CasADi expressions), in `names` order; scaled
+            values make the differences relative to the guess.
+
+        Returns
+        -------
+        list
+            n − 1 first differences for piecewise constant; n − 2 changes of slope, each slope taken
+            over the whole knot span, for piecewise linear.
+        """
         if self.spec.kind == "piecewise_constant":
             return [v[j + 1] - v[j] for j in range(len(self.names) - 1)]
         span = self.knots[-1] - self.knots[0]
@@ -68,7 +95,19 @@ class TimeVaryingExpansion:
     n_samples: int
 
     def penalty(self, layout: ParameterLayout):
-        """Extra residual rows (θ scaled -> rows) for the total-variation terms, or None."""
+        """Extra residual rows (θ scaled -> rows) for the total-variation terms, or None.
+
+        Parameters
+        ----------
+        layout : ParameterLayout
+            Layout of the expanded parameters (their labels locate each varying parameter's values).
+
+        Returns
+        -------
+        callable or None
+            Maps the scaled θ (CasADi) to the rows √(2Wn)·Δ/(Δ² + ε²)^¼ of every parameter with a
+            total-variation regularisation of positive weight; None when there is none.
+        """
         parts = [(vp, [layout.labels.index(n) for n in vp.names]) for vp in self.varying
                  if vp.spec.regularization == "total_variation" and vp.spec.weight > 0]
         if not parts:
@@ -84,7 +123,20 @@ class TimeVaryingExpansion:
         return rows
 
     def difference_matrix(self, layout: ParameterLayout) -> tuple[np.ndarray, np.ndarray]:
-        """(D, c): the differences Δ = Dθ (θ scaled; they are linear in θ) and each row's weight W n."""
+        """(D, c): the differences Δ = Dθ (θ scaled; they are linear in θ) and each row's weight W n.
+
+        Parameters
+        ----------
+        layout : ParameterLayout
+            Layout of the expanded parameters.
+
+        Returns
+        -------
+        d : numpy.ndarray
+            Difference matrix, shape (n_differences, n_theta); (0, n_theta) without a penalty.
+        c : numpy.ndarray
+            Weight W·n of each row, shape (n_differences,).
+        """
         blocks, weights = [], []
         eye = np.eye(layout.size)
         for vp in self.varying:
@@ -105,6 +157,21 @@ class TimeVaryingExpansion:
         (JᵀJ + Dᵀ diag(c/√(Δ² + ε²)) D) θ = −Jᵀr₀; the problem is convex, so this converges to
         its optimum (from the unpenalised least-squares start). Returns None when a bound is
         violated (Ipopt then solves it) or there is no penalty.
+
+        Parameters
+        ----------
+        problem : LeastSquaresProblem
+            The fit's NLP, with a residual affine in the scaled θ.
+        layout : ParameterLayout
+            Layout of the expanded parameters.
+        max_iter : int, optional
+            Largest number of reweighting iterations.
+
+        Returns
+        -------
+        tuple of (NlpOutcome, int) or None
+            The outcome (status ``IRLS_Converged``, the penalised cost, the iterations done) and the
+            number of starts used (1); or None as above.
         """
         from greyfit.solvers.nlp.solver import NlpOutcome
         d, c = self.difference_matrix(layout)
@@ -132,6 +199,27 @@ class TimeVaryingExpansion:
 
     def trajectory(self, layout: ParameterLayout, theta: np.ndarray, cov_names: list[str],
                    cov: np.ndarray | None, times: np.ndarray) -> ParameterTrajectory:
+        """θ(t) with a ±2σ band of each time-varying parameter on the given times.
+
+        Parameters
+        ----------
+        layout : ParameterLayout
+            Layout of the expanded parameters.
+        theta : numpy.ndarray
+            Fitted expanded parameters in physical units, shape (n_theta,).
+        cov_names : list of str
+            Names of the rows and columns of `cov`.
+        cov : numpy.ndarray or None
+            Covariance of the fitted parameters (physical units); None: no band.
+        times : numpy.ndarray
+            Times to evaluate θ(t) at, shape (N,).
+
+        Returns
+        -------
+        ParameterTrajectory
+            Values and ±2σ bounds per parameter (bounds None where the covariance misses a value) and a
+            description of the expansion.
+        """
         values, lower, upper = {}, {}, {}
         for vp in self.varying:
             idx = [layout.labels.index(n) for n in vp.names]
@@ -159,7 +247,30 @@ def _knots(spec: TimeVarying, t0: float, t1: float) -> np.ndarray:
 
 
 def expand_time_varying(model: Model, cm: CompiledModel, data: list[ExperimentData]) -> TimeVaryingExpansion | None:
-    """The expanded model and compiled Functions, or None when no parameter varies."""
+    """The expanded model and compiled Functions, or None when no parameter varies.
+
+    Parameters
+    ----------
+    model : Model
+        The model; parameters with `time_varying` are expanded into ``<name>__<j>``.
+    cm : CompiledModel
+        Its compiled form.
+    data : list of ExperimentData
+        The experiments; their overall time span places the default knots.
+
+    Returns
+    -------
+    TimeVaryingExpansion or None
+        The model with expanded parameters, a compiled model whose equations see θ(t), the varying
+        parameters and the total number of samples; None when no parameter is time-varying.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When a time-varying parameter is fixed or per experiment, an expanded name is already a
+        parameter (``model.parameters[i].time_varying``), or a constraint involves a time-varying
+        parameter (``model.constraints``).
+    """
     declared = [(i, p) for i, p in enumerate(model.parameters) if p.time_varying is not None]
     if not declared:
         return None

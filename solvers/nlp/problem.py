@@ -53,7 +53,16 @@ class LeastSquaresProblem:
     _graph: "LeastSquaresProblem | None" = field(default=None, init=False, repr=False)
 
     def graph(self) -> "LeastSquaresProblem":
-        """This problem as a CasADi graph (itself unless it is a structured form); same w, bounds."""
+        """This problem as a CasADi graph (itself unless it is a structured form); same w, bounds.
+
+        The graph is built once on first use and cached; the problem's `penalty` is attached to it on
+        every call, since it is set after building (time-varying parameters).
+
+        Returns
+        -------
+        LeastSquaresProblem
+            `self` when no `graph_builder` is set, else the cached problem built by it.
+        """
         if self.graph_builder is None:
             return self
         if self._graph is None:
@@ -63,15 +72,52 @@ class LeastSquaresProblem:
 
     @cached_property
     def residual(self) -> ca.MX:
+        """Residual vector r(w) of the NLP, built on first use and cached.
+
+        Returns
+        -------
+        casadi.MX
+            Column of the residuals from `residual_builder`, with the `penalty` rows of the scaled θ
+            (the first `n_theta` entries of w) appended below when a penalty is set.
+        """
         r = self.residual_builder()
         return r if self.penalty is None else ca.vertcat(r, self.penalty(self.w[:self.n_theta]))
 
     def constraint_curvature(self, lam_g: ca.MX) -> ca.MX | None:
         """What the Gauss-Newton Hessian adds for the constraints (nlp.py): multiple shooting's
-        gap curvature (solvers/methods/shooting_curvature.py); None elsewhere (JᵀJ alone, as always)."""
+        gap curvature (solvers/methods/shooting/hybrid.py); None elsewhere (JᵀJ alone, as always).
+
+        Parameters
+        ----------
+        lam_g : casadi.MX
+            Symbolic multipliers of the constraints g, one per row of `g`.
+
+        Returns
+        -------
+        casadi.MX or None
+            The constraints' curvature as a symbolic (n_w, n_w) matrix, or None when the problem has no
+            `constraint_hessian`.
+        """
         return None if self.constraint_hessian is None else self.constraint_hessian(lam_g)
 
     def evaluate_jacobian(self, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Residual Jacobian and residuals evaluated numerically at a decision vector.
+
+        Uses the problem's cheaper `jacobian` callable where one is set, else differentiates the
+        residual graph with CasADi.
+
+        Parameters
+        ----------
+        w : numpy.ndarray
+            Decision vector, shape (n_w,).
+
+        Returns
+        -------
+        jac : numpy.ndarray
+            Jacobian dr/dw, shape (n_r, n_w).
+        res : numpy.ndarray
+            Residuals r(w), shape (n_r,).
+        """
         if self.jacobian is not None:
             return self.jacobian(w)
         fn = ca.Function("residual_jacobian", [self.w], [ca.jacobian(self.residual, self.w), self.residual])
@@ -80,7 +126,29 @@ class LeastSquaresProblem:
 
 
 def parameter_constraints(cm: CompiledModel, layout: ParameterLayout, theta: ca.MX):
-    """User constraints g(p) ≥ 0 (or = 0) applied to every experiment's parameter vector."""
+    """User constraints g(p) ≥ 0 (or = 0) applied to every experiment's parameter vector.
+
+    When no parameter is per-experiment, the constraints are applied once (all experiments share
+    the same parameter vector).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        Compiled model; its `constraint` function and `constraint_equality` mask are used.
+    layout : ParameterLayout
+        Maps the scaled decision θ to each experiment's full parameter vector.
+    theta : casadi.MX
+        Symbolic scaled parameter decision vector.
+
+    Returns
+    -------
+    g : list of casadi.MX
+        Constraint expressions, one per experiment (or one if all are shared); empty without constraints.
+    lo : list of numpy.ndarray
+        Lower bounds, zeros, one array per entry of `g`.
+    hi : list of numpy.ndarray
+        Upper bounds: 0 for equality constraints, +inf for inequalities, one array per entry of `g`.
+    """
     if cm.constraint is None:
         return [], [], []
     g, lo, hi = [], [], []
@@ -95,11 +163,46 @@ def parameter_constraints(cm: CompiledModel, layout: ParameterLayout, theta: ca.
 
 
 def theta_bounds(layout: ParameterLayout) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the scaled parameter decision vector θ.
+
+    Parameters
+    ----------
+    layout : ParameterLayout
+        Parameter layout holding physical `lower`, `upper` bounds and the `scale` of each entry of θ.
+
+    Returns
+    -------
+    lower : numpy.ndarray
+        Lower bounds divided by the scale, shape (n_theta,).
+    upper : numpy.ndarray
+        Upper bounds divided by the scale, shape (n_theta,).
+    """
     return layout.lower / layout.scale, layout.upper / layout.scale
 
 
 def output_weights(cm: CompiledModel, data: list[ExperimentData], options: FitOptions) -> np.ndarray:
-    """Weight per output: user value, else 1/std of the measured output over all experiments."""
+    """Weight per output: user value, else 1/std of the measured output over all experiments.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        Compiled model; gives the outputs' names and count.
+    data : list of ExperimentData
+        Prepared experiments; the finite measured values of each output are pooled across them.
+    options : FitOptions
+        Fit options; `output_weights` maps an output name to a user weight.
+
+    Returns
+    -------
+    numpy.ndarray
+        One weight per output, shape (ny,). An output with zero spread (or one sample) gets weight 1.
+
+    Raises
+    ------
+    DataError
+        When a user weight times the largest measured magnitude exceeds `WEIGHTED_LIMIT` (its squares
+        would overflow); names `options.output_weights.<output>`.
+    """
     w = np.ones(cm.ny)
     for j, name in enumerate(cm.outputs):
         values = np.concatenate([d.y[j][np.isfinite(d.y[j])] for d in data])
@@ -117,7 +220,21 @@ def output_weights(cm: CompiledModel, data: list[ExperimentData], options: FitOp
 
 
 def state_scales(cm: CompiledModel, data: list[ExperimentData]) -> np.ndarray:
-    """O(1) scaling for state variables from the range of directly measured states."""
+    """O(1) scaling for state variables from the range of directly measured states.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        Compiled model; `direct_outputs` maps an output to the state it measures directly.
+    data : list of ExperimentData
+        Prepared experiments; the finite measured values are pooled across them.
+
+    Returns
+    -------
+    numpy.ndarray
+        One scale per state, shape (nx,): the largest absolute measured value of a directly
+        measured state, else 1.
+    """
     scale = np.ones(cm.nx)
     for out, state in cm.direct_outputs.items():
         j, i = cm.outputs.index(out), cm.states.index(state)

@@ -15,7 +15,20 @@ class Solver(Protocol):
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None,
               ubw: np.ndarray | None = None) -> NlpOutcome:
-        """The outcome from start `w0` (bounds default to the problem's)."""
+        """The outcome from start `w0` (bounds default to the problem's).
+
+        Parameters
+        ----------
+        w0 : numpy.ndarray
+            Start decision vector, shape (n_w,).
+        lbw, ubw : numpy.ndarray or None, optional
+            Lower and upper bounds on w, shape (n_w,); None uses the problem's bounds.
+
+        Returns
+        -------
+        NlpOutcome
+            The solution, cost, solver status, success flag, iterations and wall time.
+        """
         ...
 
 

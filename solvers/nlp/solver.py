@@ -31,7 +31,7 @@ class LeastSquaresSolver:
     def __init__(self, problem: LeastSquaresProblem, options: FitOptions, curvature: bool = True,
                  ipopt: dict | None = None):
         """`curvature`: add the problem's constraint curvature to Gauss-Newton (multiple shooting);
-        `ipopt`: extra Ipopt options (solvers/methods/shooting_curvature.py)."""
+        `ipopt`: extra Ipopt options (solvers/methods/shooting/hybrid.py)."""
         self.problem = problem
         w, r = problem.w, problem.residual
         nlp = {"x": w, "f": 0.5 * ca.sumsqr(r), "g": problem.g}
@@ -63,14 +63,49 @@ class LeastSquaresSolver:
         self.residual = ca.Function("residual", [w], [r])
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None) -> NlpOutcome:
-        """From w0, within the problem's bounds or those given (a profile fixes one entry)."""
+        """From w0, within the problem's bounds or those given (a profile fixes one entry).
+
+        Parameters
+        ----------
+        w0 : numpy.ndarray
+            Start decision vector, shape (n_w,); clipped into the bounds.
+        lbw, ubw : numpy.ndarray or None, optional
+            Lower and upper bounds on w, shape (n_w,); None uses the problem's `lbw`/`ubw`.
+
+        Returns
+        -------
+        NlpOutcome
+            The Ipopt outcome; a failed evaluation is an unsuccessful outcome, not an exception.
+        """
         return run_ipopt(self.solver, w0, self.problem, lbw=lbw, ubw=ubw)
 
 
 def run_ipopt(solver: ca.Function, w0: np.ndarray, problem: LeastSquaresProblem,
               p: np.ndarray | None = None, lbw: np.ndarray | None = None,
               ubw: np.ndarray | None = None) -> NlpOutcome:
-    """One Ipopt solve from w0 (clipped into the bounds); an evaluation error is a failed outcome."""
+    """One Ipopt solve from w0 (clipped into the bounds); an evaluation error is a failed outcome.
+
+    Parameters
+    ----------
+    solver : casadi.Function
+        An `nlpsol` instance built over the problem.
+    w0 : numpy.ndarray
+        Start decision vector, shape (n_w,).
+    problem : LeastSquaresProblem
+        Gives the default variable bounds and the constraint bounds `lbg`, `ubg`.
+    p : numpy.ndarray or None, optional
+        Values of the NLP's parameters, for solvers built with a parameter vector.
+    lbw, ubw : numpy.ndarray or None, optional
+        Variable bounds, shape (n_w,); None uses the problem's.
+
+    Returns
+    -------
+    NlpOutcome
+        Solution `w`, cost ½‖r‖², Ipopt's return status, success (status in `SUCCESS_STATUSES`),
+        iteration count and wall time in seconds. When the solver raises a RuntimeError (e.g. CVODES
+        fails at the start), `w` is the clipped start, the cost NaN and the status
+        ``Evaluation_Failed: <reason>``.
+    """
     lbw = problem.lbw if lbw is None else lbw
     ubw = problem.ubw if ubw is None else ubw
     w0 = np.clip(w0, lbw, ubw)
@@ -97,6 +132,20 @@ def solve_linear_least_squares(problem: LeastSquaresProblem, options: FitOptions
     Returns None when the unconstrained optimum violates a bound or a constraint (Ipopt then
     solves the convex QP), and when the regressors are not finite or too large for the SVD (values
     near the float limits): Ipopt then ends the fit with a status that says so.
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+        A problem whose residual is affine in w; its Jacobian and residual at w = 0 give the
+        regressors A and offset b (r = A w + b).
+    options : FitOptions
+        Fit options (unused by the closed form; kept for the solver call signature).
+
+    Returns
+    -------
+    NlpOutcome or None
+        The least-squares solution with status ``Linear_Least_Squares`` and zero iterations, or None
+        as described above.
     """
     start = time.perf_counter()
     w = problem.w

@@ -41,12 +41,38 @@ class Simulation:
 
 
 def default_estimate_window(n: int, nx: int) -> int:
-    """A short leading window: 10 samples per state, at least 50, never more than the record."""
+    """A short leading window: 10 samples per state, at least 50, never more than the record.
+
+    Parameters
+    ----------
+    n : int
+        Number of samples in the record.
+    nx : int
+        Number of states.
+
+    Returns
+    -------
+    int
+        min(n, max(50, 10 nx)) samples.
+    """
     return int(min(n, max(50, 10 * nx)))
 
 
 def fixed_layout(p: np.ndarray, n_experiments: int) -> ParameterLayout:
-    """A layout with nothing free: every experiment's parameter vector is `p`."""
+    """A layout with nothing free: every experiment's parameter vector is `p`.
+
+    Parameters
+    ----------
+    p : numpy.ndarray
+        Physical parameter vector in declaration order, shape (np,).
+    n_experiments : int
+        Number of experiments sharing it.
+
+    Returns
+    -------
+    ParameterLayout
+        A layout with no free entry, `p` as its fixed base and an empty (np, 0) map per experiment.
+    """
     empty = np.zeros(0)
     return ParameterLayout([], [], [], empty, empty, empty, empty, np.asarray(p, dtype=float),
                            [np.zeros((p.size, 0)) for _ in range(n_experiments)], {})
@@ -57,6 +83,27 @@ def parameter_vector(model: Model, parameters: dict[str, float], experiment: str
 
     `parameters` holds declared names (``k``) or per-experiment estimates (``k[exp1]``, which win
     for experiment ``exp1``); a parameter given neither way keeps the model's declared value.
+
+    Parameters
+    ----------
+    model : Model
+        The model whose declared parameters give the order and the default values.
+    parameters : dict of str to float
+        Values by declared name or by ``name[experiment]`` label.
+    experiment : str
+        Name of the experiment the vector is for.
+
+    Returns
+    -------
+    numpy.ndarray
+        One value per declared parameter, shape (np,).
+
+    Raises
+    ------
+    DataError
+        When a label is not a parameter of the model, when a parameter has per-experiment values but
+        none for this experiment nor a shared one, or when a value is not finite; names
+        ``parameters.<label>``.
     """
     declared = {p.name for p in model.parameters}
     for label in parameters:
@@ -85,12 +132,35 @@ def estimate_initial_state(cm: CompiledModel, d: ExperimentData, p: np.ndarray, 
     Levenberg-Marquardt on the output-error residual with the fits' forward sensitivities
     (`sensitivity_jacobian`); starts from the first measured sample of directly measured states.
 
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    d : ExperimentData
+        The prepared experiment; only its first `window` samples are used.
+    p : numpy.ndarray
+        Physical parameter vector, shape (np,).
+    known : dict of int to float
+        Initial states already known, by state index; they stay fixed.
+    options : FitOptions
+        Integrator, substeps and input interpolation of the simulation.
+    window : int
+        Number of leading samples to fit on (capped at the record length).
+    where : str
+        Field path named in the errors (e.g. ``experiments[0].initial_state``).
+
     Returns
     -------
     x0 : ndarray
         The full initial state.
     note : str or None
         Set when the window leaves some initial state undetermined.
+
+    Raises
+    ------
+    DataError
+        When the window holds no measured output, or the model's outputs are not finite there with
+        these parameters; names `where`.
     """
     w = int(min(window, d.n))
     wd = ExperimentData(d.name, d.t[:w], d.u[:, :w], d.y[:, :w], dict(known), {})
@@ -173,6 +243,24 @@ def k_step_ahead(oem: OutputErrorModel, e: int, p: np.ndarray, states: np.ndarra
     The model restarts at every sample t-k from the measured states (directly measured states
     where the sample is present; the others, and gaps, from the free simulation) and runs k
     samples; the first k samples keep the free simulation.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model over the experiments.
+    e : int
+        Index of the experiment.
+    p : numpy.ndarray
+        Physical parameter vector, shape (np,).
+    states : numpy.ndarray
+        Free-run simulated states of the experiment, shape (nx, N).
+    k : int
+        Prediction horizon in samples, ≥ 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        Predicted outputs, shape (ny, N).
     """
     d, cm = oem.data[e], oem.cm
     pred_states = states.copy()
@@ -196,7 +284,32 @@ def simulate_arrays(model: Model, parameters: dict[str, float], experiments: lis
                     estimate_window: int | None = None, horizon: int | None = None,
                     provided_source: dict[str, str] | None = None,
                     cm: CompiledModel | None = None) -> list[Simulation]:
-    """The numeric core of `simulate_experiments` (see there); returns arrays per experiment."""
+    """The numeric core of `simulate_experiments` (see there); returns arrays per experiment.
+
+    Parameters
+    ----------
+    model, parameters, experiments, options, initial_states, estimate_window, horizon
+        As in `simulate_experiments`.
+    provided_source : dict of str to str or None, optional
+        Per experiment name, the `initial_state_source` reported for states given in
+        `initial_states` (default ``"provided"``; validation uses ``"contiguous"``).
+    cm : CompiledModel or None, optional
+        The compiled `model`, when the caller has it already.
+
+    Returns
+    -------
+    list of Simulation
+        One per experiment: parameters, initial state and its source, states (nx, N), outputs (ny, N),
+        the k-step predictions when `horizon` is set, and a note where the simulation diverged or the
+        initial state is undetermined.
+
+    Raises
+    ------
+    DataError
+        When `initial_states` names an unknown experiment (``initial_states.<name>``), on a bad
+        parameter (see `parameter_vector`), on a bad initial state, or when the experiments do not fit
+        the model.
+    """
     cm = cm or compile_model(model)
     data = prepare_experiments(experiments, cm, require_outputs=False)
     initial_states = initial_states or {}
@@ -232,6 +345,21 @@ def _finite_list(a: np.ndarray) -> list:
 
 
 def to_public(cm: CompiledModel, sim: Simulation) -> SimulatedExperiment:
+    """The schema object of one simulation; non-finite values become null.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model (names of states and outputs).
+    sim : Simulation
+        The numeric simulation.
+
+    Returns
+    -------
+    SimulatedExperiment
+        Time grid, states, outputs, initial state and its source, estimated states and window,
+        horizon and predictions, and the note.
+    """
     d = sim.data
     return SimulatedExperiment(
         name=d.name, time=d.t.tolist(),
@@ -282,7 +410,24 @@ def simulate_experiments(model: Model, parameters: dict[str, float], experiments
 
 
 def output_metrics(cm: CompiledModel, pairs: list[tuple[np.ndarray, np.ndarray]]) -> OutputMetrics:
-    """RMSE, fit % and NRMSE per output, pooled over (measured, simulated) pairs of (ny, N) arrays."""
+    """RMSE, fit % and NRMSE per output, pooled over (measured, simulated) pairs of (ny, N) arrays.
+
+    Only samples with a finite measurement count; a non-finite simulated value there makes the
+    error infinite. An output with no finite measurement is left out.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model (output names).
+    pairs : list of tuple of numpy.ndarray
+        (measured, simulated) arrays, each of shape (ny, N).
+
+    Returns
+    -------
+    OutputMetrics
+        Per output: RMSE, NRMSE = ‖r‖ / ‖y − ȳ‖ (NaN for a constant measurement) and
+        fit % = 100 (1 − NRMSE).
+    """
     metrics = OutputMetrics()
     for j, name in enumerate(cm.outputs):
         meas = np.concatenate([m[j] for m, _ in pairs])
@@ -301,7 +446,23 @@ def output_metrics(cm: CompiledModel, pairs: list[tuple[np.ndarray, np.ndarray]]
 
 
 def validation_from(cm: CompiledModel, sims: list[Simulation], traces: bool = False) -> ValidationResult:
-    """Per-experiment and pooled metrics of simulations against their measured outputs."""
+    """Per-experiment and pooled metrics of simulations against their measured outputs.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model.
+    sims : list of Simulation
+        The simulations, each holding its experiment's measured outputs.
+    traces : bool, optional
+        Also return each experiment's time grid and simulated outputs.
+
+    Returns
+    -------
+    ValidationResult
+        Pooled RMSE, fit % and NRMSE, and per experiment the same with its initial state, its source
+        and note.
+    """
     per = []
     for s in sims:
         m = output_metrics(cm, [(s.data.y, s.outputs)])
@@ -324,6 +485,21 @@ def validation_metrics(model: Model, parameters: dict[str, float], experiments: 
     Initial states as in `simulate_experiments`. Pooled metrics concatenate the experiments;
     `experiments` holds the per-record ones with the initial-state source. Samples used to
     estimate an initial state are included in the metrics (the window is short and reported).
+
+    Parameters
+    ----------
+    model, parameters, experiments, options, initial_states, estimate_window
+        As in `simulate_experiments`.
+
+    Returns
+    -------
+    ValidationResult
+        Pooled and per-experiment metrics (see `validation_from`).
+
+    Raises
+    ------
+    DataError
+        As `simulate_arrays`.
     """
     cm = compile_model(model)
     sims = simulate_arrays(model, parameters, experiments, options, initial_states, estimate_window, cm=cm)

@@ -68,7 +68,32 @@ def _contiguous_states(request: FitRequest, result: FitResult, cm: CompiledModel
 
 
 def validate_fit(request: FitRequest, result: FitResult, cm: CompiledModel | None = None) -> ValidationResult:
-    """Simulation metrics of the fitted model on `request.validation` (already preprocessed)."""
+    """Simulation metrics of the fitted model on `request.validation` (already preprocessed).
+
+    Validation records that continue an estimation record start from the state the fitted model
+    reached there and take over its per-experiment parameter estimates; the others start from their
+    own or estimated initial states.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request, its `validation` records already preprocessed.
+    result : FitResult
+        The fit's result (parameters and initial states).
+    cm : CompiledModel or None, optional
+        The compiled `request.model`, when the caller has it already.
+
+    Returns
+    -------
+    ValidationResult
+        Pooled and per-record metrics, with traces when `options.return_traces` is set.
+
+    Raises
+    ------
+    DataError
+        When a validation record needs a per-experiment parameter the fit did not give it
+        (``parameters.<name>``), or as `simulate_arrays`.
+    """
     cm = cm or compile_model(request.model)
     params = {k: v.value for k, v in result.parameters.items()}
     states, sources, parent = _contiguous_states(request, result, cm, params)

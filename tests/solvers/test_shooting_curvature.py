@@ -93,7 +93,7 @@ def test_nearly_non_smooth_model_falls_back_to_plain_gauss_newton():
     """Neither Gauss-Newton phase nor the curvature converges here; the hybrid keeps the best of
     its phases, and its last phase is the very plain Gauss-Newton run (same solver, same start,
     full max_iter), so it is never worse than a plain fit, on any machine."""
-    from greyfit.solvers.methods.shooting_curvature import (
+    from greyfit.solvers.methods.shooting.hybrid import (
         HybridShootingSolver,
         make_solver,
         plain_gauss_newton_solver,
@@ -122,7 +122,7 @@ def _burn_cpu(n: int) -> list:
 def test_hybrid_solver_gives_the_same_answer_on_a_loaded_machine():
     """Determinism, not timing: the same problem solved on a quiet machine and with two
     CPU-burning processes beside it gives the same iterate, bit for bit."""
-    from greyfit.solvers.methods.shooting_curvature import make_solver
+    from greyfit.solvers.methods.shooting.hybrid import make_solver
     problem, options, w0 = _tanh_problem()
     quiet = make_solver(problem, options).solve(w0)
     burners = _burn_cpu(2)
@@ -141,7 +141,7 @@ def test_hybrid_solver_gives_the_same_answer_on_a_loaded_machine():
 
 def test_cpu_limit_fails_the_solve_with_its_status():
     """max_cpu_time is a safety net: hit, it ends the solve not converged and says so."""
-    from greyfit.solvers.methods.shooting_curvature import CPU_LIMIT_STATUS, make_solver
+    from greyfit.solvers.methods.shooting.hybrid import CPU_LIMIT_STATUS, make_solver
     problem, options, w0 = _tanh_problem(max_cpu_time=0.02)
     out = make_solver(problem, options).solve(w0)
     assert out.status == CPU_LIMIT_STATUS and not out.success

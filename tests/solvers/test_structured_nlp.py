@@ -1,4 +1,4 @@
-"""The structured shooting NLP (solvers/methods/shooting_structured.py) evaluates the same f, g and
+"""The structured shooting NLP (solvers/methods/shooting/structured.py) evaluates the same f, g and
 derivatives as CasADi's own differentiation of the generic graph.
 
 Truth: `ca.jacobian` of the generic graph's residual and gaps. The case exercises what the block

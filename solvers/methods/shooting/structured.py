@@ -192,7 +192,7 @@ def _build_stages(oem) -> dict[str, ca.Function]:
 class _Blocks:
     """Named blocks of one parameter vector (the data)."""
 
-    def __init__(self):
+    def __init__(self) -> None:
         self.shapes: list[tuple[str, tuple[int, int]]] = []
         self.size = 0
 

@@ -61,20 +61,89 @@ class BatchFit(Protocol):
 
     def solve(self, starts: list[np.ndarray], options: FitOptions,
               cpu0: float) -> tuple[NlpOutcome, int, bool | None]:
-        """(best outcome, starts used, whether compiled C evaluated the model)."""
+        """(best outcome, starts used, whether compiled C evaluated the model).
+
+        Parameters
+        ----------
+        starts : list of numpy.ndarray
+            Physical parameter vectors, the user's guess first (`draw_starts`).
+        options : FitOptions
+            The request's options.
+        cpu0 : float
+            The process time the fit began at; its preparation counts against ``max_cpu_time``.
+
+        Returns
+        -------
+        outcome : NlpOutcome
+            The best outcome over the starts.
+        used : int
+            The number of starts that ran.
+        compiled : bool or None
+            Whether compiled C evaluated the model (None when not known).
+        """
         ...
 
     def jacobian(self, theta_s: np.ndarray, w: np.ndarray, x0s: list[dict[str, float]]) -> Jacobian:
+        """J and r at the solution, as the covariance needs them.
+
+        Parameters
+        ----------
+        theta_s : numpy.ndarray
+            The scaled free parameters at the solution, shape (n θ,).
+        w : numpy.ndarray
+            The NLP's full decision vector at the solution.
+        x0s : list of dict
+            Per experiment, state name -> initial value at the solution.
+
+        Returns
+        -------
+        Jacobian
+            The Jacobian, the weighted residual, each row's channel, and the columns' labels, values and scales.
+        """
         ...
 
     def channels(self, theta: np.ndarray, x0s: list[dict[str, float]], res: np.ndarray) -> Residuals:
+        """The unweighted residual and the measured signal per reported channel.
+
+        Parameters
+        ----------
+        theta : numpy.ndarray
+            The physical free parameters at the solution, shape (n θ,).
+        x0s : list of dict
+            Per experiment, state name -> initial value at the solution.
+        res : numpy.ndarray
+            The weighted residual at the solution (`Jacobian.res`).
+
+        Returns
+        -------
+        Residuals
+            Channel names and, per experiment, (measured, residual), each of shape (n channels, N).
+        """
         ...
 
     def initial_states(self, x0s: list[dict[str, float]]) -> dict[str, dict[str, float]]:
+        """The initial states to report, per experiment.
+
+        Parameters
+        ----------
+        x0s : list of dict
+            Per experiment, state name -> initial value at the solution.
+
+        Returns
+        -------
+        dict
+            Experiment name -> (state name -> initial value).
+        """
         ...
 
     def solver_details(self) -> dict:
-        """Fields of `SolverInfo` only this family knows."""
+        """Fields of `SolverInfo` only this family knows.
+
+        Returns
+        -------
+        dict
+            ``derivative_filter`` and ``linear_in_parameters``.
+        """
         ...
 
 
@@ -92,9 +161,52 @@ class EquationErrorFit:
     @classmethod
     def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
               options: FitOptions) -> "EquationErrorFit":
+        """Build the equation-error problem (`build_equation_error`).
+
+        Parameters
+        ----------
+        cm : CompiledModel
+            The compiled model; every state must be measured directly.
+        data : list of ExperimentData
+            The prepared experiments.
+        layout : ParameterLayout
+            The free parameters and their mapping to each experiment.
+        options : FitOptions
+            Derivative window and order, and input interpolation.
+
+        Returns
+        -------
+        EquationErrorFit
+            The built fit.
+
+        Raises
+        ------
+        DataError
+            When a state is not measured, no sample is usable, or no equation depends on a free parameter.
+        """
         return cls(build_equation_error(cm, data, layout, options), data, cm, layout)
 
     def solve(self, starts, options, cpu0):
+        """Solve by IRLS (affine residual with a TV penalty), the closed form (linear), or from every start.
+
+        Parameters
+        ----------
+        starts : list of numpy.ndarray
+            Physical parameter vectors, the user's guess first (`draw_starts`).
+        options : FitOptions
+            The request's options.
+        cpu0 : float
+            The process time the fit began at; its preparation counts against ``max_cpu_time``.
+
+        Returns
+        -------
+        outcome : NlpOutcome
+            The best outcome.
+        used : int
+            The number of starts that ran.
+        compiled : bool or None
+            Whether compiled C evaluated the model; None after IRLS.
+        """
         if self.affine_solve is not None:
             affine = self.affine_solve(self.problem, self.layout, self.eep.linear)
             if affine:
@@ -107,6 +219,22 @@ class EquationErrorFit:
         return outcome, used, is_c
 
     def jacobian(self, theta_s, w, x0s):
+        """J and r of the equation-error residual at the solution, one row group per used equation.
+
+        Parameters
+        ----------
+        theta_s : numpy.ndarray
+            The scaled free parameters at the solution, shape (n θ,).
+        w : numpy.ndarray
+            The NLP's full decision vector at the solution.
+        x0s : list of dict
+            Not used: equation error estimates no initial state.
+
+        Returns
+        -------
+        Jacobian
+            Rows grouped by equation, columns the free parameters (no extra columns).
+        """
         jac, res = self.problem.evaluate_jacobian(w)
         groups = np.concatenate([np.tile(np.arange(len(self.eep.equations)), ed.rows.size)
                                  for ed in self.eep.per_experiment])
@@ -114,7 +242,23 @@ class EquationErrorFit:
                         self.layout.scale, 0)
 
     def channels(self, theta, x0s, res):
-        """The solver's own weighted residual (measured − model), unweighted, per derivative."""
+        """The solver's own weighted residual (measured − model), unweighted, per derivative.
+
+        Parameters
+        ----------
+        theta : numpy.ndarray
+            Not used: the residual `res` is unweighted instead.
+        x0s : list of dict
+            Not used.
+        res : numpy.ndarray
+            The weighted residual at the solution (`Jacobian.res`).
+
+        Returns
+        -------
+        Residuals
+            Channels ``der(state)`` for the used equations; per experiment (measured derivative,
+            residual), NaN at the rows not used.
+        """
         eep, per, start = self.eep, [], 0
         neq = len(eep.equations)
         w = eep.weights[eep.equations][:, None]
@@ -130,11 +274,30 @@ class EquationErrorFit:
         return Residuals([f"der({self.cm.states[i]})" for i in eep.equations], per)
 
     def initial_states(self, x0s):
+        """The measured (or smoothed) states at each experiment's first usable row.
+
+        Parameters
+        ----------
+        x0s : list of dict
+            Not used.
+
+        Returns
+        -------
+        dict
+            Experiment name -> (state name -> value).
+        """
         per = self.eep.per_experiment
         return {d.name: {s: float(per[e].x[i, per[e].rows[0]]) for i, s in enumerate(self.cm.states)}
                 for e, d in enumerate(self.data)}
 
     def solver_details(self):
+        """The derivative filter's note and whether the residual is linear in the parameters.
+
+        Returns
+        -------
+        dict
+            ``derivative_filter`` (str or None) and ``linear_in_parameters`` (bool).
+        """
         return {"derivative_filter": self.eep.derivative_filter, "linear_in_parameters": self.eep.linear}
 
 
@@ -153,11 +316,51 @@ class OutputErrorFit:
     @classmethod
     def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
               options: FitOptions, shooting: Literal["single", "multiple"]) -> "OutputErrorFit":
+        """Build the output-error model and its single- or multiple-shooting problem.
+
+        Parameters
+        ----------
+        cm : CompiledModel
+            The compiled model.
+        data : list of ExperimentData
+            The prepared experiments.
+        layout : ParameterLayout
+            The free parameters and their mapping to each experiment.
+        options : FitOptions
+            The request's options (integrator, Hessian, weights, ...).
+        shooting : {"single", "multiple"}
+            One simulation per record, or nodes as decision variables with continuity constraints.
+
+        Returns
+        -------
+        OutputErrorFit
+            The built fit, keeping its builder for the exact-Hessian polish.
+        """
         oem = OutputErrorModel(cm, data, layout, options)
         builder = build_single_shooting if shooting == "single" else build_multiple_shooting
         return cls(oem, builder(oem), builder)
 
     def solve(self, starts, options, cpu0):
+        """Solve from every start; the best is polished with the exact Hessian when none converged.
+
+        Parameters
+        ----------
+        starts : list of numpy.ndarray
+            Physical parameter vectors, the user's guess first (`draw_starts`).
+        options : FitOptions
+            The request's options.
+        cpu0 : float
+            The process time the fit began at; its preparation counts against ``max_cpu_time``.
+
+        Returns
+        -------
+        outcome : NlpOutcome
+            The best outcome.
+        used : int
+            The number of starts that ran.
+        compiled : bool or None
+            Whether compiled C evaluated the model.
+        """
         # the exact form: the polish of a fit Gauss-Newton did not converge (multistart.py)
         self.run = solve_from_starts(self.problem, options, starts, False, cpu0,
                                      exact_form(self.builder, self.oem, self.problem))
@@ -165,7 +368,22 @@ class OutputErrorFit:
 
     def jacobian(self, theta_s, w, x0s):
         """Sensitivities of the simulated outputs at the solution: for multiple shooting the nodes
-        are eliminated this way (its gaps are zero there), free initial states become columns."""
+        are eliminated this way (its gaps are zero there), free initial states become columns.
+
+        Parameters
+        ----------
+        theta_s : numpy.ndarray
+            The scaled free parameters at the solution, shape (n θ,).
+        w : numpy.ndarray
+            The NLP's full decision vector at the solution.
+        x0s : list of dict
+            Per experiment, state name -> initial value at the solution.
+
+        Returns
+        -------
+        Jacobian
+            Columns the free parameters, then the free initial states (`n_extra` of them).
+        """
         oem, cm = self.oem, self.oem.cm
         theta = oem.layout.physical(theta_s)
         x0_free = [x0s[e][cm.states[i]] / oem.xscale[i] for e, f in enumerate(oem.free_x0) for i in f]
@@ -176,13 +394,48 @@ class OutputErrorFit:
                         np.concatenate([oem.layout.scale, x0_scale]), len(x0_free))
 
     def channels(self, theta, x0s, res):
+        """Simulate at the solution: residual (simulated − measured) per output.
+
+        Parameters
+        ----------
+        theta : numpy.ndarray
+            The physical free parameters at the solution, shape (n θ,).
+        x0s : list of dict
+            Per experiment, state name -> initial value at the solution.
+        res : numpy.ndarray
+            Not used: the residual is simulated again, unweighted.
+
+        Returns
+        -------
+        Residuals
+            The model's outputs; per experiment (measured, residual), and the simulated states.
+        """
         cm, data = self.oem.cm, self.oem.data
         sims = self.oem.simulate(theta, [np.array([x0s[e][s] for s in cm.states]) for e in range(len(data))])
         per = [(d.y, ys - d.y) for d, (_, ys) in zip(data, sims)]
         return Residuals(list(cm.outputs), per, [xs for xs, _ in sims])
 
     def initial_states(self, x0s):
+        """The initial states at the solution, per experiment.
+
+        Parameters
+        ----------
+        x0s : list of dict
+            Per experiment, state name -> initial value at the solution.
+
+        Returns
+        -------
+        dict
+            Experiment name -> (state name -> initial value).
+        """
         return {d.name: x0s[e] for e, d in enumerate(self.oem.data)}
 
     def solver_details(self):
+        """No derivative filter, no linearity flag: output error has neither.
+
+        Returns
+        -------
+        dict
+            ``derivative_filter`` and ``linear_in_parameters``, both None.
+        """
         return {"derivative_filter": None, "linear_in_parameters": None}

@@ -31,7 +31,33 @@ class EquationData:
 
 def equation_data(cm: CompiledModel, d: ExperimentData, e: int, options: FitOptions,
                   equations: list[int]) -> tuple[EquationData, str | None]:
-    """States from direct measurements; derivatives given, or by smoothing differentiation."""
+    """States from direct measurements; derivatives given, or by smoothing differentiation.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model; every state must be measured directly by an output.
+    d : ExperimentData
+        One experiment's samples (times, inputs, outputs and any given derivatives).
+    e : int
+        Index of the experiment, used in the field path of errors.
+    options : FitOptions
+        Derivative window and order, and the input interpolation (zoh or foh).
+    equations : list of int
+        Indices of the state equations that are fitted; only these need derivatives.
+
+    Returns
+    -------
+    data : EquationData
+        States, derivatives (or next samples in discrete time), inputs and the usable rows.
+    note : str or None
+        How the derivatives were obtained (smoothing filter, next sample), or None when all were given.
+
+    Raises
+    ------
+    DataError
+        When a state has no output equal to it, or no sample has every state and derivative present.
+    """
     if cm.model.discrete is not None:   # discrete time: x[k+1] takes the place of dx/dt
         from greyfit.solvers.model.discrete import next_state_data
         x, dx = next_state_data(cm, d, e)
@@ -75,6 +101,28 @@ def consistent(cm: CompiledModel, d: ExperimentData, x: np.ndarray, options: Fit
     must see the same average of x and u, with u held (zoh) or linear (foh) between samples as
     `input_interpolation` says. Otherwise an input held between samples biases the estimates by
     about half a sample, and any input that changes within the window by more.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model; every state is measured directly by an output.
+    d : ExperimentData
+        One experiment's samples.
+    x : numpy.ndarray
+        States, shape (nx, n samples); not used: the averages are formed from the raw outputs.
+    options : FitOptions
+        Derivative window and order, and `input_interpolation` (zoh or foh).
+    note : str
+        The derivative filter's description, extended in the returned note.
+
+    Returns
+    -------
+    states : numpy.ndarray
+        Kernel-averaged states, shape (nx, n samples).
+    inputs : numpy.ndarray
+        Kernel-averaged inputs, shape (nu, n samples) (the recorded inputs when the model has none).
+    note : str
+        `note` with the averaging appended.
     """
     state_to_output = {s: o for o, s in cm.direct_outputs.items()}
     raw = np.vstack([d.y[cm.outputs.index(state_to_output[s])] for s in cm.states])
@@ -139,6 +187,34 @@ class EquationErrorProblem:
 
 def build_equation_error(cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
                          options: FitOptions) -> EquationErrorProblem:
+    """Build the equation-error least-squares problem: residual ẋ_measured − f(x, u, θ), weighted per equation.
+
+    Equations without a free parameter are left out; each used equation is weighted by the inverse
+    standard deviation of its measured derivatives. When the equations are affine in θ the Jacobian is
+    formed once and reused.
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model; every state must be measured directly.
+    data : list of ExperimentData
+        The experiments.
+    layout : ParameterLayout
+        The free parameters (θ), their scaling and their mapping to each experiment's parameters.
+    options : FitOptions
+        Derivative window and order, and input interpolation.
+
+    Returns
+    -------
+    EquationErrorProblem
+        The least-squares problem, the used equations, their weights, the derivative filter note,
+        whether it is linear in θ, the per-experiment data and the per-sample residual columns.
+
+    Raises
+    ------
+    DataError
+        When no state equation depends on a free parameter, or from `equation_data`.
+    """
     deps = cm.equation_parameters()
     free = set(layout.base_names)
     # equations without a free parameter carry no information about θ; they are left out

@@ -35,7 +35,22 @@ MIN_ROWS_PER_PARAMETER = 20
 
 
 def hac_bandwidth(eep: EquationErrorProblem, discrete: bool, derivative_window: int) -> int:
-    """Samples over which one equation row's noise reaches: the delay states, or the derivative's window."""
+    """Samples over which one equation row's noise reaches: the delay states, or the derivative's window.
+
+    Parameters
+    ----------
+    eep : EquationErrorProblem
+        The equation-error problem (its first experiment gives the number of states).
+    discrete : bool
+        True for a discrete-time model (the number of states sets the reach).
+    derivative_window : int
+        Window of the smoothing differentiator in samples (continuous time).
+
+    Returns
+    -------
+    int
+        HAC bandwidth in samples: number of states + 2 (discrete) or derivative window + 2.
+    """
     nx = eep.per_experiment[0].x.shape[0]
     return nx + 2 if discrete else derivative_window + 2
 
@@ -48,6 +63,27 @@ def simulated_instruments(eep: EquationErrorProblem, cm, data, layout: Parameter
     measured state, gives states free of the measurement noise but close to the measured ones:
     instruments that correlate with the regressors and not with the noise in them (the refined
     instrumental variable idea). None when the simulation diverges.
+
+    Parameters
+    ----------
+    eep : EquationErrorProblem
+        The equation-error problem with its per-sample residual columns.
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The experiments, in the order of `eep.per_experiment`.
+    layout : ParameterLayout
+        Maps the scaled θ to each experiment's parameters.
+    w : numpy.ndarray
+        The least-squares estimate of the scaled θ, shape (n θ,).
+    options : FitOptions
+        Integration options for the simulation.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        Instruments, one row per residual row and one column per θ; None when the problem has no
+        per-sample columns or the simulation diverges (non-finite or `DIVERGED` times the measured states).
     """
     if eep.sample is None:
         return None
@@ -89,6 +125,26 @@ def instrumental_estimate(eep: EquationErrorProblem, w: np.ndarray, z: np.ndarra
 
     The covariance of the difference comes from its influence function A_IV⁻¹ z r_IV − A_LS⁻¹ j r_LS,
     so the noise common to both estimates cancels as it should.
+
+    Parameters
+    ----------
+    eep : EquationErrorProblem
+        The equation-error problem.
+    w : numpy.ndarray
+        The least-squares solution (scaled θ), shape (n θ,).
+    z : numpy.ndarray
+        Instruments, one row per residual row and one column per θ (`simulated_instruments`).
+    columns : numpy.ndarray
+        Boolean mask of the parameters not on a bound; only these move.
+    bandwidth : int
+        HAC bandwidth in samples per equation (`hac_bandwidth`).
+
+    Returns
+    -------
+    tuple of (numpy.ndarray, numpy.ndarray) or None
+        The IV estimate of the scaled θ (shape (n θ,)) and the HAC covariance of IV − LS over `columns`;
+        None when the row count does not match the residual, there are fewer than
+        `MIN_ROWS_PER_PARAMETER` rows per moving parameter, or the instruments are ill-conditioned.
     """
     z = z[:, columns]
     jac_ls, r_ls = eep.problem.evaluate_jacobian(w)
@@ -149,7 +205,31 @@ def errors_in_variables_warnings(eep: EquationErrorProblem, layout: ParameterLay
 
 def equation_error_bias_warnings(eep: EquationErrorProblem, cm, data, layout: ParameterLayout, w: np.ndarray,
                                  columns: np.ndarray, options) -> list[FitWarning]:
-    """The check as `fit_model` calls it (after the least-squares fit; `columns`: not on a bound)."""
+    """The check as `fit_model` calls it (after the least-squares fit; `columns`: not on a bound).
+
+    Parameters
+    ----------
+    eep : EquationErrorProblem
+        The equation-error problem that was solved.
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The experiments.
+    layout : ParameterLayout
+        The free parameters and their scaling.
+    w : numpy.ndarray
+        The least-squares solution (scaled θ first; extra entries are ignored).
+    columns : numpy.ndarray
+        Boolean mask of the parameters not on a bound.
+    options : FitOptions
+        Integration options and the derivative window.
+
+    Returns
+    -------
+    list of FitWarning
+        One `errors_in_variables_bias` warning when the IV re-estimate moves a parameter significantly,
+        else empty (also when no parameter is free of its bounds, `w` is not finite, or there are no instruments).
+    """
     w = np.asarray(w, float)[:layout.size]
     if not np.any(columns) or not np.all(np.isfinite(w)):
         return []

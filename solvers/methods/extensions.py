@@ -27,18 +27,64 @@ class BatchExtensions:
     note: str | None
 
     def attach(self, problem, layout: ParameterLayout) -> None:
-        """Add the total-variation rows to the problem (before it is solved)."""
+        """Add the total-variation rows to the problem (before it is solved).
+
+        Parameters
+        ----------
+        problem : LeastSquaresProblem
+            The fit's NLP; its `penalty` is set when time-varying parameters are declared.
+        layout : ParameterLayout
+            Layout of the (expanded) parameters.
+
+        Returns
+        -------
+        None
+        """
         if self.varying is not None:
             problem.penalty = self.varying.penalty(layout)
 
     def solve_affine(self, problem, layout: ParameterLayout, affine: bool):
-        """(outcome, starts) by IRLS when the residual is affine and a TV penalty is declared, else None."""
+        """(outcome, starts) by IRLS when the residual is affine and a TV penalty is declared, else None.
+
+        Parameters
+        ----------
+        problem : LeastSquaresProblem
+            The fit's NLP.
+        layout : ParameterLayout
+            Layout of the (expanded) parameters.
+        affine : bool
+            True when the residual is affine in the scaled θ.
+
+        Returns
+        -------
+        tuple of (NlpOutcome, int) or None
+            The IRLS outcome and the number of starts used; None when the residual is not affine,
+            no time-varying parameter is declared, or IRLS declines (a bound violated, no penalty).
+        """
         if not affine or self.varying is None:
             return None
         return self.varying.solve_affine(problem, layout)
 
     def finish(self, result: FitResult, layout: ParameterLayout, theta: np.ndarray, cov) -> FitResult:
-        """Trajectory of the time-varying parameters and the prefilter note."""
+        """Trajectory of the time-varying parameters and the prefilter note.
+
+        Parameters
+        ----------
+        result : FitResult
+            The fit's result; changed in place.
+        layout : ParameterLayout
+            Layout of the (expanded) parameters.
+        theta : numpy.ndarray
+            The estimated free parameters.
+        cov : object
+            The covariance, with `names` and `matrix`, used for the trajectory's uncertainty.
+
+        Returns
+        -------
+        FitResult
+            `result`, with the prefilter note added to `solver.derivative_filter`, the IRLS message,
+            and the `trajectory` of the time-varying parameters when there are any.
+        """
         if self.note:
             result.solver.derivative_filter = "; ".join(x for x in (result.solver.derivative_filter, self.note) if x)
         if result.solver.return_status == IRLS_STATUS:
@@ -51,6 +97,29 @@ class BatchExtensions:
 
 
 def prepare_batch(request: FitRequest, cm: CompiledModel, data: list[ExperimentData]) -> BatchExtensions:
+    """Apply the batch extensions before a fit: sample-time check, prefilter, ARMAX start, time-varying expansion.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request (model, method and options).
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The prepared experiments.
+
+    Returns
+    -------
+    BatchExtensions
+        The (possibly expanded) compiled model, the (possibly prefiltered) data, the model the layout
+        is built from, the time-varying expansion or None, and the prefilter note or None.
+
+    Raises
+    ------
+    DataError
+        When a prefilter is requested with an output-error method (``options.prefilter``), or a
+        discrete-time model's sample time does not match the data (``experiments[e].time``).
+    """
     if is_discrete(cm):
         check_sample_time(cm, data)
     note = None

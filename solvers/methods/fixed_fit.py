@@ -22,6 +22,25 @@ def fixed_parameter_result(request: FitRequest, cm: CompiledModel, data: list[Ex
     Initial states not given in the experiments are estimated on the whole record with the
     parameters fixed, as a fit would (they count in `nvarys`). Whatever the requested method, the
     metrics are output error (simulated outputs), since nothing is estimated from derivatives.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The fit request (method and options).
+    cm : CompiledModel
+        The compiled model.
+    data : list of ExperimentData
+        The prepared experiments.
+    layout : ParameterLayout
+        The layout, with every parameter fixed (its offset holds the values).
+    started : float
+        `time.perf_counter()` when the request started, for the reported wall time.
+
+    Returns
+    -------
+    FitResult
+        A successful result with the fixed parameters, no covariance, output-error metrics and
+        residual analysis, the (estimated) initial states, and traces when requested.
     """
     opts = request.options
     p = np.asarray(layout.offset, dtype=float)

@@ -47,6 +47,13 @@ class MultistartRun:
 
     @property
     def used(self) -> int:
+        """Number of starts that ran.
+
+        Returns
+        -------
+        int
+            The number of outcomes recorded, at least 1 (a closed-form solve counts as one).
+        """
         return max(len(self.outcomes), 1)
 
 
@@ -97,7 +104,22 @@ def _better(a: NlpOutcome, b: NlpOutcome | None) -> bool:
 
 def exact_form(build, oem, problem):
     """() -> `problem` built by `build` (single or multiple shooting) with the exact Hessian: the
-    structured form has no CasADi graph to take second derivatives of."""
+    structured form has no CasADi graph to take second derivatives of.
+
+    Parameters
+    ----------
+    build : callable
+        OutputErrorModel -> LeastSquaresProblem (the method's problem builder).
+    oem : OutputErrorModel
+        The fit's output-error model (its model, data, layout and options are reused).
+    problem : LeastSquaresProblem
+        The problem being solved; its `penalty` is carried over to the rebuilt one.
+
+    Returns
+    -------
+    callable
+        () -> LeastSquaresProblem built with ``hessian="exact"``; nothing is built until it is called.
+    """
     def make():
         exact = OutputErrorModel(oem.cm, oem.data, oem.layout, oem.options.model_copy(update={"hessian": "exact"}))
         rebuilt = build(exact)
@@ -116,6 +138,24 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
     with CVODES (second-order sensitivities) nor beyond POLISH_MAX_RESIDUALS residuals (the
     exact Hessian of a long graph takes long to build).
     `exact`: () -> the problem in a form with a graph (`exact_form`); else `problem.graph()`.
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+        The problem that was solved.
+    options : FitOptions
+        The request's options (Hessian, integrator, iteration and CPU limits).
+    run : MultistartRun
+        The multistart's outcomes; changed in place.
+    exact : callable, optional
+        () -> the problem with a CasADi graph (`exact_form`); None uses `problem.graph()`.
+
+    Returns
+    -------
+    None
+        `run.best` is replaced by the polished outcome (iterations added) and `run.polished` set when it
+        converges; when the polish runs out of CPU time, `run.best` keeps its iterate, not converged, with
+        that status.
     """
     best = run.best
     if best.success or options.hessian != "gauss_newton" or options.integrator != "rk4" \
@@ -133,7 +173,20 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
 
 
 def multistart_warnings(run: MultistartRun | None, agreement: "Agreement | None") -> list[FitWarning]:
-    """`multiple_optima` (suspect) and `polished_with_exact_hessian` (info) where they apply."""
+    """`multiple_optima` (suspect) and `polished_with_exact_hessian` (info) where they apply.
+
+    Parameters
+    ----------
+    run : MultistartRun or None
+        The multistart's outcomes (None: the fit was solved otherwise).
+    agreement : Agreement or None
+        The result of `multistart_agreement` (None: one start).
+
+    Returns
+    -------
+    list of FitWarning
+        The agreement's warnings, then `polished_with_exact_hessian` when the best was polished.
+    """
     out = list(agreement.warnings) if agreement is not None else []
     if run is not None and run.polished:
         out.append(FitWarning(

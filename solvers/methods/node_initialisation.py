@@ -21,7 +21,21 @@ DIVERGED = 1e12   # |state| taken as a run-away simulation
 
 
 def node_states(oem, theta_phys: np.ndarray) -> list[np.ndarray]:
-    """Per experiment, the guessed state at every sample (nx × N, physical units)."""
+    """Per experiment, the guessed state at every sample (nx × N, physical units).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The multiple-shooting output-error model; a divergence is noted in `oem.node_notes`.
+    theta_phys : numpy.ndarray
+        The start's physical parameter values, shape (n θ,).
+
+    Returns
+    -------
+    list of numpy.ndarray
+        One array per experiment, shape (nx, N): measured states from the gap-filled data, the others
+        from the simulation (0 from where it fails or diverges), known initial states in the first column.
+    """
     cm = oem.cm
     x0s = [oem.x0_guess(e) for e in range(len(oem.data))]
     failures = len(oem.simulation_failures)
@@ -61,7 +75,18 @@ def _note(oem, e: int, theta_phys: np.ndarray, states: list[int], time: float,
 
 
 def node_warnings(oem) -> list[FitWarning]:
-    """One `initial_simulation_diverged` warning per distinct note (informative, not a verdict)."""
+    """One `initial_simulation_diverged` warning per distinct note (informative, not a verdict).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel or None
+        The output-error model whose `node_notes` were filled by `node_states` (None: no model).
+
+    Returns
+    -------
+    list of FitWarning
+        One warning per distinct (experiment, note), empty when there are none.
+    """
     if oem is None:
         return []
     notes = list(dict.fromkeys(getattr(oem, "node_notes", [])))

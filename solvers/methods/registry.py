@@ -26,11 +26,36 @@ class BatchMethod(Protocol):
     """A method `fit_model` solves as one least-squares NLP over all records."""
 
     @property
-    def family(self) -> Family: ...
+    def family(self) -> Family:
+        """The kind of residual the method minimises.
+
+        Returns
+        -------
+        Family
+            'equation_error', 'output_error', 'online' or 'frequency'.
+        """
+        ...
 
     def build(self, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
               options: FitOptions) -> BatchFit:
-        """The method's problem, ready for the solver (see `solvers.methods.batch.BatchFit`)."""
+        """The method's problem, ready for the solver (see `solvers.methods.batch.BatchFit`).
+
+        Parameters
+        ----------
+        cm : CompiledModel
+            The compiled model.
+        data : list of ExperimentData
+            The prepared experiments.
+        layout : ParameterLayout
+            The free parameters, their scaling and their mapping to each experiment.
+        options : FitOptions
+            The request's options.
+
+        Returns
+        -------
+        BatchFit
+            The built problem with its solve, Jacobian and result hooks.
+        """
         ...
 
 
@@ -38,10 +63,29 @@ class OnlineMethod(Protocol):
     """A method that runs over one record sample by sample and returns its own `FitResult`."""
 
     @property
-    def family(self) -> Family: ...
+    def family(self) -> Family:
+        """The kind of residual the method minimises.
+
+        Returns
+        -------
+        Family
+            'equation_error', 'output_error', 'online' or 'frequency'.
+        """
+        ...
 
     def fit(self, request: FitRequest) -> FitResult:
-        """Estimate over the request's single experiment."""
+        """Estimate over the request's single experiment.
+
+        Parameters
+        ----------
+        request : FitRequest
+            The fit request, with one experiment.
+
+        Returns
+        -------
+        FitResult
+            The online estimator's result.
+        """
         ...
 
 
@@ -91,17 +135,55 @@ METHODS: dict[FitMethod, _EquationError | _OutputError | _Online | _Frequency] =
 
 
 def method_family(method: FitMethod | str) -> Family:
-    """'equation_error', 'output_error', 'online' or 'frequency' for a method or its name."""
+    """'equation_error', 'output_error', 'online' or 'frequency' for a method or its name.
+
+    Parameters
+    ----------
+    method : FitMethod or str
+        The method, or its value (e.g. ``"single_shooting"``).
+
+    Returns
+    -------
+    Family
+        The method's family.
+    """
     return METHODS[FitMethod(method)].family
 
 
 def simulates_outputs(method: FitMethod | str) -> bool:
-    """Whether the method's residual is a simulation's (output error), not a derivative's."""
+    """Whether the method's residual is a simulation's (output error), not a derivative's.
+
+    Parameters
+    ----------
+    method : FitMethod or str
+        The method, or its value.
+
+    Returns
+    -------
+    bool
+        True for single and multiple shooting.
+    """
     return method_family(method) == "output_error"
 
 
 def batch_method(method: FitMethod) -> BatchMethod:
-    """The batch implementation of `method` (TypeError for online and frequency methods)."""
+    """The batch implementation of `method` (TypeError for online and frequency methods).
+
+    Parameters
+    ----------
+    method : FitMethod
+        The method.
+
+    Returns
+    -------
+    BatchMethod
+        The entry that builds the method's least-squares problem.
+
+    Raises
+    ------
+    TypeError
+        When `method` is an online or frequency-response method (a programming error, not bad input).
+    """
     entry = METHODS[method]
     if isinstance(entry, (_EquationError, _OutputError)):
         return entry
@@ -109,6 +191,17 @@ def batch_method(method: FitMethod) -> BatchMethod:
 
 
 def online_method(method: FitMethod) -> OnlineMethod | None:
-    """The online implementation of `method`, None for batch and frequency methods."""
+    """The online implementation of `method`, None for batch and frequency methods.
+
+    Parameters
+    ----------
+    method : FitMethod
+        The method.
+
+    Returns
+    -------
+    OnlineMethod or None
+        The entry whose `fit` runs the online estimator; None for batch and frequency methods.
+    """
     entry = METHODS[method]
     return entry if isinstance(entry, _Online) else None

@@ -28,7 +28,21 @@ CURVATURE_ITERATIONS = 50   # then with it: near the optimum it converges in 5-3
 
 def make_solver(problem: LeastSquaresProblem, options: FitOptions) -> Solver:
     """The solver `fit_model` uses: the hybrid for multiple shooting, the structured form where the
-    problem has one (solvers/methods/shooting/structured.py), else plain Gauss-Newton."""
+    problem has one (solvers/methods/shooting/structured.py), else plain Gauss-Newton.
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+        The method's least-squares NLP.
+    options : FitOptions
+        The request's options (``hessian``, ``max_iter``, ``max_cpu_time``, ...).
+
+    Returns
+    -------
+    Solver
+        `HybridShootingSolver` for multiple shooting with the Gauss-Newton Hessian; otherwise the
+        problem's own (structured) solver when it has one, else a `LeastSquaresSolver`.
+    """
     shooting = problem.constraint_hessian is not None or problem.graph_builder is not None
     if not shooting or options.hessian != "gauss_newton":
         return problem.solver_factory() if problem.solver_factory is not None else LeastSquaresSolver(problem, options)
@@ -44,6 +58,20 @@ def plain_gauss_newton_solver(problem: LeastSquaresProblem, options: FitOptions,
     The two forms are the same NLP but not the same arithmetic: on a problem that does not
     converge their iterates drift apart (cost 2.5 vs 15.7 after 200 iterations on the tanh test),
     so the hybrid's fallback and the comparison in its test both use this one.
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+        The method's least-squares NLP.
+    options : FitOptions
+        The request's options (``hessian``, ``max_iter``, ``max_cpu_time``, ...).
+    max_iter : int, optional
+        Iteration limit; None keeps the request's ``max_iter``.
+
+    Returns
+    -------
+    Solver
+        The structured solver when the problem has one, else a `LeastSquaresSolver` without the curvature.
     """
     if problem.solver_factory is not None:
         return problem.solver_factory(max_iter=max_iter)
@@ -54,7 +82,21 @@ def plain_gauss_newton_solver(problem: LeastSquaresProblem, options: FitOptions,
 def make_warm_solver(problem: LeastSquaresProblem, options: FitOptions) -> Solver:
     """For re-optimisations that start next to an optimum (profile points): multiple shooting goes
     straight to the curvature phase, where Gauss-Newton would first circle a misfitting optimum and
-    could wander into a degenerate region (an iteration there took 30 s)."""
+    could wander into a degenerate region (an iteration there took 30 s).
+
+    Parameters
+    ----------
+    problem : LeastSquaresProblem
+        The method's least-squares NLP.
+    options : FitOptions
+        The request's options (``hessian``, ``max_iter``, ``max_cpu_time``, ...).
+
+    Returns
+    -------
+    Solver
+        For multiple shooting with the Gauss-Newton Hessian, a `LeastSquaresSolver` over the graph with
+        the gaps' curvature; otherwise `make_solver`'s choice.
+    """
     shooting = problem.constraint_hessian is not None or problem.graph_builder is not None
     if not shooting or options.hessian != "gauss_newton":
         return make_solver(problem, options)
@@ -115,6 +157,21 @@ class HybridShootingSolver:
         return self.plain
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None) -> NlpOutcome:
+        """Run the phases from `w0` and return the best (see the class docstring).
+
+        Parameters
+        ----------
+        w0 : numpy.ndarray
+            Start of the NLP's decision vector (scaled).
+        lbw, ubw : numpy.ndarray, optional
+            Bounds on the decision vector; None keeps the problem's.
+
+        Returns
+        -------
+        NlpOutcome
+            The best run (converged first, then the lower cost), with the iterations and wall time of all
+            phases summed; status ``Maximum_CpuTime_Exceeded`` and not converged when the CPU limit cut it.
+        """
         cpu0 = time.process_time()
         runs = [self.short.solve(w0, lbw, ubw)]
         self.phases, self.outcomes = ["gauss_newton"], runs

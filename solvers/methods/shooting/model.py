@@ -221,6 +221,23 @@ def _first_line(exc: Exception) -> str:
 
 
 def x0_reader(oem: OutputErrorModel, offset: int, stride_of):
+    """A function that reads each experiment's initial states from the NLP's decision vector.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (which initial states are known, their scales).
+    offset : int
+        Index in the decision vector where the experiments' entries begin.
+    stride_of : callable
+        int -> int: the position of experiment e's free initial states relative to `offset`.
+
+    Returns
+    -------
+    callable
+        w -> list of dict, per experiment state name -> initial value (physical units): the known
+        values as given, the free ones read from `w` and unscaled.
+    """
     def read(w: np.ndarray) -> list[dict[str, float]]:
         result = []
         for e, d in enumerate(oem.data):
@@ -245,6 +262,25 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
     evaluated by one mapped call: much cheaper than differentiating the whole MX graph, and the
     same quantity (the constrained multiple-shooting problem reduced to θ and x0). Where the
     structured formulation applies, the same recursion runs as one compiled pass instead.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model; a failure of the sensitivities is noted in `oem.simulation_failures`.
+    theta_s : numpy.ndarray
+        The scaled free parameters, shape (n θ,).
+    x0s : list of dict
+        Per experiment, state name -> initial value.
+
+    Returns
+    -------
+    jac : numpy.ndarray
+        Jacobian of the weighted residual, shape (rows, n θ + free initial states); NaN where the
+        sensitivities failed.
+    res : numpy.ndarray
+        The weighted residual (y_sim − y) at the measured samples, sample-major.
+    groups : numpy.ndarray
+        The output index of each row.
     """
     if shooting_structured.supports(oem, single=True):
         return shooting_structured.condensed_jacobian(oem, theta_s, x0s)

@@ -45,7 +45,20 @@ def _node_bounds(oem: OutputErrorModel, node_sets: list[np.ndarray]) -> tuple[li
 
 
 def build_multiple_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
-    """Nodes every `shooting_interval` samples; continuity gaps as equality constraints."""
+    """Nodes every `shooting_interval` samples; continuity gaps as equality constraints.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (compiled model, data, layout, options with ``shooting_interval``).
+
+    Returns
+    -------
+    LeastSquaresProblem
+        Decision vector [θ, every experiment's nodes] (scaled), known initial states fixed by bounds;
+        in the structured form (its own compiled solver, the graph built on demand) where
+        `structured.supports` it, else one CasADi graph with the gaps' curvature for the Hessian.
+    """
     cm, layout = oem.cm, oem.layout
     node_sets = [_node_indices(d.n, oem.options.shooting_interval) for d in oem.data]
     node_offsets = list(layout.size + np.cumsum([0] + [cm.nx * ns.size for ns in node_sets])[:-1])

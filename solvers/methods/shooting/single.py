@@ -14,6 +14,19 @@ from greyfit.solvers.nlp.problem import (
 
 
 def build_single_shooting(oem: OutputErrorModel) -> LeastSquaresProblem:
+    """Build the single-shooting NLP: decision vector [θ, free initial states] (scaled), residual y_sim − y.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (compiled model, data, layout, options, free initial states).
+
+    Returns
+    -------
+    LeastSquaresProblem
+        In the structured form (its own compiled solver) where `structured.supports` it, else over a
+        CasADi graph of the mapped simulation with the parameter constraints.
+    """
     nfree = sum(len(f) for f in oem.free_x0)
     lo, hi = theta_bounds(oem.layout)
     offsets = np.cumsum([0] + [len(f) for f in oem.free_x0])

@@ -38,6 +38,18 @@ def supports(oem, single: bool = False) -> bool:
     Gauss-Newton Hessian; an SX step (RK4 or discrete).
 
     `GREYFIT_STRUCTURED_SHOOTING=0` forces the generic graph (for benchmarks and diagnosis).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (options, model and data).
+    single : bool, optional
+        True for single shooting (any node interval applies).
+
+    Returns
+    -------
+    bool
+        Whether the structured formulation applies (and every experiment has at least 2 samples).
     """
     opts = oem.options
     return (os.environ.get("GREYFIT_STRUCTURED_SHOOTING", "1") != "0"
@@ -488,6 +500,20 @@ class StructuredSolver:
         self.nlp, self.data, self.problem, self.compiled = nlp, data, problem, compiled_c
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None):
+        """Run Ipopt on the structured NLP from `w0`.
+
+        Parameters
+        ----------
+        w0 : numpy.ndarray
+            Start of the decision vector (scaled).
+        lbw, ubw : numpy.ndarray, optional
+            Bounds on the decision vector; None keeps the problem's.
+
+        Returns
+        -------
+        NlpOutcome
+            Ipopt's outcome.
+        """
         from greyfit.solvers.nlp.solver import run_ipopt
         return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
 
@@ -499,14 +525,50 @@ def _constraint_copies(oem) -> int:
 
 
 def constraint_count(oem) -> int:
+    """Rows of the model's parameter constraints in the structured NLP.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its compiled model's constraint, layout and data).
+
+    Returns
+    -------
+    int
+        0 without a constraint; else its rows, once, or once per experiment when a parameter is per experiment.
+    """
     return _constraint_copies(oem) * (oem.cm.constraint_equality.size if oem.cm.constraint is not None else 0)
 
 
 def constraint_lower(oem) -> np.ndarray:
+    """Lower bounds of the parameter-constraint rows.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its compiled model's constraint, layout and data).
+
+    Returns
+    -------
+    numpy.ndarray
+        Zeros, shape (`constraint_count(oem)`,).
+    """
     return np.zeros(constraint_count(oem))
 
 
 def constraint_upper(oem) -> np.ndarray:
+    """Upper bounds of the parameter-constraint rows: 0 for an equality, +inf for an inequality.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its compiled model's constraint, layout and data).
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (`constraint_count(oem)`,); empty without a constraint.
+    """
     if oem.cm.constraint is None:
         return np.zeros(0)
     return np.tile(np.where(oem.cm.constraint_equality, 0.0, np.inf), _constraint_copies(oem))
@@ -514,7 +576,23 @@ def constraint_upper(oem) -> np.ndarray:
 
 def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> LeastSquaresProblem:
     """Give `problem` (bounds, guesses and readers of single or multiple shooting) the structured
-    solver, made when first asked for (after a time-varying penalty may have been attached)."""
+    solver, made when first asked for (after a time-varying penalty may have been attached).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+    problem : LeastSquaresProblem
+        The problem with its bounds, initial guess and readers; changed in place.
+    single : bool, optional
+        True for single shooting, False for multiple shooting with a node at every sample.
+
+    Returns
+    -------
+    LeastSquaresProblem
+        `problem`, its `solver_factory` set to make a (cached) `StructuredSolver`; the factory takes
+        optional ``max_iter`` and ``max_cpu_time`` in place of the request's.
+    """
     samples = sum(d.n for d in oem.data)
     structure = (single, tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
     o = oem.options
@@ -554,7 +632,26 @@ _JACOBIANS: "OrderedDict[tuple, tuple]" = OrderedDict()
 
 def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     """(J, r, output of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled), at
-    the measured samples: `shooting.sensitivity_jacobian` by one compiled pass per experiment."""
+    the measured samples: `shooting.sensitivity_jacobian` by one compiled pass per experiment.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+    theta_s : numpy.ndarray
+        The scaled free parameters, shape (n θ,).
+    x0s : list of dict
+        Per experiment, state name -> initial value (physical units).
+
+    Returns
+    -------
+    jac : numpy.ndarray
+        Jacobian of the weighted residual, shape (measured samples × outputs, n θ + free initial states).
+    res : numpy.ndarray
+        The weighted residual at the measured samples, sample-major.
+    groups : numpy.ndarray
+        The output index of each row.
+    """
     cm = oem.cm
     stages, _ = _stage_functions(oem, sum(d.n for d in oem.data), STAGES_CONDENSED)
     fns = tuple(stages[name].block for name in STAGES_CONDENSED)

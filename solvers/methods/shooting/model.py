@@ -50,7 +50,15 @@ class OutputErrorModel:
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
         """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once (compiled C
-        where the step is an SX expression and a compiler is present)."""
+        where the step is an SX expression and a compiler is present).
+
+        Returns
+        -------
+        step_sens : casadi.Function
+            (x, u0, u1, p, t0, dt) -> (x+, ∂x+/∂x, ∂x+/∂p).
+        out_sens : casadi.Function
+            (x, u, p, t) -> (y, ∂y/∂x, ∂y/∂p).
+        """
         if self._sensitivities is None:
             o = self.options
             step_sens, out_sens = self.cm.derive(
@@ -64,15 +72,47 @@ class OutputErrorModel:
         return self._sensitivities
 
     def simulator(self, n: int) -> ca.Function:
+        """The step accumulated over `n` intervals (cached per integrator settings and `n`).
+
+        Parameters
+        ----------
+        n : int
+            Number of intervals.
+
+        Returns
+        -------
+        casadi.Function
+            (x0, u0, u1, p, t0, dt), inputs stacked over the intervals -> states after each step (nx × n).
+        """
         o = self.options
         return self._maps.get(("sim", o.integrator, o.substeps, o.input_interpolation, n),
                               lambda: self.step.mapaccum("sim", n))
 
     def output_map(self, n: int) -> ca.Function:
+        """The output function mapped over `n` samples (cached).
+
+        Parameters
+        ----------
+        n : int
+            Number of samples.
+
+        Returns
+        -------
+        casadi.Function
+            (states, u, p, t), each stacked over the samples -> outputs (ny × n).
+        """
         return self._maps.get(("out", n), lambda: self.cm.output.map(n))
 
     def numeric_functions(self) -> tuple[Columns, Columns]:
-        """(step, output) evaluated on numpy columns: compiled C without copies where available."""
+        """(step, output) evaluated on numpy columns: compiled C without copies where available.
+
+        Returns
+        -------
+        step : Columns
+            The integrator step on numpy columns.
+        output : Columns
+            The output function on numpy columns.
+        """
         o = self.options
         samples = sum(d.n for d in self.data)
         return self._maps.get(("numeric", o.integrator, o.substeps, o.input_interpolation),
@@ -80,18 +120,68 @@ class OutputErrorModel:
                                        Columns(self.cm.output, 4 * samples, self._reused)))
 
     def step_inputs(self, d: ExperimentData, i0: int, i1: int):
-        """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked)."""
+        """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked).
+
+        Parameters
+        ----------
+        d : ExperimentData
+            The experiment.
+        i0, i1 : int
+            First interval and one past the last.
+
+        Returns
+        -------
+        u0, u1 : numpy.ndarray
+            Inputs at the start and end of each interval, shape (nu, i1 − i0).
+        t0, dt : numpy.ndarray
+            Start time and length of each interval, shape (1, i1 − i0).
+        """
         return d.u[:, i0:i1], d.u[:, i0 + 1:i1 + 1], d.t[i0:i1][None, :], np.diff(d.t[i0:i1 + 1])[None, :]
 
     def trajectory(self, e: int, x0, p):
-        """States at every sample of experiment e from x0 (nx × N)."""
+        """States at every sample of experiment e from x0 (nx × N).
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        x0 : casadi.MX or numpy.ndarray
+            Initial state, shape (nx,).
+        p : casadi.MX or numpy.ndarray
+            The experiment's full parameter vector, shape (np,).
+
+        Returns
+        -------
+        casadi.MX or casadi.DM
+            States at every sample, the initial state first, shape (nx, N).
+        """
         d = self.data[e]
         u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
         xs = self.simulator(d.n - 1)(x0, u0, u1, ca.repmat(p, 1, d.n - 1), t0, dt)
         return ca.horzcat(x0, xs)
 
     def numeric_states(self, e: int, x0: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """`trajectory` for numbers (nx × N); raises RuntimeError where the integrator fails."""
+        """`trajectory` for numbers (nx × N); raises RuntimeError where the integrator fails.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        x0 : numpy.ndarray
+            Initial state, shape (nx,).
+        p : numpy.ndarray
+            The experiment's full parameter vector, shape (np,).
+
+        Returns
+        -------
+        numpy.ndarray
+            States at every sample, shape (nx, N) (nx × 1 for a single sample).
+
+        Raises
+        ------
+        RuntimeError
+            When the integrator fails (`numeric_trajectory` turns this into NaN).
+        """
         d = self.data[e]
         x0 = np.asarray(x0, dtype=float).reshape(-1, 1)
         if d.n < 2:
@@ -102,7 +192,22 @@ class OutputErrorModel:
         return np.hstack([x0, xs])
 
     def numeric_outputs(self, e: int, states: np.ndarray, p: np.ndarray) -> np.ndarray:
-        """`outputs_of` for numbers (ny × N)."""
+        """`outputs_of` for numbers (ny × N).
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        states : numpy.ndarray
+            States at every sample, shape (nx, N).
+        p : numpy.ndarray
+            The experiment's full parameter vector, shape (np,).
+
+        Returns
+        -------
+        numpy.ndarray
+            Outputs at every sample, shape (ny, N).
+        """
         d = self.data[e]
         return self.numeric_functions()[1](states, d.u, np.asarray(p, dtype=float), d.t[None, :], n=d.n)[0]
 
@@ -111,6 +216,21 @@ class OutputErrorModel:
 
         CVODES raises when it cannot take a step (a stiff or diverging model); a fit that reaches
         such a point must end as a result that says so, not as an exception.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        x0 : numpy.ndarray
+            Initial state, shape (nx,).
+        p : numpy.ndarray
+            The experiment's full parameter vector, shape (np,).
+
+        Returns
+        -------
+        numpy.ndarray
+            States at every sample, shape (nx, N); all NaN when the integrator failed, the reason
+            appended to `simulation_failures`.
         """
         try:
             return self.numeric_states(e, x0, p)
@@ -120,12 +240,40 @@ class OutputErrorModel:
             return np.full((self.cm.nx, self.data[e].n), np.nan)
 
     def outputs_of(self, e: int, states, p):
-        """Outputs of experiment e as a graph (symbolic states or θ); `numeric_outputs` for numbers."""
+        """Outputs of experiment e as a graph (symbolic states or θ); `numeric_outputs` for numbers.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        states : casadi.MX
+            States at every sample, shape (nx, N).
+        p : casadi.MX
+            The experiment's full parameter vector, shape (np,).
+
+        Returns
+        -------
+        casadi.MX
+            Outputs at every sample, shape (ny, N).
+        """
         d = self.data[e]
         return self.output_map(d.n)(states, d.u, ca.repmat(p, 1, d.n), d.t[None, :])
 
     def residual_of(self, e: int, y_model):
-        """Weighted residual at the measured (non-null) samples, column-major order."""
+        """Weighted residual at the measured (non-null) samples, column-major order.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        y_model : casadi.MX
+            Model outputs at every sample, shape (ny, N).
+
+        Returns
+        -------
+        casadi.MX
+            Output weight × (model − measured) at the measured samples, sample by sample.
+        """
         d = self.data[e]
         mask = d.mask.ravel(order="F")
         wts = np.tile(self.weights, d.n)
@@ -135,7 +283,18 @@ class OutputErrorModel:
         return wts[idx] * (ca.vec(y_model)[idx.tolist()] - d.y.ravel(order="F")[idx])
 
     def x0_guess(self, e: int) -> np.ndarray:
-        """Known initial states, else the first measured sample of a directly measured state, else 0."""
+        """Known initial states, else the first measured sample of a directly measured state, else 0.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+
+        Returns
+        -------
+        numpy.ndarray
+            The guessed initial state, shape (nx,), physical units.
+        """
         d, x0 = self.data[e], np.zeros(self.cm.nx)
         for out, state in self.cm.direct_outputs.items():
             x0[self.cm.states.index(state)] = fill_missing(d.y[self.cm.outputs.index(out)], d.t)[0]
@@ -144,7 +303,20 @@ class OutputErrorModel:
         return x0
 
     def assemble_x0(self, e: int, free_scaled):
-        """Initial state vector from known values and the (scaled) free entries."""
+        """Initial state vector from known values and the (scaled) free entries.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        free_scaled : casadi.MX
+            The experiment's free initial states, scaled by `xscale`, in state order.
+
+        Returns
+        -------
+        casadi.MX
+            The full initial state, shape (nx,), physical units.
+        """
         d = self.data[e]
         parts, k = [], 0
         for i in range(self.cm.nx):
@@ -156,11 +328,28 @@ class OutputErrorModel:
         return ca.vertcat(*parts)
 
     def x0_labels(self) -> list[str]:
+        """Labels of the free initial states, in the order of the decision vector.
+
+        Returns
+        -------
+        list of str
+            ``x0[<experiment>].<state>`` for each free initial state of each experiment.
+        """
         return [f"x0[{d.name}].{self.cm.states[i]}" for d, free in zip(self.data, self.free_x0)
                 for i in free]
 
     def single_shooting_residual(self) -> tuple[ca.MX, ca.MX, ca.MX]:
-        """(θ, free x0 (scaled), residual) with every experiment simulated from its initial state."""
+        """(θ, free x0 (scaled), residual) with every experiment simulated from its initial state.
+
+        Returns
+        -------
+        theta : casadi.MX
+            Symbol of the scaled free parameters, shape (n θ,).
+        x0_free : casadi.MX
+            Symbol of every experiment's free initial states (scaled), concatenated.
+        residual : casadi.MX
+            The weighted residual of all experiments, concatenated.
+        """
         theta = ca.MX.sym("theta", self.layout.size)
         x0_free = ca.MX.sym("x0", sum(len(f) for f in self.free_x0))
         res, k = [], 0
@@ -178,6 +367,18 @@ class OutputErrorModel:
         The last few are remembered: a fit simulates the initial guess for its pre-fit check, its
         nodes and its state-size check, and the solution for its residuals and diagnostics. A
         remembered failure is reported again, as the simulation would.
+
+        Parameters
+        ----------
+        theta_phys : numpy.ndarray
+            The physical free parameters, shape (n θ,).
+        x0s : list of numpy.ndarray
+            Per experiment, the full initial state, shape (nx,).
+
+        Returns
+        -------
+        list of tuple of (numpy.ndarray, numpy.ndarray)
+            Per experiment, states (nx × N; NaN where the integrator failed) and outputs (ny × N).
         """
         theta_phys = np.asarray(theta_phys, dtype=float)
         x0s = [np.asarray(x0, dtype=float) for x0 in x0s]

@@ -36,7 +36,26 @@ class GapCurvature:
 
     def add(self, e: int, node_column: int, ks: np.ndarray, length: int, cols: np.ndarray) -> None:
         """Gaps of experiment e for intervals starting at nodes `ks` (each `length` samples,
-        starting at sample `cols[j*length]`); node k's scaled states sit at w[node_column + nx k]."""
+        starting at sample `cols[j*length]`); node k's scaled states sit at w[node_column + nx k].
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        node_column : int
+            Index in the decision vector w of the experiment's first node.
+        ks : numpy.ndarray
+            Indices of the nodes that start the intervals.
+        length : int
+            Samples per interval.
+        cols : numpy.ndarray
+            The samples the intervals step from, `length` per interval, interval by interval.
+
+        Returns
+        -------
+        None
+            The block is appended to `blocks`; `n_gap` grows by nx × len(ks).
+        """
         self.blocks.append((e, node_column, np.asarray(ks), int(length), np.asarray(cols), self.n_gap))
         self.n_gap += self.oem.cm.nx * len(ks)
 
@@ -66,7 +85,22 @@ class GapCurvature:
         return self._functions[key]
 
     def bind(self, w: ca.MX, theta: ca.MX, g_par: list[ca.MX]) -> "GapCurvature":
-        """The NLP's variables and parameter constraints g_par(θ), which follow the gaps in g."""
+        """The NLP's variables and parameter constraints g_par(θ), which follow the gaps in g.
+
+        Parameters
+        ----------
+        w : casadi.MX
+            The NLP's decision vector [θ, nodes] (scaled).
+        theta : casadi.MX
+            The symbol of the scaled free parameters (w's first entries).
+        g_par : list of casadi.MX
+            The parameter constraints, appended to g after the gaps.
+
+        Returns
+        -------
+        GapCurvature
+            Itself, now callable as lam_g -> Σ λᵀ∇²g.
+        """
         self.w, self.theta, self.g_par = w, theta, g_par
         return self
 
@@ -81,7 +115,21 @@ class GapCurvature:
         return total
 
     def hessian(self, w: ca.MX, lam_g: ca.MX) -> ca.MX:
-        """Σ_gaps λᵀ∇²g as an (n_w × n_w) MX; λ is the first `n_gap` entries of lam_g."""
+        """Σ_gaps λᵀ∇²g as an (n_w × n_w) MX; λ is the first `n_gap` entries of lam_g.
+
+        Parameters
+        ----------
+        w : casadi.MX
+            The NLP's decision vector [θ, nodes] (scaled), n_w entries.
+        lam_g : casadi.MX
+            The constraints' multipliers; the gaps' come first.
+
+        Returns
+        -------
+        casadi.MX
+            The gaps' curvature, shape (n_w, n_w): θθ blocks summed over the intervals, node blocks
+            scattered into place.
+        """
         oem, cm = self.oem, self.oem.cm
         n_w = w.numel()
         nx, nth = cm.nx, oem.layout.size

@@ -79,7 +79,8 @@ def fit_model(request: FitRequest) -> FitResult:
 
     Parameters
     ----------
-    request : the model, the experiments, the method and its options.
+    request : FitRequest
+        The model, the experiments, the method and its options.
 
     Returns
     -------
@@ -87,6 +88,14 @@ def fit_model(request: FitRequest) -> FitResult:
         Estimates with covariance, metrics, residual analysis and the quality verdict (see
         `greyfit.schemas.fit.FitResult`). Online estimators go their own way; otherwise each
         experiment's `preprocess` is applied first and `validation` records are simulated after.
+
+    Raises
+    ------
+    ModelDefinitionError
+        When the model cannot be compiled (syntax, unknown names, missing equations).
+    DataError
+        When the experiments do not fit the model or the options name an unknown output; the
+        error's `field` names where the fix goes.
     """
     online = online_method(request.method)
     if online is not None:

@@ -247,7 +247,7 @@ class EquationErrorFit:
         Parameters
         ----------
         theta : numpy.ndarray
-            Not used: the residual `res` is unweighted instead.
+            Not used: the solver's residual `res` is unweighted instead of evaluated again.
         x0s : list of dict
             Not used.
         res : numpy.ndarray

@@ -173,8 +173,23 @@ def errors_in_variables_warnings(eep: EquationErrorProblem, layout: ParameterLay
 
     Parameters
     ----------
-    w : the least-squares solution (scaled θ); z : instruments (`simulated_instruments`);
-    columns : boolean mask of parameters not on a bound; bandwidth : HAC bandwidth in samples.
+    eep : EquationErrorProblem
+        The equation-error problem that was solved.
+    layout : ParameterLayout
+        Its parameter layout (scales, labels).
+    w : ndarray
+        The least-squares solution (scaled θ first).
+    z : ndarray
+        The instruments (`simulated_instruments`).
+    columns : ndarray of bool
+        The parameters not on a bound.
+    bandwidth : int
+        The HAC bandwidth in samples (`hac_bandwidth`).
+
+    Returns
+    -------
+    list of FitWarning
+        One `errors_in_variables_bias` warning naming each parameter the re-estimate moved, or none.
     """
     iv = instrumental_estimate(eep, np.asarray(w, float)[:layout.size], z, columns, bandwidth)
     if iv is None:

@@ -216,7 +216,7 @@ def test_mutated_requests_of_the_other_synchronous_operations_get_no_5xx(server)
              ("/v1/simulate", {"model": fit_request["model"], "experiments": fit_request["experiments"],
                                "fit_result": fit, "parameters": {"c": 0.5}, "horizon": 5}),
              ("/v1/discover", discover),
-             ("/v1/frequency-fits", json.loads((ROOT / "examples" / "seed001_frequency_request.json").read_text())),
+             ("/v1/frequency-fits", json.loads((ROOT / "examples" / "frequency_pi_loop_request.json").read_text())),
              ("/v1/report", {"result": fit})]
     statuses = run_mutations(server, bases, OTHER_MUTATIONS, SEED + 1)
     for path in RESULTS.keys() - {"/v1/fits"}:

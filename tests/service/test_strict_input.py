@@ -91,7 +91,7 @@ def test_union_members_are_named_not_pydantic_labels(client, example):
     errors = errors_of(client.post("/v1/report", json={"result": fit, "request": request}))
     assert errors["request.experimentz"] == "unknown field 'experimentz': did you mean 'experiments'?", errors
     assert not any("function-after" in loc or "[" in loc.split(".")[0] for loc in errors), errors
-    frequency = json.loads((ROOT / "examples" / "seed001_frequency_request.json").read_text())
+    frequency = json.loads((ROOT / "examples" / "frequency_pi_loop_request.json").read_text())
     frequency["model"]["numerater"] = frequency["model"].pop("numerator")
     errors = errors_of(client.post("/v1/frequency-fits", json=frequency))
     assert errors["model.numerater"] == "unknown field 'numerater': did you mean 'numerator'?", errors

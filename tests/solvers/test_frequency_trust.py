@@ -2,7 +2,7 @@
 
 The frequency-data course notes' closed loop (plant (b1 s² + b2)/(s(s³ + a1 s² + a2 s + a3)) under PI
 control, two controller settings, 41 frequencies, 2 % relative noise), all five parameters free in
-the box of examples/seed001_frequency_request.json. The notes suggest the convex (Levy) fit as the
+the box of examples/frequency_pi_loop_request.json. The notes suggest the convex (Levy) fit as the
 start; its plain estimate (no Sanathanan-Koerner reweighting) is far off (a3 ~ 10⁶, outside the box),
 so a user who clips it into the box and starts there lands on a3's upper bound.
 """
@@ -21,7 +21,7 @@ from greyfit.solvers.frequency.polynomials import compile_transfer_function
 from greyfit.solvers.model.parameters import build_layout
 from tests.frequency_systems import OMEGA, frequency_data, noisy, response
 
-EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "seed001_frequency_request.json"
+EXAMPLE = Path(__file__).resolve().parents[2] / "examples" / "frequency_pi_loop_request.json"
 TRUTH = {"a1": 20.0, "a2": 500.0, "a3": 2000.0, "b1": 33.2224, "b2": 21.135 ** 2 * 33.2224}
 
 

@@ -21,6 +21,9 @@ class Settings(BaseSettings):
     workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1, le=256,
                          description="local worker processes")
     dask_scheduler: Optional[str] = Field(default=None, description="e.g. tcp://10.0.0.5:8786")
+    dask_connect_seconds: float = Field(
+        default=30.0, gt=0, description="how long the Dask client waits for its scheduler, at start and after "
+                                        "losing it; then it tries again in the background until it answers")
     api_key: Optional[str] = Field(default=None, description="if set, every endpoint but health "
                                                             "requires 'Authorization: Bearer <key>'")
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024, description="larger request bodies get 413")

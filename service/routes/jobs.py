@@ -119,6 +119,13 @@ TASK_OFFSET = Query(ge=0, le=MAX_INDEX, description="the first task listed (pagi
 TASK_LIMIT = Query(ge=1, le=MAX_INDEX, description="how many tasks to list at most (default: all)")
 
 
+def _tasks_that_fit(public: JobPublic, size: int, limit: int) -> int:
+    """How many tasks a page may list to stay within `limit` bytes, were each as large as the largest now."""
+    sizes = [len(t.model_dump_json()) + 1 for t in public.tasks]
+    rest = size - sum(sizes)
+    return max(1, (limit - rest) // max(sizes, default=1))
+
+
 @router.get("/{job_id}", response_model=JobPublic)
 def get_job(job_id: Annotated[str, JOB_ID], request: Request, task_offset: Annotated[QueryInt, TASK_OFFSET] = 0,
             task_limit: Annotated[Optional[QueryInt], TASK_LIMIT] = None) -> Response:
@@ -127,7 +134,15 @@ def get_job(job_id: Annotated[str, JOB_ID], request: Request, task_offset: Annot
     end = None if task_limit is None else task_offset + task_limit
     if task_offset or end is not None:
         public.tasks = public.tasks[task_offset:end]
-    return as_json(public)
+    body = public.model_dump_json()
+    limit = request.app.state.settings.max_answer_bytes
+    if len(body) > limit:   # a bounded answer, and the way to the rest of it
+        raise LimitExceeded("task_limit", f"the job's status with {len(public.tasks)} tasks would be {len(body)} "
+                            f"bytes, more than this server answers at once ({limit}, GREYFIT_MAX_ANSWER_BYTES): "
+                            f"page the tasks with task_offset and task_limit (e.g. task_offset={task_offset}&"
+                            f"task_limit={_tasks_that_fit(public, len(body), limit)}); the results come from "
+                            f"GET /v1/jobs/{job_id}/results, streamed and paged with offset and limit")
+    return Response(body, media_type="application/json")
 
 
 RESULT_OFFSET = Query(ge=0, le=MAX_INDEX, description="the first task whose result is returned (paging)")

@@ -142,7 +142,8 @@ class DaskExecutor:
         """The scheduler's counts of workers and threads, asked for at most every CLUSTER_INFO_SECONDS
         (the dispatcher asks several times a round, readiness probes too; each ask is a round trip)."""
         now = time.monotonic()
-        if now - self._info_at >= CLUSTER_INFO_SECONDS:
+        # (without a scheduler the ask would wait for the connection timeout: the last answer stands)
+        if now - self._info_at >= CLUSTER_INFO_SECONDS and self.client.status == "running":
             self._info = dict(self.client.scheduler_info(n_workers=0))
             self._info_at = now
         return self._info

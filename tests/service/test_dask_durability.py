@@ -114,7 +114,10 @@ def test_a_killed_dask_scheduler_costs_no_task_and_the_job_resumes_by_itself(tmp
         _until(lambda: _accepts(scheduler_port), 60, "the scheduler listens")
         settings = make_settings(tmp_path, executor="dask", dask_scheduler=address, dask_connect_seconds=3.0,
                                  task_wall_seconds=600.0)
-        with TestClient(create_app(settings)) as c:
+        app = create_app(settings)
+        with TestClient(app) as c:
+            executor = app.state.dispatcher.executor
+            first_client = executor.client
             _until(lambda: c.get("/readyz").status_code == 200, 60, "ready with a worker")
             n = 8
             job_id = c.post("/v1/jobs", json={"requests": [msd_request(i, n=201) for i in range(n)]}).json()["id"]
@@ -135,6 +138,7 @@ def test_a_killed_dask_scheduler_costs_no_task_and_the_job_resumes_by_itself(tmp
             job = _assert_all_succeeded_once(c, job_id, n)
             assert all(1 <= t["attempts"] <= 2 for t in job["tasks"]), job["tasks"]
             assert worker.poll() is None          # the one worker process outlived its scheduler
+            assert executor.client is not first_client   # the client that gave up was replaced
     finally:
         _stop(worker)
         _stop(scheduler)

@@ -20,7 +20,7 @@ from greyfit.service.json_body import BodyParser, body_model
 from greyfit.service.logs import REQUEST_ID, configure_logging
 from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import install_docs, install_openapi
-from greyfit.service.problems import install_handlers
+from greyfit.service.problems import install_handlers, route_methods
 from greyfit.service.routes import health, jobs, ops
 from greyfit.service.routes import report as report_routes
 from greyfit.service.routes import simulate as simulate_routes
@@ -33,12 +33,15 @@ log = logging.getLogger("greyfit.service")
 
 class CountRequests:
     """Counts requests and gives each an id (X-Request-ID, echoed; the caller's own if it sent a plain
-    one), which every log line about the request and every error body name.
+    one), which every log line about the request and every error body name. A 503 without
+    Retry-After gets one (`retry_after` seconds): the OpenAPI promises it on every 503, and this is
+    the one place every answer passes.
 
     Pure ASGI middleware (not BaseHTTPMiddleware, which wraps errors raised while reading the body)."""
 
-    def __init__(self, app: ASGIApp, metrics: Metrics):
+    def __init__(self, app: ASGIApp, metrics: Metrics, retry_after: int = 2):
         self.app, self.metrics = app, metrics
+        self.retry_after = str(retry_after).encode()
 
     async def __call__(self, scope: Scope, receive: Receive, send: Send) -> None:
         if scope["type"] != "http":
@@ -51,7 +54,10 @@ class CountRequests:
         async def send_wrapper(message) -> None:
             if message["type"] == "http.response.start":
                 status[0] = message["status"]
-                message["headers"] = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+                headers = [*message.get("headers", []), (b"x-request-id", request_id.encode())]
+                if status[0] == 503 and not any(name.lower() == b"retry-after" for name, _ in headers):
+                    headers.append((b"retry-after", self.retry_after))
+                message["headers"] = headers
             await send(message)
 
         try:
@@ -116,6 +122,8 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
 
     install_openapi(app, settings)
     install_docs(app)
+    # for the Allow header of a 405: every method served at a path, whichever route serves it
+    app.state.route_methods = route_methods([*app.routes, *(route for r in routers for route in r.routes)])
 
     # outermost last: count -> key and rate limit -> body budget -> the app; no body byte is read
     # before the key is checked and the body admitted
@@ -123,5 +131,5 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
                        max_inflight_bytes=settings.max_inflight_body_bytes, retry_after=settings.retry_after_seconds,
                        body_read_seconds=settings.body_read_seconds)
     app.add_middleware(ApiKeyGate, api_key=settings.api_key, rate_limit_per_minute=settings.rate_limit_per_minute)
-    app.add_middleware(CountRequests, metrics=app.state.metrics)
+    app.add_middleware(CountRequests, metrics=app.state.metrics, retry_after=settings.retry_after_seconds)
     return app

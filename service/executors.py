@@ -294,100 +294,12 @@ class LocalWorkerPool:
                 slot.process.kill()
 
 
-class DaskExecutor:
-    """Fits as tasks on a Dask distributed cluster (scheduler address from the settings).
-
-    The worker's CPU time cannot be capped per task inside a shared Dask worker, so the fit's own
-    Ipopt `max_cpu_time` and the wall-time limit (the future is cancelled) bound it instead.
-    """
-
-    def __init__(self, address: str, cpu_seconds: float, wall_seconds: float, capacity: int | None = None):
-        from distributed import Client
-        self.client = Client(address, set_as_default=False, timeout=30)
-        self.cpu_seconds, self.wall_seconds = cpu_seconds, wall_seconds
-        self._capacity = capacity
-        self.futures: dict[str, tuple[Any, float]] = {}
-        self._started: list[str] = []   # reported as started at submit (the scheduler does not tell us)
-
-    def capacity(self) -> int:
-        if self._capacity:
-            return self._capacity
-        info = self.client.scheduler_info()
-        return max(1, sum(w.get("nthreads", 1) for w in info.get("workers", {}).values()))
-
-    def free(self) -> int:
-        return self.capacity() - len(self.futures)
-
-    def unready(self) -> Optional[str]:
-        """Why the cluster cannot run tasks now (readiness): its scheduler out of reach, or no
-        workers; None when it can. Read from the client's view of the scheduler, kept up to date
-        by the client itself: no round trip per probe."""
-        if self.client.status != "running":
-            return f"the Dask scheduler does not answer (client {self.client.status})"
-        if not self.client.scheduler_info().get("workers"):
-            return "the Dask cluster has no workers"
-        return None
-
-    def queue_room(self) -> int:
-        return 0   # the scheduler queues; a task is submitted when a thread is free
-
-    def submit(self, key: str, kind: str, request: dict) -> None:
-        fut = self.client.submit(run_task, kind, request, self.cpu_seconds, pure=False,
-                                 key=f"greyfit-{key}-{time.time_ns()}")
-        self.futures[key] = (fut, time.monotonic())
-        self._started.append(key)
-
-    def started(self) -> list[str]:
-        """The keys submitted since the last call: the scheduler does not say when a worker starts one."""
-        keys, self._started = self._started, []
-        return keys
-
-    def poll(self) -> list[tuple[str, Outcome]]:
-        done: list[tuple[str, Outcome]] = []
-        for key, (fut, started) in list(self.futures.items()):
-            if fut.done():
-                del self.futures[key]
-                try:
-                    done.append((key, fut.result()))
-                except Exception as exc:  # the worker died or the task errored on the cluster
-                    done.append((key, {"status": "failed", "error": {
-                        "type": "WorkerLost", "field": None, "retry": True,
-                        "detail": f"dask: {type(exc).__name__}: {exc}"}}))
-            elif time.monotonic() - started > self.wall_seconds:
-                fut.cancel()
-                del self.futures[key]
-                done.append((key, {"status": "failed", "error": {
-                    "type": "Timeout", "field": None,
-                    "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
-        return done
-
-    def wait(self, timeout: float) -> None:
-        futures = [f for f, _ in self.futures.values()]
-        if futures:
-            from distributed import wait as dask_wait
-            dask_wait(futures, timeout=timeout, return_when="FIRST_COMPLETED")
-        else:
-            time.sleep(timeout)
-
-    def wake(self) -> None:
-        pass
-
-    def cancel(self, key: str) -> bool:
-        item = self.futures.pop(key, None)
-        if item:
-            item[0].cancel()
-        return item is not None
-
-    def shutdown(self) -> None:
-        for fut, _ in self.futures.values():
-            fut.cancel()
-        self.client.close()
-
-
 def make_executor(settings):
     if settings.executor == "dask":
         if not settings.dask_scheduler:
             raise ValueError("GREYFIT_EXECUTOR=dask needs GREYFIT_DASK_SCHEDULER (e.g. tcp://host:8786)")
-        return DaskExecutor(settings.dask_scheduler, settings.task_cpu_seconds, settings.task_wall_seconds)
+        from greyfit.service.dask_executor import DaskExecutor  # the dask extra: imported only when used
+        return DaskExecutor(settings.dask_scheduler, settings.task_cpu_seconds, settings.task_wall_seconds,
+                            connect_seconds=settings.dask_connect_seconds)
     return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds,
                            settings.worker_stall_seconds)

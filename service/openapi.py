@@ -1,8 +1,8 @@
 """The OpenAPI description says what the service really sends, and the pages that show it offline.
 
 FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
-problem+json answers the middleware and handlers give (400, 401, 404, 413, 415, 422, 429, 500, 503,
-and 504 for synchronous fits) and the bearer security scheme, and real example requests
+problem+json answers the middleware and handlers give (400, 401, 404, 408, 413, 415, 422, 429, 500,
+503, and 501 and 504 for synchronous fits) and the bearer security scheme, and real example requests
 (service/openapi_examples.py) where FastAPI would generate junk, so "Try it out" sends a fit that
 works.
 
@@ -29,11 +29,13 @@ ANSWERS = {
     "400": "the body is not UTF-8 JSON or is nested too deeply",
     "401": "missing or wrong API key (only when GREYFIT_API_KEY is set)",
     "404": "no such job or route",
+    "408": "the body did not arrive within GREYFIT_BODY_READ_SECONDS of the request's start (a slow sender)",
     "413": "the body (or, for synchronous fits, its data) is larger than this server takes",
     "415": "the body was not sent as JSON: send it with 'Content-Type: application/json'",
     "422": "invalid request: `errors` lists each location (e.g. experiments[0].outputs.x) and what to fix",
     "429": "more requests a minute than GREYFIT_RATE_LIMIT_PER_MINUTE allows; see Retry-After",
     "500": "a bug in the server; logged under `request_id`",
+    "501": "an optional part of this server is not installed (e.g. the report extra, matplotlib)",
     "503": "at capacity (bodies in flight, synchronous queue), the job store cannot be written, "
            "or shutting down; see Retry-After",
     "504": "the synchronous fit (or report) exceeded its CPU- or wall-time limit",
@@ -81,9 +83,9 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 codes += ["401", "404", "413", "422", "429"]
                 op["security"] = [{SCHEME: []}] if settings.api_key else [{}, {SCHEME: []}]
             if "requestBody" in op:
-                codes += ["400", "415"]
+                codes += ["400", "408", "415"]
             if path in SYNC_PATHS:
-                codes.append("504")
+                codes += ["501", "504"]
             if method == "post" and path in JOB_PATHS:
                 op.setdefault("parameters", []).append(IDEMPOTENCY_HEADER)
             for code in sorted(set(codes)):

@@ -96,6 +96,23 @@ def retry_later(status: int, title: str, detail: str, kind: str, retry_after: in
     return resp
 
 
+def route_methods(routes: Sequence[Any]) -> list[tuple[Any, frozenset[str]]]:
+    """(path pattern, methods) of each route that has methods (create_app passes the app's routes
+    and those of each router it includes, which FastAPI may keep behind a wrapper)."""
+    return [(route.path_regex, frozenset(route.methods)) for route in routes if getattr(route, "methods", None)]
+
+
+def allowed_methods(request: Request) -> list[str]:
+    """Every method some route serves at the request's path. Starlette's 405 names only the methods
+    of the first route whose path matched, while a path can have one route per method."""
+    path = request.scope["path"]
+    root = request.scope.get("root_path", "")
+    if root and path.startswith(root):
+        path = path[len(root):]
+    table = getattr(request.app.state, "route_methods", [])
+    return sorted({m for pattern, methods in table if pattern.match(path) for m in methods})
+
+
 def store_error_detail(exc: Exception) -> str:
     if isinstance(exc, StoreUnavailable):
         return str(exc)
@@ -156,17 +173,19 @@ def install_handlers(app: FastAPI) -> None:
         return problem(413, "Request too large", exc.detail, "request-too-large")
 
     @app.exception_handler(StarletteHTTPException)
-    async def _http(_: Request, exc: StarletteHTTPException):
+    async def _http(request: Request, exc: StarletteHTTPException):
         detail = str(exc.detail)
         if exc.status_code == 400 and detail == "There was an error parsing the body":
             detail = "the body could not be parsed: it must be UTF-8 JSON, nested at most ~1000 levels deep"
-        titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Method not allowed", 409: "Conflict",
-                  413: "Request too large", 415: "Unsupported media type", 429: "Too many requests",
-                  503: "Unavailable", 504: "Timeout"}
+        titles = {400: "Bad request", 401: "Unauthorized", 404: "Not found", 405: "Method not allowed",
+                  408: "Request timeout", 409: "Conflict", 413: "Request too large", 415: "Unsupported media type",
+                  429: "Too many requests", 501: "Not implemented", 503: "Unavailable", 504: "Timeout"}
         resp = problem(exc.status_code, titles.get(exc.status_code, "Error"), detail,
                        titles.get(exc.status_code, "error").lower().replace(" ", "-"))
         for k, v in (exc.headers or {}).items():
             resp.headers[k] = v
+        if exc.status_code == 405:
+            resp.headers["Allow"] = ", ".join(allowed_methods(request))
         return resp
 
     @app.exception_handler(RecursionError)

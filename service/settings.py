@@ -21,6 +21,9 @@ class Settings(BaseSettings):
     workers: int = Field(default_factory=lambda: os.cpu_count() or 1, ge=1, le=256,
                          description="local worker processes")
     dask_scheduler: Optional[str] = Field(default=None, description="e.g. tcp://10.0.0.5:8786")
+    dask_connect_seconds: float = Field(
+        default=30.0, gt=0, description="how long the Dask client waits for its scheduler, at start and after "
+                                        "losing it; then it tries again in the background until it answers")
     api_key: Optional[str] = Field(default=None, description="if set, every endpoint but health "
                                                             "requires 'Authorization: Bearer <key>'")
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024, description="larger request bodies get 413")
@@ -29,6 +32,10 @@ class Settings(BaseSettings):
     max_parameters: int = Field(default=200, ge=1, description="parameters in one model")
     max_expression_length: int = Field(default=4000, ge=10, description="characters in one expression")
     max_batch_requests: int = Field(default=1000, ge=1, description="requests in one job")
+    max_answer_bytes: int = Field(
+        default=4 * 1024 * 1024, ge=1024,
+        description="largest answer assembled in memory (a job's status with its tasks); a larger one gets 422 "
+                    "naming the paging parameters (results are streamed and not limited)")
     sync_max_values: int = Field(default=50_000, ge=1, description="numbers in a synchronous fit's data; "
                                                                   "larger requests go to /v1/jobs")
     task_cpu_seconds: float = Field(default=600.0, gt=0, description="CPU-time limit of one fit")

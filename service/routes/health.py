@@ -25,10 +25,9 @@ def readyz(request: Request):
         answer = problem(503, "Not ready", detail, "not-ready")
         answer.headers["Retry-After"] = str(state.settings.retry_after_seconds)
         return answer
-    if not state.dispatcher.is_alive():
-        return problem(503, "Not ready", "the dispatcher thread is not running", "not-ready")
-    reason = state.dispatcher.executor.unready()
-    if reason is not None:    # e.g. a Dask cluster without scheduler or workers: nothing would run
+    reason = "the dispatcher thread is not running" if not state.dispatcher.is_alive() else \
+        state.dispatcher.executor.unready()   # e.g. a Dask cluster without scheduler or workers: nothing would run
+    if reason is not None:
         answer = problem(503, "Not ready", reason, "not-ready")
         answer.headers["Retry-After"] = str(state.settings.retry_after_seconds)
         return answer

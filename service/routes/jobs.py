@@ -14,6 +14,7 @@ from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic,
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
+from greyfit.service.query import QueryInt
 from greyfit.service.store import IdempotencyKeyReused, job_status, status_of_counts
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
@@ -99,8 +100,8 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
 
 
 @router.get("", response_model=JobsPublic)
-def list_jobs(request: Request, offset: int = Query(0, ge=0, le=MAX_OFFSET),
-              limit: int = Query(20, ge=1, le=200)) -> Response:
+def list_jobs(request: Request, offset: Annotated[QueryInt, Query(ge=0, le=MAX_OFFSET)] = 0,
+              limit: Annotated[QueryInt, Query(ge=1, le=200)] = 20) -> Response:
     """Jobs, newest first, with paging: each job's status and progress, not its tasks (GET /v1/jobs/{id})."""
     entries, count = request.app.state.store.list_jobs(offset, limit)
     return as_json(JobsPublic(data=[job_summary(e) for e in entries], count=count))
@@ -113,28 +114,44 @@ def _record(request: Request, job_id: str) -> dict:
     return record
 
 
-TASK_OFFSET = Query(0, ge=0, le=MAX_INDEX, description="the first task listed (paging of `tasks`)")
-TASK_LIMIT = Query(None, ge=1, le=MAX_INDEX, description="how many tasks to list at most (default: all)")
+# (in Annotated, not as the default: FastAPI then keeps QueryInt's validator)
+TASK_OFFSET = Query(ge=0, le=MAX_INDEX, description="the first task listed (paging of `tasks`)")
+TASK_LIMIT = Query(ge=1, le=MAX_INDEX, description="how many tasks to list at most (default: all)")
+
+
+def _tasks_that_fit(public: JobPublic, size: int, limit: int) -> int:
+    """How many tasks a page may list to stay within `limit` bytes, were each as large as the largest now."""
+    sizes = [len(t.model_dump_json()) + 1 for t in public.tasks]
+    rest = size - sum(sizes)
+    return max(1, (limit - rest) // max(sizes, default=1))
 
 
 @router.get("/{job_id}", response_model=JobPublic)
-def get_job(job_id: Annotated[str, JOB_ID], request: Request, task_offset: int = TASK_OFFSET,
-            task_limit: Optional[int] = TASK_LIMIT) -> Response:
+def get_job(job_id: Annotated[str, JOB_ID], request: Request, task_offset: Annotated[QueryInt, TASK_OFFSET] = 0,
+            task_limit: Annotated[Optional[QueryInt], TASK_LIMIT] = None) -> Response:
     """Status, progress and per-task status of a job (`task_offset`, `task_limit` page the tasks)."""
     public = job_public(_record(request, job_id))
     end = None if task_limit is None else task_offset + task_limit
     if task_offset or end is not None:
         public.tasks = public.tasks[task_offset:end]
-    return as_json(public)
+    body = public.model_dump_json()
+    limit = request.app.state.settings.max_answer_bytes
+    if len(body) > limit:   # a bounded answer, and the way to the rest of it
+        raise LimitExceeded("task_limit", f"the job's status with {len(public.tasks)} tasks would be {len(body)} "
+                            f"bytes, more than this server answers at once ({limit}, GREYFIT_MAX_ANSWER_BYTES): "
+                            f"page the tasks with task_offset and task_limit (e.g. task_offset={task_offset}&"
+                            f"task_limit={_tasks_that_fit(public, len(body), limit)}); the results come from "
+                            f"GET /v1/jobs/{job_id}/results, streamed and paged with offset and limit")
+    return Response(body, media_type="application/json")
 
 
-RESULT_OFFSET = Query(0, ge=0, le=MAX_INDEX, description="the first task whose result is returned (paging)")
-RESULT_LIMIT = Query(None, ge=1, le=MAX_INDEX, description="how many results at most (default: all)")
+RESULT_OFFSET = Query(ge=0, le=MAX_INDEX, description="the first task whose result is returned (paging)")
+RESULT_LIMIT = Query(ge=1, le=MAX_INDEX, description="how many results at most (default: all)")
 
 
 @router.get("/{job_id}/results", response_model=JobResults)
-def get_results(job_id: Annotated[str, JOB_ID], request: Request, offset: int = RESULT_OFFSET,
-                limit: Optional[int] = RESULT_LIMIT) -> Response:
+def get_results(job_id: Annotated[str, JOB_ID], request: Request, offset: Annotated[QueryInt, RESULT_OFFSET] = 0,
+                limit: Annotated[Optional[QueryInt], RESULT_LIMIT] = None) -> Response:
     """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet.
     Streamed from the job store a few results at a time; `offset` and `limit` page them."""
     record = _record(request, job_id)

@@ -11,6 +11,7 @@ from greyfit.service.deps import require_api_key
 from greyfit.service.json_body import StrictJSONRoute
 from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
 from greyfit.service.problems import PROBLEM
+from greyfit.service.query import QueryInt
 from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
 from greyfit.service.routes.sync import run_sync, run_sync_request
 from greyfit.service.settings import Settings
@@ -55,7 +56,7 @@ async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses={**HTML, **NOT_FINISHED})
 async def job_report(job_id: Annotated[str, JOB_ID], request: Request,
-                     index: int = Query(0, ge=0, le=MAX_INDEX)) -> HTMLResponse:
+                     index: Annotated[QueryInt, Query(ge=0, le=MAX_INDEX)] = 0) -> HTMLResponse:
     """The report page of task `index` of a finished job (its stored request supplies the data)."""
     store = request.app.state.store
     if store.get_job(job_id) is None:

@@ -64,7 +64,8 @@ async def run_sync(request: Request, kind: str, payload: dict | str):
         dispatcher.cancel_sync(fut, kind)
         raise
     if waiter.cancelled():
-        raise HTTPException(503, "the fit was cancelled: the server is shutting down")
+        raise HTTPException(503, "the fit was cancelled: the server is shutting down; retry",
+                            headers={"Retry-After": str(settings.retry_after_seconds)})
     exc = waiter.exception()
     if exc is not None:               # the dispatcher stopped (shutdown) before the fit ran
         raise HTTPException(503, f"{exc}; retry", headers={"Retry-After": str(settings.retry_after_seconds)})

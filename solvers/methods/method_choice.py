@@ -77,7 +77,7 @@ def _unusable(oem: OutputErrorModel, sims: list[tuple[np.ndarray, np.ndarray]], 
     cm = oem.cm
     if failed:
         return failed[0].replace("the simulation", "the simulation at the start guess", 1)
-    for d, (xs, ys) in zip(oem.data, sims):
+    for d, (xs, _) in zip(oem.data, sims):
         for i, state in enumerate(cm.states):
             bad = ~np.isfinite(xs[i]) | (np.abs(xs[i]) > DIVERGED)
             if bad.any():

@@ -90,7 +90,7 @@ def test_the_default_method_is_auto_and_a_result_names_the_method_that_ran():
     assert named.solver.method == FitMethod.multiple_shooting and named.solver.method_choice is None
 
 
-@pytest.mark.parametrize("system", ["msd", "motor", "seat"])
+@pytest.mark.parametrize("system", ["msd", "motor", pytest.param("seat", marks=pytest.mark.slow)])
 def test_auto_reaches_the_multiple_shooting_optimum_and_the_truth(system):
     make, truth, tol = {"msd": (lambda m: _msd_request(0.4, 3.0, method=m), MSD_TRUTH, 0.01),
                         "motor": (_motor_request, motor_truth(), 2e-3),
@@ -168,3 +168,21 @@ def test_the_text_report_says_which_method_ran_and_why():
     assert f"why:          {result.solver.method_choice.reason}" in text
     named = _fit(_msd_request(0.4, 3.0, method="single_shooting")).report()
     assert "method:       single_shooting\n" in named and "why:" not in named
+
+
+@pytest.mark.slow
+def test_discovery_under_auto_finds_the_missing_effect_as_multiple_shooting_does():
+    # a hardening spring 20 x³ absent from the declared model; discovery refits with the request's method
+    from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.solvers.discovery import discover
+
+    t = np.linspace(0, 20, 1001)
+    states = simulate_msd(t, extra_force=lambda x, v: 20.0 * x ** 3)
+    body = {"model": msd_model(), "experiments": [msd_experiment(t, states, noise=0.002, seed=1)]}
+    found = {m: discover(DiscoverRequest.model_validate({**body, "method": m})) for m in ("auto", "multiple_shooting")}
+    for m, res in found.items():
+        assert [s.effect for s in res.steps] == ["cubic_stiffness"], m
+        assert res.steps[0].parameters[0].value == pytest.approx(20.0, rel=0.05), m
+    auto, multiple = found["auto"].fit, found["multiple_shooting"].fit
+    assert auto.solver.method_choice is not None and auto.solver.method == auto.solver.method_choice.ran
+    _assert_same_optimum(auto, multiple)

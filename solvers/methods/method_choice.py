@@ -18,8 +18,10 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.fit import FitMethod, FitResult, MethodChoice
+from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.methods.node_initialisation import DIVERGED
 from greyfit.solvers.methods.shooting.model import OutputErrorModel
+from greyfit.solvers.model.compiler import CompiledModel
 
 OUTPUT_BLOWUP = 100.0           # simulated output beyond this × the measured range: runs away
 GROWTH_LIMIT = math.log(1e6)    # ∫ max Re λ(∂f/∂x) dt above this: unstable over the record
@@ -109,16 +111,15 @@ def _growth(oem: OutputErrorModel, states: list[np.ndarray]) -> tuple[float, str
     cm = oem.cm
     if cm.model.discrete is not None or cm.nx == 0:
         return 0.0, ""
-    jac = cm.derive(("dfdx_choice",), lambda: _state_jacobian(cm))
+    jac = cm.derive(("dfdx_choice",), lambda: Columns(_state_jacobian(cm), 4 * GROWTH_POINTS,
+                                                      isinstance(cm, CompiledModel)))
     worst, where = 0.0, ""
     for e, d in enumerate(oem.data):
         ks = np.unique(np.linspace(0, d.n - 1, min(d.n, GROWTH_POINTS)).astype(int))
         if ks.size < 2:
             continue
         p = np.asarray(oem.layout.full(e, oem.layout.initial / oem.layout.scale), dtype=float).ravel()
-        mapped = cm.derive(("dfdx_choice", ks.size), lambda n=ks.size: jac.map(n))
-        a = np.array(mapped(states[e][:, ks], d.u[:, ks], np.tile(p[:, None], (1, ks.size)),
-                                      d.t[None, ks]))
+        a, = jac(states[e][:, ks], d.u[:, ks], p, d.t[None, ks], n=ks.size)
         blocks = a.reshape(cm.nx, ks.size, cm.nx).transpose(1, 0, 2)
         rates = np.zeros(ks.size)
         ok = np.all(np.isfinite(blocks), axis=(1, 2))

@@ -3,7 +3,10 @@
 prepare (compile, arrays, extensions, layout) → build (the method's problem, from the registry in
 `solvers.methods.registry`) → solve over the starts → result (covariance, residual analysis,
 parameters) → checks (profiles, extensions, the quality verdict). What differs between methods is
-asked of the built problem (`solvers.methods.batch.BatchFit`), never decided here by name.
+asked of the built problem (`solvers.methods.batch.BatchFit`), never decided here by name. For
+`auto` the build chooses single or multiple shooting (`solvers.methods.method_choice`); a
+single-shooting answer it doubts is solved once more by multiple shooting (`_fit_chosen`), and from
+then on the request names the method that ran.
 """
 from __future__ import annotations
 

@@ -64,7 +64,8 @@ def msd_request(n: int):
     model = msd_model()
     model["outputs"] = {"x": "x"}
     exp = msd_experiment(t, simulate_msd(t), noise=0.01, seed=1, outputs=("x",))
-    return FitRequest.model_validate({"model": model, "experiments": [exp]}), MSD_TRUTH
+    # the rows say MS: named, since the default (auto) would run single shooting here
+    return FitRequest.model_validate({"model": model, "experiments": [exp], "method": "multiple_shooting"}), MSD_TRUTH
 
 
 def run_case(case: str, arg, env: dict, queue) -> None:

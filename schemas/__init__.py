@@ -8,6 +8,7 @@ from greyfit.schemas.fit import (
     FitOptions,
     FitRequest,
     FitResult,
+    MethodChoice,
     ParameterEstimate,
     ResidualAnalysis,
     SolverInfo,
@@ -20,6 +21,7 @@ from greyfit.schemas.validation import ValidationResult
 __all__ = [
     "Model", "Parameter", "Experiment", "CovariancePublic", "FitMethod", "FitOptions",
     "FitRequest", "FitResult", "ParameterEstimate", "FitMetrics", "SolverInfo",
+    "MethodChoice",
     "ExperimentTrace", "ResidualAnalysis", "Preprocess", "SimulateRequest", "SimulateResult",
     "ValidationResult",
 ]

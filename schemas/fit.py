@@ -21,6 +21,7 @@ MIN_OUTPUT_WEIGHT, MAX_OUTPUT_WEIGHT = 1e-100, 1e100
 
 
 class FitMethod(str, Enum):
+    auto = "auto"   # requests only: a result names the method that ran (`solver.method_choice` says why)
     equation_error = "equation_error"
     single_shooting = "single_shooting"
     multiple_shooting = "multiple_shooting"
@@ -126,9 +127,12 @@ class FitRequest(BaseModel):
     model: Model = Field(description="states, inputs, parameters with bounds, equations and outputs")
     experiments: list[Experiment] = Field(min_length=1, max_length=MAX_EXPERIMENTS,
                                           description="the records fitted; they share the parameters")
-    method: FitMethod = Field(default=FitMethod.multiple_shooting,
+    method: FitMethod = Field(default=FitMethod.auto,
                               description="what is minimised: equation_error, single_shooting, multiple_shooting, "
-                                          "or an online estimator (recursive_least_squares, mras)")
+                                          "or an online estimator (recursive_least_squares, mras); auto "
+                                          "(default): single shooting where the model can be simulated from "
+                                          "the start guess, else multiple shooting; `solver.method_choice` "
+                                          "says which ran and why")
     options: FitOptions = Field(default_factory=FitOptions, description="solver options, each with a default")
     validation: list[Experiment] = Field(
         default_factory=list, max_length=MAX_EXPERIMENTS,
@@ -187,8 +191,23 @@ class FitMetrics(BaseModel):
     bic: Optional[float] = None
 
 
+class MethodChoice(BaseModel):
+    """Which method a request with `method: auto` ran, and why."""
+
+    requested: FitMethod = Field(description="the request's method (auto)")
+    ran: FitMethod = Field(description="the method whose solution is reported (= `solver.method`)")
+    reason: str = Field(description="why: what the simulation at the start guess showed, or why single "
+                                    "shooting's answer was replaced by (or kept over) multiple shooting's")
+    fallback: bool = Field(default=False, description="true when single shooting ran first and multiple "
+                                                      "shooting was run after it (its answer failed or "
+                                                      "fitted below the noise level)")
+
+
 class SolverInfo(BaseModel):
-    method: FitMethod
+    method: FitMethod = Field(description="the method that ran (never auto)")
+    method_choice: Optional[MethodChoice] = Field(
+        default=None, description="set when the request's method was auto: which method ran and why; "
+        "null when the request named the method")
     iterations: int
     wall_time_s: float
     return_status: str

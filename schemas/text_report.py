@@ -62,8 +62,11 @@ def _header(result: "FitResult") -> list[str]:
     lines = ["[[Fit]]"]
     if model is not None:
         lines.append(f"{INDENT}model:        {model.name}")
-    lines += [f"{INDENT}method:       {s.method.value}",
-              f"{INDENT}status:       {result.status}: {result.message}",
+    choice = s.method_choice
+    lines.append(f"{INDENT}method:       {s.method.value}" + (" (chosen by method auto)" if choice else ""))
+    if choice is not None:
+        lines.append(f"{INDENT}why:          {choice.reason}")
+    lines += [f"{INDENT}status:       {result.status}: {result.message}",
               f"{INDENT}verdict:      {verdict(result)}",
               f"{INDENT}solver:       {s.return_status}, {s.iterations} iterations, {s.starts} start(s), "
               f"{s.wall_time_s:.2f} s",

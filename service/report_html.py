@@ -39,7 +39,12 @@ def verdict_html(fit: FitResult) -> str:
     return (f'<p class="verdict quality-{quality}" data-quality="{quality}" data-converged="{flag}">'
             f"<b>{state}</b>, quality <b>{quality}</b>{reasons}<br>"
             f"{_e(fit.message)} ({_e(fit.solver.method.value)}, {fit.solver.return_status}, "
-            f"{fit.solver.iterations} iterations)</p>")
+            f"{fit.solver.iterations} iterations){_choice_html(fit)}</p>")
+
+
+def _choice_html(fit: FitResult) -> str:
+    choice = fit.solver.method_choice
+    return "" if choice is None else f"<br>{_e(choice.ran.value)} chosen by method auto: {_e(choice.reason)}"
 
 
 def estimates_table(fit: FitResult) -> str:

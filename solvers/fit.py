@@ -3,7 +3,10 @@
 prepare (compile, arrays, extensions, layout) → build (the method's problem, from the registry in
 `solvers.methods.registry`) → solve over the starts → result (covariance, residual analysis,
 parameters) → checks (profiles, extensions, the quality verdict). What differs between methods is
-asked of the built problem (`solvers.methods.batch.BatchFit`), never decided here by name.
+asked of the built problem (`solvers.methods.batch.BatchFit`), never decided here by name. For
+`auto` the build chooses single or multiple shooting (`solvers.methods.method_choice`); a
+single-shooting answer it doubts is solved once more by multiple shooting (`_fit_chosen`), and from
+then on the request names the method that ran.
 """
 from __future__ import annotations
 
@@ -15,9 +18,11 @@ import numpy as np
 from greyfit.schemas.fit import (
     CovariancePublic,
     ExperimentTrace,
+    FitMethod,
     FitMetrics,
     FitRequest,
     FitResult,
+    MethodChoice,
     ParameterEstimate,
     SolverInfo,
 )
@@ -42,6 +47,7 @@ from greyfit.solvers.methods.batch import BatchFit, Residuals
 from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warnings
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
+from greyfit.solvers.methods.method_choice import fallback_reason, keep_better
 from greyfit.solvers.methods.multistart import (
     MULTISTART_CPU_STATUS,
     draw_starts,
@@ -100,16 +106,49 @@ def fit_model(request: FitRequest) -> FitResult:
     online = online_method(request.method)
     if online is not None:
         return attach_model(online.fit(request), request.model)
-    prepared, preprocessing = choose_substeps(*prepare_request(request))
-    result = _fit_prepared(prepared)
+    prepared, preprocessing = _choose_substeps(*prepare_request(request))
+    result = _fit_chosen(prepared)
+    # from here on the request names the method that ran: the checks after the fit ask it
+    prepared = prepared.model_copy(update={"method": result.solver.method})
     retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
     if retry is not None:   # the chosen substeps proved coarse at the estimates: once more, finer
+        choice = result.solver.method_choice
         (prepared, preprocessing), result = retry, _fit_prepared(retry[0])
+        result.solver.method_choice = choice
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
     # lack of fit and input handling in the verdict; units and the model travel with the result
     return attach_model(review_fit(prepared, result), request.model)
+
+
+def _choose_substeps(request: FitRequest, report):
+    """`choose_substeps`, for auto as for the shooting method it will run (the steps do not depend on which)."""
+    if request.method != FitMethod.auto:
+        return choose_substeps(request, report)
+    chosen, report = choose_substeps(request.model_copy(update={"method": FitMethod.single_shooting}), report)
+    return chosen.model_copy(update={"method": FitMethod.auto}), report
+
+
+def _fit_chosen(request: FitRequest) -> FitResult:
+    """`_fit_prepared`; where auto chose single shooting and its answer is doubtful, multiple shooting
+    once more with the CPU time left, and the better answer (`method_choice.keep_better`)."""
+    cpu0, started = time.process_time(), time.perf_counter()
+    result = _fit_prepared(request)
+    choice = result.solver.method_choice
+    solved = choice is not None and choice.ran == FitMethod.single_shooting and result.solver.starts > 0
+    why = fallback_reason(result) if solved else ""
+    if choice is None or not why:
+        return result
+    left = request.options.max_cpu_time - (time.process_time() - cpu0)
+    if left <= 0:
+        choice.reason += f"; {why}, and no CPU time is left (options.max_cpu_time) to try multiple shooting"
+        return result
+    multiple = request.model_copy(update={"method": FitMethod.multiple_shooting, "options": request.options.model_copy(
+        update={"max_cpu_time": left})})
+    kept = keep_better(result, _fit_prepared(multiple), why)
+    kept.solver.wall_time_s = time.perf_counter() - started   # the user waited for both
+    return kept
 
 
 def _fit_prepared(request: FitRequest) -> FitResult:
@@ -122,7 +161,7 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     cm, data = ext.cm, ext.data
     layout = build_layout(ext.model, [d.name for d in data])
     if layout.size == 0:   # nothing to estimate: a simulation, reported like a fit
-        return fixed_parameter_result(request, cm, data, layout, started)
+        return _fixed_parameters(request, cm, data, layout, started)
     unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
     if unknown_w:
         raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",
@@ -178,6 +217,17 @@ def _fit_prepared(request: FitRequest) -> FitResult:
                                               x0s, before, opts))
 
 
+def _fixed_parameters(request: FitRequest, cm, data, layout: ParameterLayout, started: float) -> FitResult:
+    if request.method != FitMethod.auto:
+        return fixed_parameter_result(request, cm, data, layout, started)
+    single = request.model_copy(update={"method": FitMethod.single_shooting})
+    result = fixed_parameter_result(single, cm, data, layout, started)
+    result.solver.method_choice = MethodChoice(
+        requested=FitMethod.auto, ran=FitMethod.single_shooting,
+        reason="no free parameter: one simulation from the initial states is the whole fit")
+    return result
+
+
 def _segments(cm, data, channels: Residuals) -> list[list[tuple]]:
     """Per channel, per record: (measured, residual, inputs) on the samples where both are finite."""
     segments: list[list[tuple]] = []
@@ -224,7 +274,7 @@ def _result(request: FitRequest, built: BatchFit, outcome: NlpOutcome, layout: P
         metrics=FitMetrics(cost=cost, ndata=ndata, nfree=ndata - nvarys, nvarys=nvarys,
                            rmse={a.output: a.rmse for a in analyses},
                            fit_percent={a.output: a.fit_percent for a in analyses}, aic=aic, bic=bic),
-        solver=SolverInfo(method=request.method, iterations=outcome.iterations,
+        solver=SolverInfo(method=built.method, method_choice=built.choice, iterations=outcome.iterations,
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts, compiled=is_c, **built.solver_details()),
         residual_analysis=analyses, traces=traces,
@@ -246,7 +296,7 @@ def _quality_inputs(result, outcome, request, cov, jac, labels, keep, channels, 
     return QualityInputs(
         converged=outcome.success, status=outcome.status, cost=result.metrics.cost if
         result.metrics.cost is not None else float("nan"), nlp_cost=outcome.cost,
-        method=request.method.value, covariance=cov, jac=jac,
+        method=result.solver.method.value, covariance=cov, jac=jac,
         jac_labels=[lab for lab, k in zip(labels, keep) if k],
         measured={ch: [m[c] for m, _ in channels.per_experiment] for c, ch in enumerate(channels.channels)},
         fitted_state_peak=fitted, guess_state_peak=guess, state_names=list(request.model.states),

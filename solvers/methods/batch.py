@@ -11,9 +11,10 @@ from typing import Callable, Literal, Protocol
 
 import numpy as np
 
-from greyfit.schemas.fit import FitOptions
+from greyfit.schemas.fit import FitMethod, FitOptions, MethodChoice
 from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.methods.equation_error import EquationErrorProblem, build_equation_error
+from greyfit.solvers.methods.method_choice import choose_shooting
 from greyfit.solvers.methods.multistart import MultistartRun, exact_form, solve_from_starts
 from greyfit.solvers.methods.shooting import (
     OutputErrorModel,
@@ -54,6 +55,8 @@ class BatchFit(Protocol):
 
     problem: LeastSquaresProblem
     data: list[ExperimentData]
+    method: FitMethod                   # the method that runs (never auto)
+    choice: MethodChoice | None         # set when auto chose `method`
     affine_solve: Callable | None       # equation error with a TV penalty: IRLS (batch extensions)
     eep: EquationErrorProblem | None    # set by equation error (checks read its rows)
     oem: OutputErrorModel | None        # set by output error (checks read its simulations)
@@ -152,6 +155,8 @@ class EquationErrorFit:
 
     oem: OutputErrorModel | None = None
     run: MultistartRun | None = None
+    method = FitMethod.equation_error
+    choice: MethodChoice | None = None
 
     def __init__(self, eep: EquationErrorProblem, data: list[ExperimentData], cm: CompiledModel,
                  layout: ParameterLayout):
@@ -310,13 +315,16 @@ class OutputErrorFit:
     run: MultistartRun | None = None
 
     def __init__(self, oem: OutputErrorModel, problem: LeastSquaresProblem,
-                 builder: Callable[[OutputErrorModel], LeastSquaresProblem]):
+                 builder: Callable[[OutputErrorModel], LeastSquaresProblem], method: FitMethod,
+                 choice: MethodChoice | None = None):
         self.oem, self.problem, self.data, self.builder = oem, problem, oem.data, builder
+        self.method, self.choice = method, choice
 
     @classmethod
     def build(cls, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
-              options: FitOptions, shooting: Literal["single", "multiple"]) -> "OutputErrorFit":
-        """Build the output-error model and its single- or multiple-shooting problem.
+              options: FitOptions, shooting: Literal["single", "multiple", "auto"]) -> "OutputErrorFit":
+        """Build the output-error model and its single- or multiple-shooting problem (auto: the one
+        `method_choice.choose_shooting` picks from a simulation at the start guess).
 
         Parameters
         ----------
@@ -328,17 +336,22 @@ class OutputErrorFit:
             The free parameters and their mapping to each experiment.
         options : FitOptions
             The request's options (integrator, Hessian, weights, ...).
-        shooting : {"single", "multiple"}
-            One simulation per record, or nodes as decision variables with continuity constraints.
+        shooting : {"single", "multiple", "auto"}
+            One simulation per record, nodes as decision variables with continuity constraints, or
+            the first where the model can be simulated from the start guess, else the second.
 
         Returns
         -------
         OutputErrorFit
-            The built fit, keeping its builder for the exact-Hessian polish.
+            The built fit, keeping its builder for the exact-Hessian polish, and the choice (auto).
         """
         oem = OutputErrorModel(cm, data, layout, options)
+        choice = choose_shooting(oem) if shooting == "auto" else None
+        if choice is not None:
+            shooting = "single" if choice.ran == FitMethod.single_shooting else "multiple"
         builder = build_single_shooting if shooting == "single" else build_multiple_shooting
-        return cls(oem, builder(oem), builder)
+        method = FitMethod.single_shooting if shooting == "single" else FitMethod.multiple_shooting
+        return cls(oem, builder(oem), builder, method, choice)
 
     def solve(self, starts, options, cpu0):
         """Solve from every start; the best is polished with the exact Hessian when none converged.

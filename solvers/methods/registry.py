@@ -100,7 +100,7 @@ class _EquationError:
 
 @dataclass(frozen=True)
 class _OutputError:
-    shooting: Literal["single", "multiple"]
+    shooting: Literal["single", "multiple", "auto"]   # auto: solvers.methods.method_choice decides
     family: Family = "output_error"
 
     def build(self, cm, data, layout, options):
@@ -125,6 +125,7 @@ class _Frequency:
 
 
 METHODS: dict[FitMethod, _EquationError | _OutputError | _Online | _Frequency] = {
+    FitMethod.auto: _OutputError("auto"),
     FitMethod.equation_error: _EquationError(),
     FitMethod.single_shooting: _OutputError("single"),
     FitMethod.multiple_shooting: _OutputError("multiple"),
@@ -161,7 +162,7 @@ def simulates_outputs(method: FitMethod | str) -> bool:
     Returns
     -------
     bool
-        True for single and multiple shooting.
+        True for single and multiple shooting, and for auto (which runs one of them).
     """
     return method_family(method) == "output_error"
 

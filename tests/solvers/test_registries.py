@@ -9,7 +9,8 @@ from greyfit.solvers.methods.registry import METHODS, batch_method, method_famil
 def test_every_fit_method_has_one_entry_and_family():
     assert set(METHODS) == set(FitMethod)
     assert {m: method_family(m) for m in FitMethod} == {
-        FitMethod.equation_error: "equation_error", FitMethod.single_shooting: "output_error",
+        FitMethod.auto: "output_error", FitMethod.equation_error: "equation_error",
+        FitMethod.single_shooting: "output_error",
         FitMethod.multiple_shooting: "output_error", FitMethod.recursive_least_squares: "online",
         FitMethod.mras: "online", FitMethod.frequency_response: "frequency"}
     for m in FitMethod:

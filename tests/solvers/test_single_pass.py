@@ -20,6 +20,8 @@ needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C comp
 
 @pytest.fixture
 def cache(tmp_path, monkeypatch):
+    from greyfit.solvers.methods.shooting import structured
+    monkeypatch.setattr(structured, "FOLD_MIN_SAMPLES", 0)   # the folded callbacks at every length
     monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
     monkeypatch.setattr(compiled_mod, "_memory", {})
     return tmp_path / "compiled"
@@ -99,3 +101,33 @@ def test_one_sensitivity_pass_per_accepted_point(cache, monkeypatch, mode):
     assert result.quality == "good"
     assert result.parameters["k"].value == pytest.approx(MSD_TRUTH["k"], rel=5e-3)
     assert 0 < len(passes) <= result.solver.iterations + 1
+
+
+@pytest.mark.parametrize("mode", ["never", "always"])
+def test_callbacks_equal_the_graphs_derivatives_when_some_initial_states_are_known(cache, monkeypatch, mode):
+    """v(0) known in both experiments: the kernels carry no v(0) direction, and the Gauss-Newton
+    pieces still equal CasADi's differentiation of the generic single-shooting graph."""
+    import casadi as ca
+
+    from greyfit.solvers.methods.shooting import build_single_shooting
+    from tests.solvers.test_structured_nlp import _body, _oem, _reference
+    if mode == "always" and compiled_mod.compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv("GREYFIT_COMPILE", mode)
+    body = _body("single_shooting", output_gain=True)
+    body["experiments"][0]["initial_state"] = {"v": -0.1}
+    structured = build_single_shooting(_oem(body))
+    assert single_pass.free_states(_oem(body)) == (0,)
+    monkeypatch.setenv("GREYFIT_STRUCTURED_SHOOTING", "0")
+    ref = _reference(build_single_shooting(_oem(body)))
+    monkeypatch.delenv("GREYFIT_STRUCTURED_SHOOTING")
+    solver = structured.solver_factory()
+    nlp, data = solver.nlp.solver, solver.data
+    w = structured.initial_guess(np.array([0.5, 2.0, 1.0, 1.0, 1.2])) * 1.05
+    f, _, grad, _, hess = (np.array(ca.DM(v)) for v in ref(w))
+    got = {"f": nlp.get_function("nlp_f")(w, data), "grad": nlp.get_function("nlp_grad_f")(w, data)[1],
+           "hess": nlp.get_function("nlp_hess_l")(w, data, 1.0, np.zeros(nlp.size1_in(5)))}
+    for name, truth in (("f", f), ("grad", grad), ("hess", hess)):
+        value = np.array(ca.DM(got[name]))
+        assert value.shape == truth.shape, name
+        assert np.max(np.abs(value - truth)) <= 1e-9 * max(1.0, float(np.max(np.abs(truth)))), name

@@ -40,17 +40,37 @@ def new_token() -> float:
     return float(next(_TOKENS))
 
 
-def build_kernels(oem) -> dict[str, ca.Function]:
+def free_states(oem) -> tuple[int, ...]:
+    """The states whose initial value some experiment estimates (the sensitivities' x0 columns).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its free initial states per experiment).
+
+    Returns
+    -------
+    tuple of int
+        Sorted state indices.
+    """
+    return tuple(sorted({int(i) for f in oem.free_x0 for i in f}))
+
+
+def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
     """The two per-sample kernels over scaled states x (x_phys = xs·x) and θ (p = off + M θ).
 
     `value`: (x_k, inputs) -> (x_k+1, ½‖r_k‖²); `sens`: ((x_k, vec S_k), inputs) ->
-    ((x_k+1, vec S_k+1), ½‖r_k‖², J_kᵀr_k, triu(J_kᵀJ_k)). Inputs after the state: u_k, u_k+1,
-    t_k, t_k+1 − t_k, θ, M, off, xs, y_k, wt_k (the last sample's step is computed and dropped).
+    ((x_k+1, vec S_k+1), ½‖r_k‖², J_kᵀr_k, triu(J_kᵀJ_k)), S_k = ∂x_k/∂[θ, x0 of the `free`
+    states] (a known initial state needs no direction: the seat model's 8 known x0 would double
+    the work). Inputs after the state: u_k, u_k+1, t_k, t_k+1 − t_k, θ, M, off, xs, y_k, wt_k (the
+    last sample's step is computed and dropped).
 
     Parameters
     ----------
     oem : OutputErrorModel
         The output-error model (its compiled model, step and parameter layout).
+    free : tuple of int
+        The states whose initial value is estimated somewhere (`free_states`).
 
     Returns
     -------
@@ -58,7 +78,8 @@ def build_kernels(oem) -> dict[str, ca.Function]:
         ``{"value": ..., "sens": ...}``, SX Functions.
     """
     cm, nth = oem.cm, oem.layout.size
-    nx, nv = cm.nx, nth + cm.nx
+    nx, nf = cm.nx, len(free)
+    nv = nth + nf
     sx = ca.SX.sym
     xk, xs = sx("xk", nx), sx("xs", nx)
     u0, u1, t0, dt = sx("u0", cm.nu), sx("u1", cm.nu), sx("t0"), sx("dt")
@@ -71,8 +92,8 @@ def build_kernels(oem) -> dict[str, ca.Function]:
     rest = [u0, u1, t0, dt, theta, mat, off, xs, y, wt]
     value = ca.Function("greyfit_ss_value", [xk, *rest], [xn, cost])
     sens = sx("S", nx, nv)
-    s_next = ca.mtimes(ca.jacobian(xn, xk), sens) + ca.horzcat(ca.jacobian(xn, theta), ca.SX(nx, nx))
-    jrow = ca.mtimes(ca.jacobian(r, xk), sens) + ca.horzcat(ca.jacobian(r, theta), ca.SX(cm.ny, nx))
+    s_next = ca.mtimes(ca.jacobian(xn, xk), sens) + ca.horzcat(ca.jacobian(xn, theta), ca.SX(nx, nf))
+    jrow = ca.mtimes(ca.jacobian(r, xk), sens) + ca.horzcat(ca.jacobian(r, theta), ca.SX(cm.ny, nf))
     z = ca.vertcat(xk, ca.vec(sens))
     # the symbolic sparsity of triu(JᵀJ) (e.g. no θ in an output) is the NLP's Hessian pattern
     derivs = ca.Function("greyfit_ss_sens", [z, *rest], [
@@ -83,8 +104,10 @@ def build_kernels(oem) -> dict[str, ca.Function]:
 class SinglePass:
     """Cost, gradient and Gauss-Newton Hessian of single shooting at a point, from two folds."""
 
-    def __init__(self, oem, folds: dict[str, Fold], layout: list[tuple[str, tuple[int, int]]]):
-        """`layout`: the named blocks of the data vector (`structured._data_layout`), in order."""
+    def __init__(self, oem, folds: dict[str, Fold], layout: list[tuple[str, tuple[int, int]]],
+                 free: tuple[int, ...]):
+        """`layout`: the named blocks of the data vector (`structured._data_layout`), in order;
+        `free`: the kernels' x0 directions (`free_states`)."""
         cm, nth = oem.cm, oem.layout.size
         self.nx, self.nth, self.nu, self.ny = cm.nx, nth, cm.nu, cm.ny
         self.folds = folds
@@ -96,12 +119,14 @@ class SinglePass:
             self.offsets[name] = (k, rows * cols)
             k += rows * cols
         self.size = k + 1   # and the token
-        nv = nth + cm.nx
-        self.seed = np.vstack([np.zeros((nth, cm.nx)), np.eye(cm.nx)]).T.ravel(order="F")   # S_0 = [0 | I]
-        # [θ, x0] of experiment e -> w: θ, and its free x0 entries at their columns
+        free_at = np.asarray(free, dtype=int)
+        nv = nth + free_at.size
+        # S_0 = [0 | e_i for the free states i]
+        self.seed = np.hstack([np.zeros((cm.nx, nth)), np.eye(cm.nx)[:, free_at]]).ravel(order="F")
+        # [θ, x0 directions] of experiment e -> w: θ, and its free x0 entries at their columns
         self.places, col = [], nth
         for f in self.free:
-            v = np.concatenate([np.arange(nth), nth + f])
+            v = np.concatenate([np.arange(nth), nth + np.searchsorted(free_at, f)]).astype(int)
             self.places.append((v, np.concatenate([np.arange(nth), col + np.arange(f.size)])))
             col += f.size
         rows, cols = (np.asarray(a, dtype=int) for a in folds["sens"].fn.sparsity_out(3).get_triplet())

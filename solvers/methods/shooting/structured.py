@@ -60,7 +60,13 @@ def supports(oem, single: bool = False) -> bool:
 
 
 STAGES_MULTIPLE = ("step", "gap", "out", "gn")
+STAGES_SINGLE = ("step_acc", "out", "sens_acc", "sgn")
 STAGES_CONDENSED = ("out", "sens_acc", "jrow")
+# single shooting's folded callbacks (`single_pass`) from this many samples of a structure on; below,
+# the MX graph of mapped blocks. A Python callback costs ~60 µs a call inside Ipopt, the graph's
+# passes grow with the record: 2 states, warm CPU of a solve, folded / mapped: 101 samples 15.5 /
+# 12.6 ms, 401: 10.6 / 10.5, 1001: 10.2 / 17.3, 4001: 22.7 / 75.3 (bench/bench_single_shooting.py)
+FOLD_MIN_SAMPLES = 400
 # samples per call of a compiled stage Function: CasADi's map costs ~0.2 µs per call, more than
 # the whole work of a small model's sample (0.5 s of a 40 000-sample fit of a 2-state model)
 BLOCK = 32
@@ -120,8 +126,9 @@ def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
     """Single shooting's two kernels (`single_pass.build_kernels`) as folds, compiled where it pays
     (side by side when both are new: gcc runs outside the GIL); whether both are compiled C."""
     o = oem.options
-    kernels = oem.cm.derive(("single_pass", o.integrator, o.substeps, o.input_interpolation, oem.layout.size),
-                            lambda: single_pass.build_kernels(oem))
+    free = single_pass.free_states(oem)
+    kernels = oem.cm.derive(("single_pass", o.integrator, o.substeps, o.input_interpolation, oem.layout.size, free),
+                            lambda: single_pass.build_kernels(oem, free))
     # trial points evaluate the cost about as often as accepted ones the sensitivities
     work = {"value": 2.0 * samples * EXPECTED_ITERATIONS, "sens": samples * EXPECTED_ITERATIONS}
 
@@ -195,8 +202,9 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     step (x_k -> x_k+1, the value of a gap and of a simulation), gap (its Jacobians in x_k and θ),
     out (weighted residual r_k with ∂r/∂x, ∂r/∂θ), gn (r_k with its Gauss-Newton pieces: the
     gradient J_kᵀr_k and J_kᵀJ_k of J_k = [∂r/∂x_k, ∂r/∂θ]), sens (x_k and S_k = ∂x_k/∂[θ, x0]
-    -> x_k+1, S_k+1), jrow (single shooting's row J_k = ∂r/∂x S_k + [∂r/∂θ, 0], for the condensed
-    Jacobian; single shooting's own NLP folds its kernels in `single_pass`).
+    -> x_k+1, S_k+1), sgn (the same pieces for single shooting's row J_k = ∂r/∂x S_k + [∂r/∂θ, 0]),
+    jrow (that row itself, for the condensed Jacobian). Single shooting of long records folds its
+    own kernels instead (`single_pass`).
     """
     cm, nth = oem.cm, oem.layout.size
     nx, nv = cm.nx, nth + cm.nx
@@ -225,6 +233,9 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     z = ca.vertcat(xk, ca.vec(sens))
     fns["sens"] = ca.Function("greyfit_sens", [z, u0, u1, t0, dt, theta, mat, off, xs],
                               [ca.vertcat(xn, ca.vec(s_next))])
+    jrow = ca.mtimes(rx, sens) + ca.horzcat(rt, ca.SX(cm.ny, nx))
+    fns["sgn"] = ca.Function("greyfit_sgn", [z, u0, t0, theta, mat, off, xs, y, wt],
+                             [r, ca.mtimes(jrow.T, r), ca.vec(ca.mtimes(jrow.T, jrow))])
     rx_in, rt_in, s_in = sx("rx", cm.ny, nx), sx("rt", cm.ny, nth), sx("s", nx * nv)
     jrow_in = ca.mtimes(rx_in, ca.reshape(s_in, nx, nv)) + ca.horzcat(rt_in, ca.SX(cm.ny, nx))
     fns["jrow"] = ca.Function("greyfit_jrow", [rx_in, rt_in, s_in], [jrow_in.T])
@@ -394,13 +405,51 @@ def _single_shooting_terms(oem, folds: dict[str, Fold], theta, pv, pvec) -> tupl
     """No gaps and no MX graph of the samples: f, grad_f and the Hessian are callbacks of one
     `single_pass.SinglePass`, each one folded compiled loop (the derivatives one pass per point).
     Also returns the callbacks, which must live as long as the solver."""
-    sp = single_pass.SinglePass(oem, folds, _data_layout(oem).shapes)
+    sp = single_pass.SinglePass(oem, folds, _data_layout(oem).shapes, single_pass.free_states(oem))
     cbs = single_pass.callbacks(sp)
     w = ca.vertcat(theta, ca.MX.sym("x0", sp.nw - sp.nth))
     f_gn, grad = cbs["grad"](w, pvec)
     terms = _Terms(w, cbs["cost"](w, pvec), f_gn, grad, cbs["hess"](w, pvec),
                    ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, sp.nw))
     return terms, (sp, *cbs.values())
+
+
+def _mapped_single_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
+    """No gaps: one simulation per experiment for f, one carrying the sensitivities S_k =
+    ∂x_k/∂[θ, x0] (the nodes of multiple shooting condensed away) for the derivatives, whose
+    per-sample rows J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] reduce to J_kᵀr_k and J_kᵀJ_k in C."""
+    nx, nth = oem.cm.nx, oem.layout.size
+    nv = nth + nx
+    free = [ca.MX.sym(f"x0_{e}", len(f)) for e, f in enumerate(oem.free_x0)]
+    w = ca.vertcat(theta, *free)
+    nw = w.numel()
+    off, xs = pv["off"], pv["xs"]
+    seed = np.vstack([np.zeros((nth, nx)), np.eye(nx)]).T.ravel(order="F")   # S_0 = [0 | I]
+    r_parts, r_gn = [], []
+    grad, hess = ca.MX(nw, 1), ca.MX(nw, nw)
+    col = nth
+    for e, d in enumerate(oem.data):
+        U, T, Y, W, M = pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
+        DT = T[:, 1:] - T[:, :-1]
+        x0 = _free_x0(oem, e, pv, free)
+        X = fns["step_acc"].accum(d.n - 1, x0, U[:, :-1], U[:, 1:], T[:, :-1], DT, theta, M, off, xs)
+        X = ca.horzcat(x0, X)
+        r_parts.append(ca.vec(fns["out"].map(d.n, X, U, T, theta, M, off, xs, Y, W)[0]))
+        z0 = ca.vertcat(x0, ca.DM(seed))
+        Z = fns["sens_acc"].accum(d.n - 1, z0, U[:, :-1], U[:, 1:], T[:, :-1], DT, theta, M, off, xs)
+        R, G, H = fns["sgn"].map(d.n, ca.horzcat(z0, Z), U, T, theta, M, off, xs, Y, W)
+        r_gn.append(ca.vec(R))
+        # [θ, x0] of this experiment -> w: θ, and its free x0 entries at their columns
+        place = np.zeros((nw, nv))
+        place[np.arange(nth), np.arange(nth)] = 1.0
+        for j, i in enumerate(oem.free_x0[e]):
+            place[col + j, nth + i] = 1.0
+        col += len(oem.free_x0[e])
+        place = ca.DM(ca.sparsify(ca.DM(place)))
+        grad += ca.mtimes(place, ca.sum2(G))
+        hess += ca.mtimes([place, ca.reshape(ca.sum2(H), nv, nv), place.T])
+    return _Terms(w, 0.5 * ca.sumsqr(ca.vertcat(*r_parts)), 0.5 * ca.sumsqr(ca.vertcat(*r_gn)), grad,
+                  ca.triu(hess), ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, nw))
 
 
 def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
@@ -609,16 +658,17 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
     samples = sum(d.n for d in oem.data)
     structure = (single, tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
     o = oem.options
+    folded = single and samples >= FOLD_MIN_SAMPLES
 
     def make_solver(max_iter: int | None = None, max_cpu_time: float | None = None):
         """`max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve)."""
         iters = o.max_iter if max_iter is None else max_iter
         cpu = o.max_cpu_time if max_cpu_time is None else max_cpu_time
-        if single:
+        if folded:
             fns, is_c = _single_folds(oem, samples)
             owners = (*(fold.fn for fold in fns.values()), oem.cm.constraint)
         else:
-            fns, is_c = _stage_functions(oem, samples, STAGES_MULTIPLE)
+            fns, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
             owners = (*(st.block for st in fns.values()), oem.cm.constraint)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
@@ -629,20 +679,21 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             _SOLVERS.move_to_end(nlp_key)
             nlp = entry[1]
         else:
-            pvec, pv = _data_blocks(oem, extra=int(single))
+            pvec, pv = _data_blocks(oem, extra=int(folded))
             theta = ca.MX.sym("theta", oem.layout.size)
             keep: tuple = ()
-            if single:
+            if folded:
                 terms, keep = _single_shooting_terms(oem, fns, theta, pv, pvec)
             else:
-                terms = _multiple_shooting_terms(oem, fns, theta, pv)
+                build = _mapped_single_shooting_terms if single else _multiple_shooting_terms
+                terms = build(oem, fns, theta, pv)
             nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:
                     _SOLVERS.popitem(last=False)
         data = _data_vector(oem)
-        if single:   # the token under which the callbacks cache this record and its points
+        if folded:   # the token under which the callbacks cache this record and its points
             data = np.append(data, single_pass.new_token())
         return StructuredSolver(nlp, data, problem, is_c)
 

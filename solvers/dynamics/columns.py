@@ -287,7 +287,7 @@ class Fold:
         return BoundFold(self, args, n)
 
     def _casadi(self, args, n: int) -> list[np.ndarray]:
-        fm = self._maps.get(n, lambda: self.fn.mapaccum(n))
+        fm = self._maps.get((n,), lambda: self.fn.mapaccum(n))
         full = []
         for i, a in enumerate(args):   # the map repeats a shared input; its buffer wants every copy
             full.append(a if a.size == fm.nnz_in(i) else np.tile(a, fm.nnz_in(i) // max(a.size, 1)))
@@ -322,6 +322,7 @@ class BoundFold:
         if self._c is None:
             self._c = self._c_arrays()
         outputs, arg, astride, res = self._c
-        if fold._driver(self.n, arg, astride, res):
+        driver = fold._driver
+        if driver is None or driver(self.n, arg, astride, res):
             raise RuntimeError(f"evaluation of {fold.fn.name()} failed")
         return [o.copy() for o in outputs]

@@ -115,9 +115,9 @@ class SinglePass:
         self.free = [np.asarray(f, dtype=int) for f in oem.free_x0]
         self.nw = nth + sum(f.size for f in self.free)
         self.offsets, k = {}, 0
-        for name, (rows, cols) in layout:
-            self.offsets[name] = (k, rows * cols)
-            k += rows * cols
+        for name, (size1, size2) in layout:
+            self.offsets[name] = (k, size1 * size2)
+            k += size1 * size2
         self.size = k + 1   # and the token
         free_at = np.asarray(free, dtype=int)
         nv = nth + free_at.size

@@ -664,12 +664,14 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
         """`max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve)."""
         iters = o.max_iter if max_iter is None else max_iter
         cpu = o.max_cpu_time if max_cpu_time is None else max_cpu_time
+        folds: dict[str, Fold] = {}
+        stages: dict[str, _Stage] = {}
         if folded:
-            fns, is_c = _single_folds(oem, samples)
-            owners = (*(fold.fn for fold in fns.values()), oem.cm.constraint)
+            folds, is_c = _single_folds(oem, samples)
+            owners = (*(fold.fn for fold in folds.values()), oem.cm.constraint)
         else:
-            fns, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
-            owners = (*(st.block for st in fns.values()), oem.cm.constraint)
+            stages, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
+            owners = (*(st.block for st in stages.values()), oem.cm.constraint)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
         # the NLP; the entry holds those objects, so an id is never reused while it is cached
@@ -683,10 +685,10 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             theta = ca.MX.sym("theta", oem.layout.size)
             keep: tuple = ()
             if folded:
-                terms, keep = _single_shooting_terms(oem, fns, theta, pv, pvec)
+                terms, keep = _single_shooting_terms(oem, folds, theta, pv, pvec)
             else:
                 build = _mapped_single_shooting_terms if single else _multiple_shooting_terms
-                terms = build(oem, fns, theta, pv)
+                terms = build(oem, stages, theta, pv)
             nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)

@@ -275,7 +275,8 @@ class Fold:
         Parameters
         ----------
         args : list of numpy.ndarray
-            One array per input, as for a call (copied into the bound fold's own buffers).
+            One array per input, as for a call; flat float arrays are used as they are (not copied),
+            so rewriting one rewrites the input.
         n : int
             The number of samples.
 
@@ -299,11 +300,13 @@ class Fold:
 class BoundFold:
     """A `Fold` whose input buffers and C argument arrays are made once: a call costs the loop
     and a few microseconds (building ctypes arrays per call took longer than a short record's
-    compiled work). Rewrite `args[i][:]` in place between calls; the outputs are fresh arrays."""
+    compiled work). Rewrite `args[i][:]` in place between calls (flat float arrays given are used
+    as they are, so two bound folds may share a record); the outputs are fresh arrays."""
 
     def __init__(self, fold: Fold, args: list[np.ndarray], n: int):
         self.fold, self.n = fold, n
-        self.args = [np.array(a, dtype=float).ravel(order="F") for a in args]
+        # the arrays themselves where they already are flat float buffers (no copy of a long record)
+        self.args = [np.ascontiguousarray(np.asarray(a, dtype=float).ravel(order="F")) for a in args]
         self._c: tuple | None = None
 
     def _c_arrays(self) -> tuple:

@@ -39,12 +39,13 @@ except ImportError:   # not POSIX: no cross-process lock, at worst a library is 
     fcntl = None  # type: ignore[assignment]
 
 # -Bsymbolic: the columns driver must call this library's own function, not a namesake loaded
-# before it (glibc exports a legacy `step`). -O3 with -march=native: per 1000 samples, seed 000's
-# seat sensitivity kernel took 5.4 ms -O1, 5.2 ms -O3, 4.7 ms -O3 -march=native (gcc itself 4.0,
-# 6.7 and 6.5 s CPU). The target ISA then enters the cache key (`target`), so a library built for
-# another CPU of a fleet sharing the cache is never loaded. `GREYFIT_NATIVE=0`: the compiler's
-# default target.
-CFLAGS = ["-O3", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
+# before it (glibc exports a legacy `step`). -O3 -march=native: per 1000 samples, seed 000's seat
+# sensitivity kernel took 5.4 ms -O1, 5.2 ms -O3, 4.7 ms -O3 -march=native on a quiet machine
+# (gcc itself 4.0, 6.7 and 6.5 s CPU); the target ISA then enters the cache key (`target`), so a
+# library built for another CPU of a fleet sharing the cache is never loaded (`GREYFIT_NATIVE=0`:
+# the compiler's default target). -ffp-contract=off: no fused multiply-adds, so the compiled
+# numbers stay those of CasADi's interpreter bit for bit, on every CPU (the same speed here).
+CFLAGS = ["-O3", "-ffp-contract=off", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
 # interpreted SX costs ~10 ns per instruction here; gcc ~1 s for a few thousand: compile in the
 # foreground when a fit would spend more than about a second interpreting
 FOREGROUND_WORK = 1e8          # instructions × expected evaluations

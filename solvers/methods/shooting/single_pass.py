@@ -173,7 +173,9 @@ class SinglePass:
             sens.args[0][self.nx:] = self.seed
             out.append({"x0": block(f"X0{e}"), "value": value, "sens": sens})
         self._records[token] = out
-        while len(self._records) > 8:
+        # a record per live solver of this structure; one fit's solves share one (a long record
+        # held for solvers already gone would cost its size again)
+        while len(self._records) > 2:
             self._records.popitem(last=False)
         return out
 

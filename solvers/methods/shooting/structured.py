@@ -9,6 +9,10 @@ nonzeros). Each NLP callback evaluates only what it returns (f and g at trial po
 derivatives), and the stage Functions run BLOCK samples per call. Cost and memory grow linearly in
 the record.
 
+Single shooting is condensed (the sensitivities carried along one simulation); from
+FOLD_MIN_SAMPLES samples on, its callbacks are no MX graph at all but `single_pass`'s: each one
+compiled loop over all samples, the sensitivity pass once per point for grad_f and hess_l.
+
 Data (inputs, times, measurements, weights, state scales) and the parameter layout enter the NLP
 as parameters, so one Ipopt instance serves every fit of the same model structure and record
 lengths: a worker builds it once and reuses it (`_SOLVERS`).

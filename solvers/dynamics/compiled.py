@@ -187,9 +187,10 @@ def _which(name: str) -> str | None:   # a PATH search costs ~0.2 ms, asked on e
 def target() -> tuple[tuple[str, ...], str]:
     """(extra compiler flags, description of the instruction set they target) on this machine.
 
-    With -march=native the description is the compiler's own account of what native means here
-    (``-march=native -Q --help=target``: the CPU, its extensions, tuning); without (no compiler,
-    the query failing, `GREYFIT_NATIVE=0`) it is ``"default"``.
+    With -march=native, the description is what native means here: the CPU's identity and
+    instruction-set flags from /proc/cpuinfo (no process to start), or else the compiler's own
+    account (``-march=native -Q --help=target``); without (no compiler, neither source answering,
+    `GREYFIT_NATIVE=0`) it is ``"default"``.
 
     Returns
     -------
@@ -203,8 +204,17 @@ def target() -> tuple[tuple[str, ...], str]:
     return _native_target(cc) if (cc is not None and native) else ((), "default")
 
 
+CPU_FIELDS = ("vendor_id", "cpu family", "model", "flags", "features", "cpu implementer", "cpu part")
+
+
 @functools.lru_cache(maxsize=4)
 def _native_target(cc: str) -> tuple[tuple[str, ...], str]:
+    with contextlib.suppress(OSError):
+        with open("/proc/cpuinfo") as info:
+            first = info.read().split("\n\n")[0]   # the first processor's entry
+        fields = [line for line in first.splitlines() if line.split(":")[0].strip().lower() in CPU_FIELDS]
+        if fields:
+            return ("-march=native",), "\n".join(" ".join(line.split()) for line in fields)
     try:
         out = subprocess.run([cc, "-march=native", "-Q", "--help=target"], capture_output=True, text=True,
                              timeout=60, check=True).stdout

@@ -256,5 +256,5 @@ def test_the_native_target_is_described_by_the_compiler():
     flags, isa = compiled_mod.target()
     assert flags in ((), ("-march=native",))
     assert (isa == "default") == (flags == ())
-    if flags:
-        assert "-march=" in isa
+    if flags and os.path.exists("/proc/cpuinfo"):
+        assert "flags" in isa or "features" in isa.lower()

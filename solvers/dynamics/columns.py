@@ -186,13 +186,146 @@ def evaluate(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
     return [flat.reshape(fn.size_out(i), order="F") for i, flat in enumerate(nonzeros(fn, args))]
 
 
-def _driver(path: str, name: str):
+def _driver(path: str, name: str, kind: str = "columns"):
     with _lock:
         lib = _libraries.get(path)
         if lib is None:
             lib = _libraries[path] = ctypes.CDLL(path)
-    fn = getattr(lib, f"greyfit_columns_{name}")
-    fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
-                   ctypes.c_int]
+    fn = getattr(lib, f"greyfit_{kind}_{name}")
+    if kind == "columns":
+        fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
+                       ctypes.c_int]
+    else:
+        fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     fn.restype = ctypes.c_int
     return fn
+
+
+class Fold:
+    """`fn` folded over n samples in one call: output 0 of sample k is input 0 of sample k+1 and
+    the other outputs are summed over the samples (the compiled library's `greyfit_fold_` loop,
+    else CasADi's `mapaccum`, with the same results).
+
+    Inputs as for `Columns` with `accumulate`: input 0 is the first sample's state, the others
+    (rows, n) per sample or (rows,) shared. Returns the state after the last sample and the sums,
+    each as its output's nonzeros.
+    """
+
+    def __init__(self, fn: ca.Function, evaluations: float = 0.0):
+        self.fn = fn
+        self._maps = FunctionCache(4)
+        self._driver = None
+        self._nnz_in = [fn.nnz_in(i) for i in range(fn.n_in())]
+        self._nnz_out = [fn.nnz_out(j) for j in range(fn.n_out())]
+        self._evaluations = evaluations
+        self.find_library()
+
+    def find_library(self, evaluations: float | None = None) -> bool:
+        """Load the compiled loop if its library is ready (built now, on disk, or finished in the
+        background since the last call).
+
+        Parameters
+        ----------
+        evaluations : float or None, optional
+            Expected evaluations from now on (whether a compile in the foreground pays); None
+            keeps the last estimate.
+
+        Returns
+        -------
+        bool
+            Whether the compiled loop is in use.
+        """
+        if evaluations is not None:
+            self._evaluations = evaluations
+        if self._driver is None and self.fn.is_a("SXFunction"):
+            path = library(self.fn, self._evaluations)
+            if path is not None:
+                self._driver = _driver(str(path), self.fn.name(), "fold")
+        return self._driver is not None
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled loop is in use (False: CasADi's mapaccum evaluates).
+
+        Returns
+        -------
+        bool
+            True once the Function's library has been loaded through ctypes.
+        """
+        return self._driver is not None
+
+    def __call__(self, *args: np.ndarray, n: int) -> list[np.ndarray]:
+        if self._driver is None:
+            self.find_library()
+        if self._driver is None:
+            return self._casadi(args, n)
+        strides = [0] + [self._nnz_in[i] if a.size == self._nnz_in[i] * n and n > 1 else 0
+                         for i, a in enumerate(args) if i]
+        outputs = [np.empty(nnz) for nnz in self._nnz_out]
+        arg = (ctypes.c_void_p * len(args))(*[a.ctypes.data for a in args])
+        res = (ctypes.c_void_p * len(outputs))(*[o.ctypes.data for o in outputs])
+        astride = (ctypes.c_longlong * len(strides))(*strides)
+        if self._driver(n, arg, astride, res):
+            raise RuntimeError(f"evaluation of {self.fn.name()} failed")
+        return outputs
+
+    def bind(self, args: list[np.ndarray], n: int) -> "BoundFold":
+        """This fold over fixed input buffers, for repeated calls whose inputs change in place.
+
+        Parameters
+        ----------
+        args : list of numpy.ndarray
+            One array per input, as for a call; flat float arrays are used as they are (not copied),
+            so rewriting one rewrites the input.
+        n : int
+            The number of samples.
+
+        Returns
+        -------
+        BoundFold
+            Its `args` are the buffers to rewrite between calls.
+        """
+        return BoundFold(self, args, n)
+
+    def _casadi(self, args, n: int) -> list[np.ndarray]:
+        fm = self._maps.get((n,), lambda: self.fn.mapaccum(n))
+        full = []
+        for i, a in enumerate(args):   # the map repeats a shared input; its buffer wants every copy
+            full.append(a if a.size == fm.nnz_in(i) else np.tile(a, fm.nnz_in(i) // max(a.size, 1)))
+        outs = nonzeros(fm, full)
+        state = outs[0][-self._nnz_out[0]:]
+        return [state] + [o.reshape(n, self._nnz_out[j + 1]).sum(axis=0) for j, o in enumerate(outs[1:])]
+
+
+class BoundFold:
+    """A `Fold` whose input buffers and C argument arrays are made once: a call costs the loop
+    and a few microseconds (building ctypes arrays per call took longer than a short record's
+    compiled work). Rewrite `args[i][:]` in place between calls (flat float arrays given are used
+    as they are, so two bound folds may share a record); the outputs are fresh arrays."""
+
+    def __init__(self, fold: Fold, args: list[np.ndarray], n: int):
+        self.fold, self.n = fold, n
+        # the arrays themselves where they already are flat float buffers (no copy of a long record)
+        self.args = [np.ascontiguousarray(np.asarray(a, dtype=float).ravel(order="F")) for a in args]
+        self._c: tuple | None = None
+
+    def _c_arrays(self) -> tuple:
+        fold, args, n = self.fold, self.args, self.n
+        strides = [0] + [fold._nnz_in[i] if a.size == fold._nnz_in[i] * n and n > 1 else 0
+                         for i, a in enumerate(args) if i]
+        outputs = [np.empty(nnz) for nnz in fold._nnz_out]
+        return (outputs, (ctypes.c_void_p * len(args))(*[a.ctypes.data for a in args]),
+                (ctypes.c_longlong * len(strides))(*strides),
+                (ctypes.c_void_p * len(outputs))(*[o.ctypes.data for o in outputs]))
+
+    def __call__(self) -> list[np.ndarray]:
+        fold = self.fold
+        if fold._driver is None and not fold.find_library():
+            return fold._casadi(self.args, self.n)
+        if self._c is None:
+            self._c = self._c_arrays()
+        outputs, arg, astride, res = self._c
+        driver = fold._driver
+        if driver is None or driver(self.n, arg, astride, res):
+            raise RuntimeError(f"evaluation of {fold.fn.name()} failed")
+        return [o.copy() for o in outputs]

@@ -232,3 +232,29 @@ def test_processes_meeting_a_new_model_at_once_compile_it_once(cache, tmp_path):
         assert is_c == "True" and float(value) == pytest.approx(expected, rel=1e-12)
     assert len(calls.read_text().split()) == 1
     assert len(list(cache.glob("race_probe_*.so"))) == 1
+
+
+def test_the_target_instruction_set_is_in_the_cache_key(monkeypatch):
+    """A library built for another CPU (another -march=native) has another key: a cache shared by a
+    mixed fleet never hands one CPU's library to another; without native code the key says so."""
+    import casadi as ca
+    x = ca.SX.sym("x")
+    fns = [ca.Function("isa_case", [x], [ca.sin(x)]) for _ in range(3)]   # one graph, three objects
+    monkeypatch.setattr(compiled_mod, "_native_target", lambda cc: (("-march=native",), "-march= skylake"))
+    monkeypatch.setattr(compiled_mod, "compiler", lambda: "/usr/bin/cc")
+    skylake = compiled_mod.function_key(fns[0])
+    monkeypatch.setattr(compiled_mod, "_native_target", lambda cc: (("-march=native",), "-march= znver3"))
+    zen = compiled_mod.function_key(fns[1])
+    monkeypatch.setenv("GREYFIT_NATIVE", "0")
+    generic = compiled_mod.function_key(fns[2])
+    assert len({skylake, zen, generic}) == 3
+    assert compiled_mod.target() == ((), "default")
+
+
+@needs_cc
+def test_the_native_target_is_described_by_the_compiler():
+    flags, isa = compiled_mod.target()
+    assert flags in ((), ("-march=native",))
+    assert (isa == "default") == (flags == ())
+    if flags and os.path.exists("/proc/cpuinfo"):
+        assert "flags" in isa or "features" in isa.lower()

@@ -56,9 +56,15 @@ def _reference(p):
 
 @pytest.mark.parametrize("output_gain", [True, False])
 @pytest.mark.parametrize("compile_mode", ["never", "always"])
-@pytest.mark.parametrize("method", ["multiple_shooting", "single_shooting"])
+@pytest.mark.parametrize("method", ["multiple_shooting", "single_shooting", "single_shooting_folded"])
 def test_structured_callbacks_equal_casadi_derivatives_of_the_graph(monkeypatch, tmp_path, method, compile_mode,
                                                                      output_gain):
+    """single_shooting: the MX graph of mapped blocks (a short record); _folded: the callbacks of
+    single_pass, each one folded loop, that long records get."""
+    from greyfit.solvers.methods.shooting import structured as structured_mod
+    folded = method == "single_shooting_folded"
+    monkeypatch.setattr(structured_mod, "FOLD_MIN_SAMPLES", 0 if folded else 10 ** 9)
+    method = method.removesuffix("_folded")
     monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
     monkeypatch.setenv("GREYFIT_COMPILE", compile_mode)
     build = build_multiple_shooting if method == "multiple_shooting" else build_single_shooting

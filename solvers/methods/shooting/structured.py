@@ -9,6 +9,10 @@ nonzeros). Each NLP callback evaluates only what it returns (f and g at trial po
 derivatives), and the stage Functions run BLOCK samples per call. Cost and memory grow linearly in
 the record.
 
+Single shooting is condensed (the sensitivities carried along one simulation); from
+FOLD_MIN_SAMPLES samples on, its callbacks are no MX graph at all but `single_pass`'s: each one
+compiled loop over all samples, the sensitivity pass once per point for grad_f and hess_l.
+
 Data (inputs, times, measurements, weights, state scales) and the parameter layout enter the NLP
 as parameters, so one Ipopt instance serves every fit of the same model structure and record
 lengths: a worker builds it once and reuses it (`_SOLVERS`).
@@ -23,9 +27,10 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.dynamics.columns import evaluate
+from greyfit.solvers.dynamics.columns import Fold, evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.dynamics.integration import integrator_of
+from greyfit.solvers.methods.shooting import single_pass
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
 EXPECTED_ITERATIONS = 20
@@ -61,6 +66,11 @@ def supports(oem, single: bool = False) -> bool:
 STAGES_MULTIPLE = ("step", "gap", "out", "gn")
 STAGES_SINGLE = ("step_acc", "out", "sens_acc", "sgn")
 STAGES_CONDENSED = ("out", "sens_acc", "jrow")
+# single shooting's folded callbacks (`single_pass`) from this many samples of a structure on; below,
+# the MX graph of mapped blocks. A Python callback costs ~60 µs a call inside Ipopt, the graph's
+# passes grow with the record: 2 states, warm CPU of a solve, folded / mapped: 101 samples 15.5 /
+# 12.6 ms, 401: 10.6 / 10.5, 1001: 10.2 / 17.3, 4001: 22.7 / 75.3 (bench/bench_single_shooting.py)
+FOLD_MIN_SAMPLES = 400
 # samples per call of a compiled stage Function: CasADi's map costs ~0.2 µs per call, more than
 # the whole work of a small model's sample (0.5 s of a 40 000-sample fit of a 2-state model)
 BLOCK = 32
@@ -113,6 +123,40 @@ def _blocks(fns: dict[str, ca.Function]) -> dict[str, ca.Function]:
     return out
 
 
+_FOLDS: "OrderedDict[int, Fold]" = OrderedDict()
+
+
+def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
+    """Single shooting's two kernels (`single_pass.build_kernels`) as folds, compiled where it pays
+    (side by side when both are new: gcc runs outside the GIL); whether both are compiled C."""
+    o = oem.options
+    free = single_pass.free_states(oem)
+    kernels = oem.cm.derive(("single_pass", o.integrator, o.substeps, o.input_interpolation, oem.layout.size, free),
+                            lambda: single_pass.build_kernels(oem, free))
+    # trial points evaluate the cost about as often as accepted ones the sensitivities
+    work = {"value": 2.0 * samples * EXPECTED_ITERATIONS, "sens": samples * EXPECTED_ITERATIONS}
+
+    def fold(name: str) -> Fold:
+        fn = kernels[name]
+        known = _FOLDS.get(id(fn))
+        if known is not None and known.fn is fn:
+            _FOLDS.move_to_end(id(fn))
+            known.find_library(work[name])
+            return known
+        made = _FOLDS[id(fn)] = Fold(fn, work[name])
+        while len(_FOLDS) > 2 * SOLVER_CACHE_SIZE:
+            _FOLDS.popitem(last=False)
+        return made
+
+    new = [name for name in kernels if id(kernels[name]) not in _FOLDS]
+    if len(new) > 1:
+        with ThreadPoolExecutor(max_workers=len(new)) as pool:
+            folds = dict(zip(new, pool.map(fold, new)))
+    else:
+        folds = {name: fold(name) for name in kernels}
+    return folds, all(f.compiled for f in folds.values())
+
+
 # block Functions whose compilation this process has started (held, so their ids stay theirs)
 _TRIED: dict[int, ca.Function] = {}
 
@@ -163,7 +207,8 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     out (weighted residual r_k with ∂r/∂x, ∂r/∂θ), gn (r_k with its Gauss-Newton pieces: the
     gradient J_kᵀr_k and J_kᵀJ_k of J_k = [∂r/∂x_k, ∂r/∂θ]), sens (x_k and S_k = ∂x_k/∂[θ, x0]
     -> x_k+1, S_k+1), sgn (the same pieces for single shooting's row J_k = ∂r/∂x S_k + [∂r/∂θ, 0]),
-    jrow (that row itself, for the condensed Jacobian).
+    jrow (that row itself, for the condensed Jacobian). Single shooting of long records folds its
+    own kernels instead (`single_pass`).
     """
     cm, nth = oem.cm, oem.layout.size
     nx, nv = cm.nx, nth + cm.nx
@@ -249,19 +294,20 @@ def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca
 @dataclass
 class _Nlp:
     solver: ca.Function
+    keep: tuple = ()   # the Python callbacks the solver calls (alive as long as it is)
 
 
 @dataclass
 class _Terms:
     """The data part of one formulation, each piece for the callback that needs it.
 
-    r: the residual, for f (trial points); r_gn, grad = Jᵀr, hess = triu(JᵀJ): from the Gauss-Newton
+    f = ½‖r‖², for f (trial points); f_gn, grad = Jᵀr, hess = triu(JᵀJ): from the Gauss-Newton
     stage Functions, for grad_f and the Hessian; gaps (value) for g; jac_gap with its own gaps for
     jac_g.
     """
     w: ca.MX
-    r: ca.MX
-    r_gn: ca.MX
+    f: ca.MX
+    f_gn: ca.MX
     grad: ca.MX
     hess: ca.MX
     gaps: ca.MX
@@ -269,8 +315,15 @@ class _Terms:
     jac_gap: ca.MX
 
 
-def _data_blocks(oem) -> tuple[ca.MX, dict[str, ca.MX]]:
-    """The data parameter vector and its named views (layout of `_data_vector`)."""
+def _data_blocks(oem, extra: int = 0) -> tuple[ca.MX, dict[str, ca.MX]]:
+    """The data parameter vector and its named views (layout of `_data_vector`), with `extra`
+    entries after them (single shooting's token)."""
+    pb = _data_layout(oem)
+    pvec = ca.MX.sym("data", pb.size + extra)
+    return pvec, pb.views(pvec)
+
+
+def _data_layout(oem) -> _Blocks:
     cm, nth = oem.cm, oem.layout.size
     pb = _Blocks()
     for e, d in enumerate(oem.data):
@@ -282,8 +335,7 @@ def _data_blocks(oem) -> tuple[ca.MX, dict[str, ca.MX]]:
         pb.add(f"X0{e}", cm.nx, 1)
     pb.add("off", cm.np, 1)
     pb.add("xs", cm.nx, 1)
-    pvec = ca.MX.sym("data", pb.size)
-    return pvec, pb.views(pvec)
+    return pb
 
 
 def _multiple_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
@@ -341,8 +393,8 @@ def _multiple_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
     nw = w.numel()
     jac_gap = _sparse(row_g, nw, np.concatenate(g_rows), np.concatenate(g_cols), ca.vertcat(*g_vals))
     hess = _sparse(nw, nw, np.concatenate(h_rows), np.concatenate(h_cols), ca.vertcat(*h_vals))
-    return _Terms(w, ca.vertcat(*r_parts), ca.vertcat(*r_gn), ca.vertcat(grad_t, *grad_x), hess,
-                  ca.vertcat(*gaps), ca.vertcat(*gaps_jac), jac_gap)
+    return _Terms(w, 0.5 * ca.sumsqr(ca.vertcat(*r_parts)), 0.5 * ca.sumsqr(ca.vertcat(*r_gn)),
+                  ca.vertcat(grad_t, *grad_x), hess, ca.vertcat(*gaps), ca.vertcat(*gaps_jac), jac_gap)
 
 
 def _free_x0(oem, e: int, pv, free: list[ca.MX]) -> ca.MX:
@@ -353,7 +405,20 @@ def _free_x0(oem, e: int, pv, free: list[ca.MX]) -> ca.MX:
     return pv[f"X0{e}"] + ca.mtimes(ca.DM(place), free[e])   # the data block is 0 where x0 is free
 
 
-def _single_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
+def _single_shooting_terms(oem, folds: dict[str, Fold], theta, pv, pvec) -> tuple[_Terms, tuple]:
+    """No gaps and no MX graph of the samples: f, grad_f and the Hessian are callbacks of one
+    `single_pass.SinglePass`, each one folded compiled loop (the derivatives one pass per point).
+    Also returns the callbacks, which must live as long as the solver."""
+    sp = single_pass.SinglePass(oem, folds, _data_layout(oem).shapes, single_pass.free_states(oem))
+    cbs = single_pass.callbacks(sp)
+    w = ca.vertcat(theta, ca.MX.sym("x0", sp.nw - sp.nth))
+    f_gn, grad = cbs["grad"](w, pvec)
+    terms = _Terms(w, cbs["cost"](w, pvec), f_gn, grad, cbs["hess"](w, pvec),
+                   ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, sp.nw))
+    return terms, (sp, *cbs.values())
+
+
+def _mapped_single_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
     """No gaps: one simulation per experiment for f, one carrying the sensitivities S_k =
     ∂x_k/∂[θ, x0] (the nodes of multiple shooting condensed away) for the derivatives, whose
     per-sample rows J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] reduce to J_kᵀr_k and J_kᵀJ_k in C."""
@@ -387,8 +452,8 @@ def _single_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Terms:
         place = ca.DM(ca.sparsify(ca.DM(place)))
         grad += ca.mtimes(place, ca.sum2(G))
         hess += ca.mtimes([place, ca.reshape(ca.sum2(H), nv, nv), place.T])
-    return _Terms(w, ca.vertcat(*r_parts), ca.vertcat(*r_gn), grad, ca.triu(hess),
-                  ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, nw))
+    return _Terms(w, 0.5 * ca.sumsqr(ca.vertcat(*r_parts)), 0.5 * ca.sumsqr(ca.vertcat(*r_gn)), grad,
+                  ca.triu(hess), ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, nw))
 
 
 def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
@@ -419,7 +484,8 @@ def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
     return w, ca.vertcat(*r_parts), ca.vertcat(*jac_parts)
 
 
-def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float) -> _Nlp:
+def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float,
+               keep: tuple = ()) -> _Nlp:
     """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ."""
     cm, nth = oem.cm, oem.layout.size
     w = terms.w
@@ -430,7 +496,7 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
             g_par.append(cm.constraint(pv["off"] + ca.mtimes(pv[f"M{e}"], theta)))
     g_par = ca.vertcat(*g_par) if g_par else ca.MX(0, 1)
     jac_par = ca.horzcat(ca.jacobian(g_par, theta), ca.MX(g_par.numel(), nw - nth))
-    f, f_gn = 0.5 * ca.sumsqr(terms.r), 0.5 * ca.sumsqr(terms.r_gn)
+    f, f_gn = terms.f, terms.f_gn
     grad, hess = terms.grad, terms.hess
     if penalty is not None:
         pen = penalty(theta)
@@ -469,7 +535,7 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
         # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
         # reverse mode through the compiled blocks ran finite differences for 17 s
         "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True})
-    return _Nlp(solver)
+    return _Nlp(solver, keep)
 
 
 def _data_vector(oem) -> np.ndarray:
@@ -596,32 +662,46 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
     samples = sum(d.n for d in oem.data)
     structure = (single, tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
     o = oem.options
+    folded = single and samples >= FOLD_MIN_SAMPLES
 
     def make_solver(max_iter: int | None = None, max_cpu_time: float | None = None):
         """`max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve)."""
         iters = o.max_iter if max_iter is None else max_iter
         cpu = o.max_cpu_time if max_cpu_time is None else max_cpu_time
-        fns, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
+        folds: dict[str, Fold] = {}
+        stages: dict[str, _Stage] = {}
+        if folded:
+            folds, is_c = _single_folds(oem, samples)
+            owners = (*(fold.fn for fold in folds.values()), oem.cm.constraint)
+        else:
+            stages, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
+            owners = (*(st.block for st in stages.values()), oem.cm.constraint)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
         # the NLP; the entry holds those objects, so an id is never reused while it is cached
-        owners = (*(st.block for st in fns.values()), oem.cm.constraint)
         nlp_key = (*map(id, owners), structure, iters, cpu, o.tol)
         entry = _SOLVERS.get(nlp_key) if penalty is None else None
         if entry is not None and all(a is b for a, b in zip(entry[0], owners)):
             _SOLVERS.move_to_end(nlp_key)
             nlp = entry[1]
         else:
-            pvec, pv = _data_blocks(oem)
+            pvec, pv = _data_blocks(oem, extra=int(folded))
             theta = ca.MX.sym("theta", oem.layout.size)
-            build = _single_shooting_terms if single else _multiple_shooting_terms
-            terms = build(oem, fns, theta, pv)
-            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu)
+            keep: tuple = ()
+            if folded:
+                terms, keep = _single_shooting_terms(oem, folds, theta, pv, pvec)
+            else:
+                build = _mapped_single_shooting_terms if single else _multiple_shooting_terms
+                terms = build(oem, stages, theta, pv)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:
                     _SOLVERS.popitem(last=False)
-        return StructuredSolver(nlp, _data_vector(oem), problem, is_c)
+        data = _data_vector(oem)
+        if folded:   # the token under which the callbacks cache this record and its points
+            data = np.append(data, single_pass.new_token())
+        return StructuredSolver(nlp, data, problem, is_c)
 
     problem.solver_factory = make_solver
     return problem

@@ -1,0 +1,310 @@
+"""Single shooting's NLP callbacks, each one compiled loop over the samples.
+
+The MX graph of mapped blocks that single shooting was built from cost 6–13× the compiled work it
+wrapped, and its `grad_f` and `hess_l` callbacks each re-ran the sensitivity pass (43 + 46 of
+122 ms on seed 000's seat model). Here each callback is a `ca.Callback` over numpy buffers that
+runs one folded kernel (`columns.Fold`: the compiled library's loop over all samples):
+
+- f, at every trial point: the simulation with the cost summed in the loop, no sensitivities;
+- grad_f and hess_l, at accepted points: one pass carrying the sensitivities S_k = ∂x_k/∂[θ, x0]
+  that sums J_kᵀr_k and triu(J_kᵀJ_k) of each row J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] in the loop.
+  Its result is cached on the point, so the Hessian callback that follows the gradient's at the
+  same point reads it.
+
+The last entry of the NLP's parameter vector is a token unique to the data of one solver
+(`StructuredSolver`): the record laid out per sample is cached under it, and so is the point
+(w and token), so one Ipopt instance still serves every fit of the same structure.
+
+A Python callback costs ~60 µs a call inside Ipopt, which short records do not repay:
+`structured.FOLD_MIN_SAMPLES` says from which length on single shooting takes this path. Solve CPU
+against the mapped graph, same optimum (bench/bench_single_shooting.py, a loaded 2-core machine):
+seed 000's seat model 110 against 295 ms, 2 states × 40 000 samples 125 against 762 ms.
+"""
+from __future__ import annotations
+
+import itertools
+import threading
+from collections import OrderedDict
+
+import casadi as ca
+import numpy as np
+
+from greyfit.solvers.dynamics.columns import Fold
+
+_TOKENS = itertools.count(1)
+
+
+def new_token() -> float:
+    """A number no other solver's data of this process carries (the cache key of its record).
+
+    Returns
+    -------
+    float
+        The next token, exactly representable.
+    """
+    return float(next(_TOKENS))
+
+
+def free_states(oem) -> tuple[int, ...]:
+    """The states whose initial value some experiment estimates (the sensitivities' x0 columns).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its free initial states per experiment).
+
+    Returns
+    -------
+    tuple of int
+        Sorted state indices.
+    """
+    return tuple(sorted({int(i) for f in oem.free_x0 for i in f}))
+
+
+def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
+    """The two per-sample kernels over scaled states x (x_phys = xs·x) and θ (p = off + M θ).
+
+    `value`: (x_k, inputs) -> (x_k+1, ½‖r_k‖²); `sens`: ((x_k, vec S_k), inputs) ->
+    ((x_k+1, vec S_k+1), ½‖r_k‖², J_kᵀr_k, triu(J_kᵀJ_k)), S_k = ∂x_k/∂[θ, x0 of the `free`
+    states] (a known initial state needs no direction: the seat model's 8 known x0 would double
+    the work). Inputs after the state: u_k, u_k+1, t_k, t_k+1 − t_k, θ, M, off, xs, y_k, wt_k (the
+    last sample's step is computed and dropped).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its compiled model, step and parameter layout).
+    free : tuple of int
+        The states whose initial value is estimated somewhere (`free_states`).
+
+    Returns
+    -------
+    dict of str to casadi.Function
+        ``{"value": ..., "sens": ...}``, SX Functions.
+    """
+    cm, nth = oem.cm, oem.layout.size
+    nx, nf = cm.nx, len(free)
+    nv = nth + nf
+    sx = ca.SX.sym
+    xk, xs = sx("xk", nx), sx("xs", nx)
+    u0, u1, t0, dt = sx("u0", cm.nu), sx("u1", cm.nu), sx("t0"), sx("dt")
+    theta, mat, off = sx("theta", nth), sx("M", cm.np, nth), sx("off", cm.np)
+    y, wt = sx("y", cm.ny), sx("wt", cm.ny)
+    p = off + ca.mtimes(mat, theta)
+    xn = oem.step(xs * xk, u0, u1, p, t0, dt) / xs
+    r = wt * (cm.output(xs * xk, u0, p, t0) - y)
+    cost = 0.5 * ca.sumsqr(r)
+    rest = [u0, u1, t0, dt, theta, mat, off, xs, y, wt]
+    value = ca.Function("greyfit_ss_value", [xk, *rest], [xn, cost])
+    sens = sx("S", nx, nv)
+    s_next = ca.mtimes(ca.jacobian(xn, xk), sens) + ca.horzcat(ca.jacobian(xn, theta), ca.SX(nx, nf))
+    jrow = ca.mtimes(ca.jacobian(r, xk), sens) + ca.horzcat(ca.jacobian(r, theta), ca.SX(cm.ny, nf))
+    z = ca.vertcat(xk, ca.vec(sens))
+    # the symbolic sparsity of triu(JᵀJ) (e.g. no θ in an output) is the NLP's Hessian pattern
+    derivs = ca.Function("greyfit_ss_sens", [z, *rest], [
+        ca.vertcat(xn, ca.vec(s_next)), cost, ca.mtimes(jrow.T, r), ca.triu(ca.mtimes(jrow.T, jrow))])
+    return {"value": value, "sens": derivs}
+
+
+class SinglePass:
+    """Cost, gradient and Gauss-Newton Hessian of single shooting at a point, from two folds."""
+
+    def __init__(self, oem, folds: dict[str, Fold], layout: list[tuple[str, tuple[int, int]]],
+                 free: tuple[int, ...]):
+        """`layout`: the named blocks of the data vector (`structured._data_layout`), in order;
+        `free`: the kernels' x0 directions (`free_states`)."""
+        cm, nth = oem.cm, oem.layout.size
+        self.nx, self.nth, self.nu, self.ny = cm.nx, nth, cm.nu, cm.ny
+        self.folds = folds
+        self.n = [d.n for d in oem.data]
+        self.free = [np.asarray(f, dtype=int) for f in oem.free_x0]
+        self.nw = nth + sum(f.size for f in self.free)
+        self.offsets, k = {}, 0
+        for name, (size1, size2) in layout:
+            self.offsets[name] = (k, size1 * size2)
+            k += size1 * size2
+        self.size = k + 1   # and the token
+        free_at = np.asarray(free, dtype=int)
+        nv = nth + free_at.size
+        # S_0 = [0 | e_i for the free states i]
+        self.seed = np.hstack([np.zeros((cm.nx, nth)), np.eye(cm.nx)[:, free_at]]).ravel(order="F")
+        # [θ, x0 directions] of experiment e -> w: θ, and its free x0 entries at their columns
+        self.places, col = [], nth
+        for f in self.free:
+            v = np.concatenate([np.arange(nth), nth + np.searchsorted(free_at, f)]).astype(int)
+            self.places.append((v, np.concatenate([np.arange(nth), col + np.arange(f.size)])))
+            col += f.size
+        rows, cols = (np.asarray(a, dtype=int) for a in folds["sens"].fn.sparsity_out(3).get_triplet())
+        pairs = []   # per experiment: (kept nonzeros of triu(J_kᵀJ_k), their (row, col) in w)
+        for v, wi in self.places:
+            inv = np.full(nv, -1)
+            inv[v] = wi
+            keep = np.nonzero((inv[rows] >= 0) & (inv[cols] >= 0))[0]
+            a, b = inv[rows[keep]], inv[cols[keep]]
+            pairs.append((keep, np.minimum(a, b), np.maximum(a, b)))
+        pattern = np.zeros((self.nw, self.nw), dtype=bool)
+        for _, a, b in pairs:
+            pattern[a, b] = True
+        sp_cols, sp_rows = np.nonzero(pattern.T)   # column-major order
+        self.hess_sparsity = ca.Sparsity.triplet(self.nw, self.nw, sp_rows.tolist(), sp_cols.tolist())
+        r_, c_ = (np.asarray(a, dtype=int) for a in self.hess_sparsity.get_triplet())
+        position = np.full((self.nw, self.nw), -1)
+        position[r_, c_] = np.arange(r_.size)
+        # where each kept nonzero of experiment e lands among the Hessian's (one-to-one per experiment)
+        self.h_maps = [(keep, position[a, b]) for keep, a, b in pairs]
+        self._records: OrderedDict[float, list[dict]] = OrderedDict()
+        self._point: tuple[bytes, tuple[float, np.ndarray, np.ndarray]] | None = None
+        self._lock = threading.RLock()   # the bound folds' buffers are rewritten per call
+
+    def _record(self, p: np.ndarray) -> list[dict]:
+        """The record of data vector `p` bound to the two folds (made once per token)."""
+        token = float(p[-1])
+        known = self._records.get(token)
+        if known is not None:
+            self._records.move_to_end(token)
+            return known
+
+        def block(name: str) -> np.ndarray:
+            start, size = self.offsets[name]
+            return np.array(p[start:start + size], dtype=float)
+
+        out = []
+        for e, n in enumerate(self.n):
+            u, t = block(f"U{e}"), block(f"T{e}")
+            rest = [u, np.concatenate([u[self.nu:], u[-self.nu:]]), t, np.append(np.diff(t), 0.0),
+                    np.zeros(self.nth), block(f"M{e}"), block("off"), block("xs"), block(f"Y{e}"), block(f"W{e}")]
+            value = self.folds["value"].bind([np.zeros(self.nx), *rest], n)
+            sens = self.folds["sens"].bind([np.zeros(self.nx + self.seed.size), *rest], n)
+            sens.args[0][self.nx:] = self.seed
+            out.append({"x0": block(f"X0{e}"), "value": value, "sens": sens})
+        self._records[token] = out
+        # a record per live solver of this structure; one fit's solves share one (a long record
+        # held for solvers already gone would cost its size again)
+        while len(self._records) > 2:
+            self._records.popitem(last=False)
+        return out
+
+    def _x0(self, e: int, rec: dict, w: np.ndarray, state: np.ndarray) -> None:
+        """Write the scaled x0 of experiment e at w into the first nx entries of `state`."""
+        state[:self.nx] = rec["x0"]   # the data block is 0 where x0 is free
+        state[self.free[e]] += w[self.places[e][1][self.nth:]]
+
+    def cost(self, w: np.ndarray, p: np.ndarray) -> float:
+        """½‖r‖² at w by the simulation alone.
+
+        Parameters
+        ----------
+        w : numpy.ndarray
+            The decision vector [θ, free x0] (scaled).
+        p : numpy.ndarray
+            The data vector with its token last.
+
+        Returns
+        -------
+        float
+            The cost.
+        """
+        total = 0.0
+        with self._lock:
+            for e, rec in enumerate(self._record(p)):
+                bound = rec["value"]
+                self._x0(e, rec, w, bound.args[0])
+                bound.args[5][:] = w[:self.nth]
+                total += float(bound()[1][0])
+        return total
+
+    def derivatives(self, w: np.ndarray, p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+        """(½‖r‖², Jᵀr, nonzeros of triu(JᵀJ) in `hess_sparsity`) at w, one sensitivity pass
+        per point (the last point's result is kept).
+
+        Parameters
+        ----------
+        w : numpy.ndarray
+            The decision vector [θ, free x0] (scaled).
+        p : numpy.ndarray
+            The data vector with its token last.
+
+        Returns
+        -------
+        tuple of (float, numpy.ndarray, numpy.ndarray)
+            The cost, the gradient (shape (n w,)) and the Hessian's nonzeros.
+        """
+        key = w.tobytes() + p[-1:].tobytes()
+        with self._lock:
+            point = self._point
+            if point is not None and point[0] == key:
+                return point[1]
+            total, grad, hess = 0.0, np.zeros(self.nw), np.zeros(self.hess_sparsity.nnz())
+            for e, rec in enumerate(self._record(p)):
+                bound = rec["sens"]
+                self._x0(e, rec, w, bound.args[0])
+                bound.args[5][:] = w[:self.nth]
+                _, c, g, h = bound()
+                total += float(c[0])
+                v, wi = self.places[e]
+                grad[wi] += g[v]
+                keep, at = self.h_maps[e]
+                hess[at] += h[keep]
+            result = (total, grad, hess)
+            self._point = (key, result)
+        return result
+
+
+class _PassCallback(ca.Callback):
+    """One output set of `SinglePass` as a CasADi Function of (w, p), over CasADi's own buffers."""
+
+    def __init__(self, name: str, single_pass: SinglePass, what: str):
+        ca.Callback.__init__(self)
+        self.single_pass, self.what = single_pass, what
+        sp = single_pass
+        self.outs = {"cost": [ca.Sparsity.dense(1, 1)],
+                     "grad": [ca.Sparsity.dense(1, 1), ca.Sparsity.dense(sp.nw, 1)],
+                     "hess": [sp.hess_sparsity]}[what]
+        # CasADi may build (never evaluate) derivatives of an NLP's functions
+        self.construct(name, {"enable_fd": True})
+
+    def get_n_in(self) -> int:
+        return 2
+
+    def get_n_out(self) -> int:
+        return len(self.outs)
+
+    def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        return ca.Sparsity.dense(self.single_pass.nw if i == 0 else self.single_pass.size, 1)
+
+    def get_sparsity_out(self, i: int) -> ca.Sparsity:
+        return self.outs[i]
+
+    def has_eval_buffer(self) -> bool:
+        return True
+
+    def eval_buffer(self, arg, res) -> int:
+        w = np.frombuffer(arg[0], dtype=float).copy()
+        p = np.frombuffer(arg[1], dtype=float)
+        outs = [np.frombuffer(r, dtype=float) if r is not None else np.zeros(0) for r in res]
+        if self.what == "cost":
+            values = [np.array([self.single_pass.cost(w, p)])]
+        else:
+            f, grad, hess = self.single_pass.derivatives(w, p)
+            values = [np.array([f]), grad] if self.what == "grad" else [hess]
+        for out, value in zip(outs, values):
+            if out.size:   # an output nobody asked for has no buffer
+                out[:] = value
+        return 0
+
+
+def callbacks(single_pass: SinglePass) -> dict[str, ca.Callback]:
+    """The cost, gradient (with the cost) and Hessian callbacks of `single_pass`.
+
+    Parameters
+    ----------
+    single_pass : SinglePass
+        The evaluator the callbacks share (and its point cache).
+
+    Returns
+    -------
+    dict of str to casadi.Callback
+        ``"cost"`` (w, p) -> f; ``"grad"`` (w, p) -> (f, ∇f); ``"hess"`` (w, p) -> triu(JᵀJ).
+        The caller keeps them alive as long as any Function built on them.
+    """
+    return {what: _PassCallback(f"greyfit_ss_{what}", single_pass, what) for what in ("cost", "grad", "hess")}

@@ -26,6 +26,7 @@ import numpy as np
 from greyfit.solvers.dynamics.columns import evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.dynamics.integration import integrator_of
+from greyfit.solvers.methods.shooting import handover
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
 EXPECTED_ITERATIONS = 20
@@ -134,7 +135,7 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
             return ready, True
         # `compiled` weighs instructions × evaluations: a block's wrapper counts a handful of calls
         work = samples * EXPECTED_ITERATIONS * single.n_instructions() / max(block.n_instructions(), 1)
-        return compiled(block, work)
+        return compiled(block, work, interpret_meanwhile=True)   # handover.py: never waits for gcc
 
     new = [n for n in names if _TRIED.get(id(blocks[n])) is not blocks[n]]
     if len(new) > 1:
@@ -249,6 +250,7 @@ def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca
 @dataclass
 class _Nlp:
     solver: ca.Function
+    stop: handover.StopWhenCompiled | None = None   # its iteration callback, which must outlive it
 
 
 @dataclass
@@ -419,8 +421,10 @@ def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
     return w, ca.vertcat(*r_parts), ca.vertcat(*jac_parts)
 
 
-def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float) -> _Nlp:
-    """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ."""
+def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float,
+               stop: handover.StopWhenCompiled | None = None) -> _Nlp:
+    """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ;
+    `stop`: its iteration callback (an interpreted NLP whose libraries are being built)."""
     cm, nth = oem.cm, oem.layout.size
     w = terms.w
     nw = w.numel()
@@ -468,8 +472,9 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
         "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
         # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
         # reverse mode through the compiled blocks ran finite differences for 17 s
-        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True})
-    return _Nlp(solver)
+        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True,
+        **({"iteration_callback": stop} if stop is not None else {})})
+    return _Nlp(solver, stop)
 
 
 def _data_vector(oem) -> np.ndarray:
@@ -496,8 +501,11 @@ def _assemble_data_vector(oem) -> np.ndarray:
 class StructuredSolver:
     """`LeastSquaresSolver`'s interface over a cached structured NLP."""
 
-    def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool):
+    def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool,
+                 upgrade=None):
+        """`upgrade`: makes this solver again (compiled, once the libraries built meanwhile exist)."""
         self.nlp, self.data, self.problem, self.compiled = nlp, data, problem, compiled_c
+        self.upgrade = upgrade
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None):
         """Run Ipopt on the structured NLP from `w0`.
@@ -512,10 +520,20 @@ class StructuredSolver:
         Returns
         -------
         NlpOutcome
-            Ipopt's outcome.
+            Ipopt's outcome; where the NLP is interpreted while its libraries are built, the solve
+            goes on compiled from the iteration at which they arrive (`handover`).
         """
         from greyfit.solvers.nlp.solver import run_ipopt
-        return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
+
+        def upgrade():
+            better = self.upgrade() if self.upgrade is not None else None
+            if better is None or not better.compiled:
+                return None
+            self.nlp, self.compiled, self.upgrade = better.nlp, True, None   # the next starts too
+            return lambda w: run_ipopt(better.nlp.solver, w, self.problem, p=self.data, lbw=lbw, ubw=ubw)
+
+        return handover.solve(lambda w: run_ipopt(self.nlp.solver, w, self.problem, p=self.data, lbw=lbw, ubw=ubw),
+                              self.nlp.stop, upgrade, w0)
 
 
 def _constraint_copies(oem) -> int:
@@ -616,12 +634,13 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             theta = ca.MX.sym("theta", oem.layout.size)
             build = _single_shooting_terms if single else _multiple_shooting_terms
             terms = build(oem, fns, theta, pv)
-            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, handover.stop_callback(is_c))
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:
                     _SOLVERS.popitem(last=False)
-        return StructuredSolver(nlp, _data_vector(oem), problem, is_c)
+        return StructuredSolver(nlp, _data_vector(oem), problem, is_c,
+                                None if is_c else lambda: make_solver(max_iter, max_cpu_time))
 
     problem.solver_factory = make_solver
     return problem

@@ -67,14 +67,14 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         try:
             while conn.poll():        # read everything sent meanwhile: a withdrawal comes after its task
                 if not _take(conn.recv(), todo, conn):
-                    if done:
-                        conn.send(done)
+                    _stop(conn, done)
                     return
             if not todo:
                 if done:              # nothing next: the outcome goes alone, now
                     conn.send(done)
                     done = []
                 if not _take(conn.recv(), todo, conn):
+                    _stop(conn, done)
                     return
                 continue
         except EOFError:
@@ -95,6 +95,16 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         outcome = run_task(kind, request, cpu_seconds)
         outcome["seconds"] = time.monotonic() - started
         done = [(key, outcome)]
+
+
+def _stop(conn, done: list) -> None:
+    """A graceful stop: the last outcome goes, and compiles started in the background finish, so
+    the next process finds their libraries on disk (the pool waits for that as long as its
+    `shutdown(grace)` says; the server's 2 s, `greyfit batch` a compile's own limit)."""
+    if done:
+        conn.send(done)
+    from greyfit.solvers.dynamics.compiled import COMPILE_TIMEOUT_S, wait_for_builds
+    wait_for_builds(COMPILE_TIMEOUT_S)
 
 
 def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
@@ -332,14 +342,16 @@ class LocalWorkerPool:
                 return True
         return False
 
-    def shutdown(self) -> None:
+    def shutdown(self, grace: float = 2.0) -> None:
+        """Stop the workers: idle ones are asked to (they finish a compile begun in the background
+        within `grace` seconds), then any still alive is killed."""
         for slot in self.slots:
             try:
                 if not slot.keys:
                     slot.conn.send(None)
             except (OSError, BrokenPipeError):
                 pass
-        deadline = time.monotonic() + 2
+        deadline = time.monotonic() + grace
         for slot in self.slots:
             slot.process.join(timeout=max(0.0, deadline - time.monotonic()))
             if slot.process.is_alive():

@@ -229,7 +229,10 @@ class LocalWorkerPool:
                 break
         for slot in slots:
             if id(slot) in given:
-                slot.conn.send(given[id(slot)])
+                try:
+                    slot.conn.send(given[id(slot)])
+                except OSError:   # the worker has just died: the next poll() gives its tasks back
+                    pass
         return rest
 
     def _idle(self) -> Optional[_Slot]:

@@ -130,7 +130,19 @@ def main(argv: list[str] | None = None) -> int:
         print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
     except FitError as exc:
         print(f"greyfit: {type(exc).__name__}: {exc}", file=sys.stderr)
+    finally:
+        _finish_compiles()
     return EXIT_BAD_INPUT
+
+
+def _finish_compiles() -> None:
+    """A fit of a new model structure ran interpreted while gcc built its libraries in the
+    background: let the builds end (the answer is printed already) so that the next command finds
+    them in the disk cache (`GREYFIT_CACHE_DIR`, default ~/.cache/greyfit) instead of starting over."""
+    compiled = sys.modules.get("greyfit.solvers.dynamics.compiled")
+    if compiled is not None and compiled.building_any():
+        sys.stdout.flush()
+        compiled.wait_for_builds(compiled.COMPILE_TIMEOUT_S)
 
 
 def _extra_commands():

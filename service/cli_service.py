@@ -4,9 +4,14 @@ from __future__ import annotations
 import json
 import sys
 import time
+from collections import deque
 from pathlib import Path
 
 from greyfit.service.task_kinds import JOB_KINDS, KINDS
+
+# how long `greyfit batch` lets its workers finish compiling at the end: a compile's own limit
+# (solvers/dynamics/compiled.py's COMPILE_TIMEOUT_S, not imported here: that would load CasADi)
+BUILD_GRACE_S = 130.0
 
 
 def add_serve(sub) -> None:
@@ -83,7 +88,7 @@ def cmd_batch(args) -> int:
                 done.add(int(json.loads(line)["line"]))
             except (ValueError, KeyError, TypeError):
                 continue   # a line cut off by an interrupted run is simply redone
-    todo: list[tuple[int, dict]] = []
+    todo: list[tuple[int, str]] = []
     bad: list[dict] = []
     for i, line in enumerate(Path(args.requests).read_text().splitlines(), start=1):
         if not line.strip() or i in done:
@@ -91,37 +96,27 @@ def cmd_batch(args) -> int:
         try:
             body = loads_strict(line)
             validate_strict(schema, body)     # a bad line fails here, named, not in a worker
-            todo.append((i, body))
+            todo.append((i, line))            # the worker parses the text itself: no pickled dict
         except (json.JSONDecodeError, ValidationError) as exc:
             detail = error_lines(exc) if isinstance(exc, ValidationError) else str(exc)   # experiments[0].time
             bad.append({"line": i, "status": "failed", "error": {"type": type(exc).__name__, "detail": detail}})
     total = len(todo) + len(bad)
     print(f"greyfit batch: {len(done)} already done, {total} to do", file=sys.stderr)
     pool = LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds)
-    finished = succeeded = flagged = 0
+    counts = {"finished": 0, "succeeded": 0, "flagged": 0}
     started = time.monotonic()
     with out_path.open("a") as out:
         for record in bad:
             out.write(json.dumps(record) + "\n")
-            finished += 1
-        queue = list(todo)
-        while queue or pool.free() < len(pool.slots):
-            while queue and pool.free():
-                i, body = queue.pop(0)
-                pool.submit(str(i), args.kind, body)   # already parsed to check it; sent as is
-            for key, outcome in pool.poll():
-                if outcome["status"] == "succeeded":
-                    succeeded += 1
-                    flagged += flags_quality(outcome["result_json"], args.fail_on)
-                    out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome["result_json"]}}}\n')
-                else:
-                    out.write(json.dumps({"line": int(key), **outcome}) + "\n")
-                out.flush()
-                finished += 1
-                _progress(finished, total, started)
-            time.sleep(0.02)
-    pool.shutdown()
+            counts["finished"] += 1
+        try:
+            _run_batch(pool, todo, args, out, counts, total, started)
+        finally:
+            # a worker that met a new model structure finishes compiling it for the next run (the
+            # libraries are cached on disk); the results are all written by then
+            pool.shutdown(grace=BUILD_GRACE_S)
     print(file=sys.stderr)
+    succeeded, flagged = counts["succeeded"], counts["flagged"]
     if total and not succeeded:   # like a job: failed when no task succeeded
         print(f"greyfit batch: all {total} requests failed; see the errors in {out_path}", file=sys.stderr)
         return 1
@@ -130,6 +125,43 @@ def cmd_batch(args) -> int:
               file=sys.stderr)
         return 3
     return 0
+
+
+def _run_batch(pool, todo: list[tuple[int, str]], args, out, counts: dict, total: int, started: float) -> None:
+    """The jobs API's hand-over without the store: each worker holds about QUEUE_SECONDS of work,
+    given in one message, and the outcomes of a round are written together."""
+    from greyfit.service.dispatcher import MAX_QUEUED, QUEUE_SECONDS
+    queue = deque(todo)
+    task_seconds: float | None = None
+    while queue or pool.free() < pool.capacity():
+        if task_seconds is not None:
+            pool.depth = 1 + max(1, min(MAX_QUEUED, int(QUEUE_SECONDS / max(task_seconds, 1e-6))))
+            pool.task_seconds = task_seconds
+        room = pool.free() * pool.depth + pool.queue_room()
+        if queue and room:
+            batch = [queue.popleft() for _ in range(min(room, len(queue)))]
+            left = pool.submit_batch([(str(i), args.kind, line) for i, line in batch])
+            queue.extendleft(reversed([(int(key), line) for key, _, line in left]))
+        pool.wait(0.5)
+        outcomes = pool.poll()
+        pool.started()   # (a start matters to the job store's attempts only)
+        for key, outcome in outcomes:
+            if outcome["status"] == "not_started":   # its worker was replaced before it began
+                queue.appendleft((int(key), next(line for i, line in todo if i == int(key))))
+                continue
+            if "seconds" in outcome:
+                task_seconds = outcome["seconds"] if task_seconds is None else \
+                    0.8 * task_seconds + 0.2 * outcome["seconds"]
+            if outcome["status"] == "succeeded":
+                counts["succeeded"] += 1
+                counts["flagged"] += flags_quality(outcome["result_json"], args.fail_on)
+                out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome["result_json"]}}}\n')
+            else:
+                out.write(json.dumps({"line": int(key), **outcome}) + "\n")
+            counts["finished"] += 1
+        if outcomes:
+            out.flush()
+            _progress(counts["finished"], total, started)
 
 
 def flags_quality(result_json: str, fail_on: str | None) -> int:

@@ -15,8 +15,12 @@ Three rules keep work honest:
 When fits take milliseconds, the job store's writes are what a batch waits for, so a free worker
 gets its next task before anything is written: while tasks are short, about AHEAD_SECONDS of work
 per worker is claimed ahead into `ready`, several tasks a transaction (long tasks stay in the store,
-where any replica's free worker can take them), one is queued behind the task each local worker
-runs, and outcomes are written together, at most FLUSH_SECONDS after they arrived.
+where any replica's free worker can take them), and about QUEUE_SECONDS of work (at least one task,
+at most MAX_QUEUED) is queued behind the task each local worker runs, handed over in one message
+per worker (`submit_batch`): a worker goes from one small fit to the next without waiting for this
+thread, whose rounds then read several outcomes each. Outcomes are written together, at most
+FLUSH_SECONDS after they arrived. A synchronous fit that arrives meanwhile waits for a worker's
+queue to run out: about QUEUE_SECONDS (nothing more is queued while one waits).
 
 A synchronous fit that finds a local worker idle (and nothing the dispatcher would give it first)
 goes to it from the caller's thread: waking the dispatcher thread first, which then waits for the
@@ -45,6 +49,8 @@ FLUSH_SECONDS = 0.05      # longest an outcome waits to be written with others
 FLUSH_COUNT = 32          # ... or until this many wait
 AHEAD_SECONDS = 0.25      # work per worker claimed ahead while tasks are short (two or more fit in it)
 MAX_AHEAD = 16            # tasks per worker claimed ahead at most
+QUEUE_SECONDS = 0.1       # work queued on a local worker behind the task it runs, while tasks are short
+MAX_QUEUED = 8            # tasks queued on a worker at most
 
 
 def _is_retry(outcome: dict) -> bool:
@@ -226,11 +232,43 @@ class Dispatcher:
                 break
         # job tasks shorter than AHEAD_SECONDS also queue behind running ones (the hand-over is then
         # no longer a few per cent of a task), unless synchronous fits wait for a worker
-        if self._ahead_per_worker() >= 1 and self.sync.empty() and self.executor.queue_room() > 0:
-            if not self.ready:
-                self._claim(self.executor.queue_room())
-            while self.ready and self.executor.queue_room() > 0:
-                self._start_job_task()
+        self._set_depth()
+        if self._ahead_per_worker() >= 1 and self.sync.empty():
+            room = self.executor.queue_room()
+            if room > 0:
+                if not self.ready:
+                    self._claim(room)
+                self._queue_job_tasks(room)
+
+    def _set_depth(self) -> None:
+        """Tasks a local worker holds: the one it runs and about QUEUE_SECONDS of work behind it."""
+        if not hasattr(self.executor, "depth"):
+            return
+        queued = 1   # one behind, while the tasks' length is not known or they are long
+        if self._task_seconds is not None and self._ahead_per_worker() >= 1:
+            queued = max(1, min(MAX_QUEUED, int(QUEUE_SECONDS / max(self._task_seconds, 1e-6))))
+        self.executor.depth = 1 + queued
+        self.executor.task_seconds = self._task_seconds
+
+    def _queue_job_tasks(self, room: int) -> None:
+        """Up to `room` claimed tasks behind the running ones, one message per worker where the
+        executor takes batches."""
+        batch = [self.ready.popleft() for _ in range(min(room, len(self.ready)))]
+        if not batch:
+            return
+        now = time.monotonic()
+        for task in batch:
+            self.running[f"{task.job_id}:{task.idx}"] = ("job", task.job_id, task.idx, task, task.kind, now)
+        self._last_pick = "job"
+        submit_batch = getattr(self.executor, "submit_batch", None)
+        if submit_batch is None:
+            for task in batch:
+                self.executor.submit(f"{task.job_id}:{task.idx}", task.kind, task.request)
+            return
+        left = submit_batch([(f"{task.job_id}:{task.idx}", task.kind, task.request) for task in batch])
+        for key, _, _ in reversed(left):   # no room after all (a worker was replaced): back in line
+            item = self.running.pop(key)
+            self.ready.appendleft(item[3])
 
     def _start_sync(self) -> bool:
         while True:

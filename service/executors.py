@@ -8,11 +8,15 @@ A failed outcome whose error carries `retry: True` lost its worker to something 
 (a crash, a kill, a lost Dask worker): the dispatcher runs the task again. A task that hit its CPU
 or wall-time limit is not retried: it would hit it again.
 
-A local worker can hold one task queued behind the one it runs (`queue_room()` counts the workers
-that can), so that it starts the next the moment it finishes, not after the dispatcher has read its
-answer: with fits of milliseconds that hand-over is a good part of the time. A queued task can be
-withdrawn; one its worker never started (the worker died or was stopped) comes back as
-{"status": "not_started"}, for the dispatcher to hand out again.
+A local worker can hold tasks queued behind the one it runs, up to `depth` in all (`queue_room()`
+counts the places left in busy workers), so that it starts the next the moment it finishes, not
+after the dispatcher has read its answer: with fits of milliseconds that hand-over is a good part
+of the time. `submit_batch` hands several tasks to a worker in one message, and a worker's answer
+to one task carries the start of the next, so a batch of small fits costs one message per task and
+its outcomes are read together. Each outcome is sent the moment its task ends: a worker lost
+mid-batch loses only the task it was running (retried, its start already charged), and the tasks
+queued behind it come back as {"status": "not_started"}, for the dispatcher to hand out again,
+uncharged. A queued task can be withdrawn.
 """
 from __future__ import annotations
 
@@ -36,11 +40,13 @@ SINGLE_THREADED = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM
 
 
 def _take(msg, todo: deque, conn) -> bool:
-    """A message to a worker: a task (key, kind, request), (key,) to withdraw a task not started
-    yet, or None to stop (returns False)."""
+    """A message to a worker: a task (key, kind, request), a list of tasks (a batch), (key,) to
+    withdraw a task not started yet, or None to stop (returns False)."""
     if msg is None:
         return False
-    if len(msg) == 1:
+    if isinstance(msg, list):
+        todo.extend(msg)
+    elif len(msg) == 1:
         for task in todo:
             if task[0] == msg[0]:
                 todo.remove(task)
@@ -56,19 +62,27 @@ def _worker_main(conn, cpu_seconds: float) -> None:
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the server, which stops us
     import greyfit.solvers.fit  # noqa: F401  (import CasADi once, not per task)
     todo: deque = deque()
+    done: list = []   # the last outcome, sent with the next start: one message per task of a batch
     while True:
         try:
-            if not todo and not _take(conn.recv(), todo, conn):
-                return
             while conn.poll():        # read everything sent meanwhile: a withdrawal comes after its task
                 if not _take(conn.recv(), todo, conn):
+                    _stop(conn, done)
                     return
+            if not todo:
+                if done:              # nothing next: the outcome goes alone, now
+                    conn.send(done)
+                    done = []
+                if not _take(conn.recv(), todo, conn):
+                    _stop(conn, done)
+                    return
+                continue
         except EOFError:
             return
-        if not todo:
-            continue
         key, kind, request = todo.popleft()
-        conn.send((key, {"status": "started"}))   # the acknowledged start: the attempt is charged now
+        # the acknowledged start (the attempt is charged now), with the outcome before it
+        conn.send([*done, (key, {"status": "started"})])
+        done = []
         used = resource.getrusage(resource.RUSAGE_SELF)
         spent = used.ru_utime + used.ru_stime
         soft = int(spent + cpu_seconds) + 1
@@ -80,7 +94,17 @@ def _worker_main(conn, cpu_seconds: float) -> None:
         started = time.monotonic()
         outcome = run_task(kind, request, cpu_seconds)
         outcome["seconds"] = time.monotonic() - started
-        conn.send((key, outcome))
+        done = [(key, outcome)]
+
+
+def _stop(conn, done: list) -> None:
+    """A graceful stop: the last outcome goes, and compiles started in the background finish, so
+    the next process finds their libraries on disk (the pool waits for that as long as its
+    `shutdown(grace)` says; the server's 2 s, `greyfit batch` a compile's own limit)."""
+    if done:
+        conn.send(done)
+    from greyfit.solvers.dynamics.compiled import COMPILE_TIMEOUT_S, wait_for_builds
+    wait_for_builds(COMPILE_TIMEOUT_S)
 
 
 def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
@@ -112,7 +136,7 @@ STALL_CHECK_SECONDS = 1.0   # how often a busy worker's CPU clock is read
 class _Slot:
     process: Any
     conn: Any
-    keys: list = field(default_factory=list)   # the task it runs, then at most one queued behind
+    keys: list = field(default_factory=list)   # the task it runs, then those queued behind (`depth`)
     started: float = 0.0                        # when the task it runs started (about; exact once acknowledged)
     cpu: Optional[float] = None                 # the worker's CPU time when last read ...
     progressed: float = 0.0                     # ... and when it last had moved
@@ -134,6 +158,10 @@ class LocalWorkerPool:
         os.set_blocking(self._wake_w, False)
         self._returned: list[tuple[str, Outcome]] = []   # tasks given back by a replaced worker
         self._started: list[str] = []                    # starts acknowledged, not yet taken (started())
+        # tasks a worker holds: the one it runs and those queued behind it (the dispatcher raises it
+        # for short tasks; 2, one queued, while their length is not known)
+        self.depth = 2
+        self.task_seconds: Optional[float] = None   # a task's usual length, when the dispatcher knows it
         self.slots = [self._spawn() for _ in range(workers)]
 
     def wait(self, timeout: float) -> None:
@@ -142,8 +170,16 @@ class LocalWorkerPool:
         Idle workers too: a task handed to one meanwhile (a synchronous fit started by the web
         thread) is then heard from without a wake-up, which would cost the running fit CPU on a
         busy machine; an idle worker that dies is replaced at once. (An idle worker sends nothing:
-        every reply answers a key of its slot.)"""
-        handles = [s.conn for s in self.slots] + [s.process.sentinel for s in self.slots] + [self._wake_r]
+        every reply answers a key of its slot.) A worker with more than one task queued behind its
+        own is not listened to while `task_seconds` says it has work left: its outcomes are read
+        together, a round of the dispatcher for several of them, not one each."""
+        handles = [s.process.sentinel for s in self.slots] + [self._wake_r]
+        for s in self.slots:
+            if self.task_seconds and len(s.keys) > 2:
+                # a deep queue: its outcomes are read together, before the worker can run dry
+                timeout = min(timeout, (len(s.keys) - 2) * self.task_seconds)
+            else:
+                handles.append(s.conn)
         ready = mp_connection.wait(handles, timeout=0 if self._returned else timeout)
         if self._wake_r in ready:
             os.read(self._wake_r, 4096)
@@ -168,8 +204,36 @@ class LocalWorkerPool:
         return sum(1 for s in self.slots if not s.keys)
 
     def queue_room(self) -> int:
-        """Workers busy with one task and none queued behind it."""
-        return sum(1 for s in self.slots if len(s.keys) == 1)
+        """Places left behind the tasks of busy workers: each holds up to `depth` tasks in all."""
+        return sum(max(0, self.depth - len(s.keys)) for s in self.slots if s.keys)
+
+    def submit_batch(self, tasks: list[tuple[str, str, Any]]) -> list[tuple[str, str, Any]]:
+        """Hand out several tasks, one message per worker: free workers first (a live one first),
+        then behind busy ones, up to `depth` tasks a worker; returns the tasks nothing had room for."""
+        if not tasks:
+            return []
+        slots = sorted(self.slots, key=lambda s: (len(s.keys), not s.process.is_alive()))
+        given: dict[int, list] = {}
+        rest = list(tasks)
+        while rest:   # round robin, the emptiest first: two workers share a batch, not one takes it all
+            placed = False
+            for slot in slots:
+                if rest and len(slot.keys) < self.depth:
+                    if not slot.keys:
+                        slot.started = slot.progressed = time.monotonic()
+                        slot.cpu = None
+                    slot.keys.append(rest[0][0])
+                    given.setdefault(id(slot), []).append(rest.pop(0))
+                    placed = True
+            if not placed:
+                break
+        for slot in slots:
+            if id(slot) in given:
+                try:
+                    slot.conn.send(given[id(slot)])
+                except OSError:   # the worker has just died: the next poll() gives its tasks back
+                    pass
+        return rest
 
     def _idle(self) -> Optional[_Slot]:
         """A free worker that is alive (one that died idle is replaced by the next poll())."""
@@ -185,9 +249,9 @@ class LocalWorkerPool:
         return self._idle() is not None
 
     def submit(self, key: str, kind: str, request: Any) -> None:
-        """To a free worker (a live one first), else behind the task of a worker that has none queued."""
+        """To a free worker (a live one first), else behind the tasks of a worker with room (`depth`)."""
         slot = self._idle() or next((s for s in self.slots if not s.keys), None) or \
-            next(s for s in self.slots if len(s.keys) == 1)
+            min((s for s in self.slots if len(s.keys) < self.depth), key=lambda s: len(s.keys))
         if not slot.keys:
             slot.started = slot.progressed = time.monotonic()
             slot.cpu = None
@@ -214,16 +278,17 @@ class LocalWorkerPool:
                 continue
             try:
                 while slot.keys and slot.conn.poll():
-                    key, outcome = slot.conn.recv()
-                    if outcome["status"] == "started":
-                        slot.started = slot.progressed = time.monotonic()   # its wall clock starts now
-                        self._started.append(key)
-                        continue
-                    if key == slot.keys[0]:
-                        slot.started = slot.progressed = time.monotonic()   # the next one starts now
-                    if key in slot.keys:
-                        slot.keys.remove(key)
-                    done.append((key, outcome))
+                    msg = slot.conn.recv()
+                    for key, outcome in msg if isinstance(msg, list) else [msg]:
+                        if outcome["status"] == "started":
+                            slot.started = slot.progressed = time.monotonic()   # its wall clock starts now
+                            self._started.append(key)
+                            continue
+                        if key == slot.keys[0]:
+                            slot.started = slot.progressed = time.monotonic()   # the next one starts now
+                        if key in slot.keys:
+                            slot.keys.remove(key)
+                        done.append((key, outcome))
             except (OSError, EOFError):
                 pass
             if not slot.keys:
@@ -280,14 +345,16 @@ class LocalWorkerPool:
                 return True
         return False
 
-    def shutdown(self) -> None:
+    def shutdown(self, grace: float = 2.0) -> None:
+        """Stop the workers: idle ones are asked to (they finish a compile begun in the background
+        within `grace` seconds), then any still alive is killed."""
         for slot in self.slots:
             try:
                 if not slot.keys:
                     slot.conn.send(None)
             except (OSError, BrokenPipeError):
                 pass
-        deadline = time.monotonic() + 2
+        deadline = time.monotonic() + grace
         for slot in self.slots:
             slot.process.join(timeout=max(0.0, deadline - time.monotonic()))
             if slot.process.is_alive():

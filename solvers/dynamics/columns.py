@@ -211,8 +211,11 @@ class Fold:
     each as its output's nonzeros.
     """
 
-    def __init__(self, fn: ca.Function, evaluations: float = 0.0):
+    def __init__(self, fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool = False):
+        """`interpret_meanwhile`: never wait for gcc (a missing library is built in the background
+        and the fold switches to it at its first call after the build has ended)."""
         self.fn = fn
+        self._interpret_meanwhile = interpret_meanwhile
         self._maps = FunctionCache(4)
         self._driver = None
         self._nnz_in = [fn.nnz_in(i) for i in range(fn.n_in())]
@@ -238,7 +241,7 @@ class Fold:
         if evaluations is not None:
             self._evaluations = evaluations
         if self._driver is None and self.fn.is_a("SXFunction"):
-            path = library(self.fn, self._evaluations)
+            path = library(self.fn, self._evaluations, self._interpret_meanwhile)
             if path is not None:
                 self._driver = _driver(str(path), self.fn.name(), "fold")
         return self._driver is not None

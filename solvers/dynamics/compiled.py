@@ -16,6 +16,11 @@ moment (the first fits of a batch) run the compiler once: the others wait and lo
 interpreted work is large enough to repay the compile, and otherwise compiles in the background so
 the next fit of that model finds it (a failed background compile is tried again after a back-off:
 1 min, doubling, at most hourly); `always` compiles whenever it can; `never` keeps the interpreter.
+A caller that can change horses mid-solve (`interpret_meanwhile=True`: the structured shooting NLP,
+which stops Ipopt once no build runs and goes on compiled) never waits for gcc in `auto`: the build runs
+in the background however large the work, so a first fit never waits longer than interpreting it
+would take (gcc took 1 s on a quiet machine, a minute on a loaded one). `wait_for_builds` lets a
+process that is about to exit (the CLI) leave the libraries it started on disk for the next one.
 """
 from __future__ import annotations
 
@@ -291,7 +296,8 @@ def _cache_max_bytes() -> int:
     return int(value) if value.strip().isdigit() else DEFAULT_CACHE_MAX_BYTES
 
 
-def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bool]:
+def compiled(fn: ca.Function, evaluations: float = 0.0,
+             interpret_meanwhile: bool = False) -> tuple[ca.Function, bool]:
     """(Function to use, whether it is compiled C) for `fn`, evaluated about `evaluations` times.
 
     Never raises for a missing compiler or a failed compile: the interpreted `fn` is returned.
@@ -303,6 +309,9 @@ def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bo
     evaluations : float, optional
         Expected number of evaluations; with the graph's size it decides whether compiling in the
         foreground repays the compile (see `library`).
+    interpret_meanwhile : bool, optional
+        The caller switches to the compiled Function once its build has ended: in ``auto``
+        mode a missing library is then always built in the background (see `library`).
 
     Returns
     -------
@@ -314,13 +323,13 @@ def compiled(fn: ca.Function, evaluations: float = 0.0) -> tuple[ca.Function, bo
     ready = loaded(fn)
     if ready is not None:
         return ready, True
-    path = library(fn, evaluations)
+    path = library(fn, evaluations, interpret_meanwhile)
     if path is None:
         return fn, False
     return _load(fn, function_key(fn), path), True
 
 
-def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
+def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool = False) -> Path | None:
     """The compiled library of `fn` (built now, found on disk, or None while it is built in the
     background / where nothing can be compiled), under the policy of `GREYFIT_COMPILE`.
 
@@ -334,6 +343,8 @@ def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
         The interpreted Function.
     evaluations : float, optional
         Expected number of evaluations of `fn`.
+    interpret_meanwhile : bool, optional
+        Never build in the foreground in ``auto`` mode: the caller interprets meanwhile.
 
     Returns
     -------
@@ -347,7 +358,7 @@ def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
     path = cache_dir() / f"{fn.name()}_{key}.so"
     if path.exists():
         return path
-    if how == "always" or fn.n_instructions() * evaluations >= FOREGROUND_WORK:
+    if how == "always" or (not interpret_meanwhile and fn.n_instructions() * evaluations >= FOREGROUND_WORK):
         return path if _build(fn, path) else None
     with _lock:
         failed = _failed.get(key)
@@ -357,6 +368,41 @@ def library(fn: ca.Function, evaluations: float = 0.0) -> Path | None:
     if start:   # the next fit of this model structure will find it
         threading.Thread(target=_build_in_background, args=(fn, path, key), daemon=True).start()
     return None
+
+
+def building_any() -> bool:
+    """Whether a background build runs in this process.
+
+    Returns
+    -------
+    bool
+        True while at least one library is being built here.
+    """
+    with _lock:
+        return bool(_pending)
+
+
+def wait_for_builds(timeout: float) -> bool:
+    """Wait until the background builds of this process have ended (or `timeout` has passed).
+
+    Parameters
+    ----------
+    timeout : float
+        Longest wait, in seconds.
+
+    Returns
+    -------
+    bool
+        True when none is running any more.
+    """
+    deadline = time.monotonic() + timeout
+    while True:
+        with _lock:
+            if not _pending:
+                return True
+        if time.monotonic() >= deadline:
+            return False
+        time.sleep(0.05)
 
 
 def _build_in_background(fn: ca.Function, path: Path, key: str) -> None:

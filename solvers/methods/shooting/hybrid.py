@@ -137,7 +137,7 @@ class HybridShootingSolver:
         self.problem, self.options = problem, options
         self.short: Solver = plain_gauss_newton_solver(problem, options,
                                                        max_iter=min(GN_ITERATIONS, options.max_iter))
-        self.compiled = self.short.compiled
+        self.compiled = self.short.compiled   # read again after each solve: it may move to C (handover.py)
         self.curved: LeastSquaresSolver | None = None
         self.plain: Solver | None = None
         self.phases: list[str] = []   # what the last solve did, for tests and notes
@@ -174,6 +174,7 @@ class HybridShootingSolver:
         """
         cpu0 = time.process_time()
         runs = [self.short.solve(w0, lbw, ubw)]
+        self.compiled = self.short.compiled
         self.phases, self.outcomes = ["gauss_newton"], runs
         if runs[0].success or self.options.max_iter <= GN_ITERATIONS:
             return runs[0]

@@ -30,7 +30,7 @@ import numpy as np
 from greyfit.solvers.dynamics.columns import Fold, evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.dynamics.integration import integrator_of
-from greyfit.solvers.methods.shooting import single_pass
+from greyfit.solvers.methods.shooting import handover, single_pass
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
 
 EXPECTED_ITERATIONS = 20
@@ -143,7 +143,7 @@ def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
             _FOLDS.move_to_end(id(fn))
             known.find_library(work[name])
             return known
-        made = _FOLDS[id(fn)] = Fold(fn, work[name])
+        made = _FOLDS[id(fn)] = Fold(fn, work[name], interpret_meanwhile=True)   # handover.py: never waits for gcc
         while len(_FOLDS) > 2 * SOLVER_CACHE_SIZE:
             _FOLDS.popitem(last=False)
         return made
@@ -178,7 +178,7 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
             return ready, True
         # `compiled` weighs instructions × evaluations: a block's wrapper counts a handful of calls
         work = samples * EXPECTED_ITERATIONS * single.n_instructions() / max(block.n_instructions(), 1)
-        return compiled(block, work)
+        return compiled(block, work, interpret_meanwhile=True)   # handover.py: never waits for gcc
 
     new = [n for n in names if _TRIED.get(id(blocks[n])) is not blocks[n]]
     if len(new) > 1:
@@ -295,6 +295,7 @@ def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca
 class _Nlp:
     solver: ca.Function
     keep: tuple = ()   # the Python callbacks the solver calls (alive as long as it is)
+    stop: handover.StopWhenCompiled | None = None   # its iteration callback, which must outlive it
 
 
 @dataclass
@@ -485,8 +486,10 @@ def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
 
 
 def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float,
-               keep: tuple = ()) -> _Nlp:
-    """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ."""
+               keep: tuple = (), stop: handover.StopWhenCompiled | None = None) -> _Nlp:
+    """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ;
+    `keep`: the Python callbacks it calls; `stop`: its iteration callback (an interpreted NLP whose
+    libraries are being built)."""
     cm, nth = oem.cm, oem.layout.size
     w = terms.w
     nw = w.numel()
@@ -534,8 +537,9 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
         "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
         # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
         # reverse mode through the compiled blocks ran finite differences for 17 s
-        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True})
-    return _Nlp(solver, keep)
+        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True,
+        **({"iteration_callback": stop} if stop is not None else {})})
+    return _Nlp(solver, keep, stop)
 
 
 def _data_vector(oem) -> np.ndarray:
@@ -562,8 +566,11 @@ def _assemble_data_vector(oem) -> np.ndarray:
 class StructuredSolver:
     """`LeastSquaresSolver`'s interface over a cached structured NLP."""
 
-    def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool):
+    def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool,
+                 upgrade=None):
+        """`upgrade`: makes this solver again (compiled, once the libraries built meanwhile exist)."""
         self.nlp, self.data, self.problem, self.compiled = nlp, data, problem, compiled_c
+        self.upgrade = upgrade
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None):
         """Run Ipopt on the structured NLP from `w0`.
@@ -578,10 +585,20 @@ class StructuredSolver:
         Returns
         -------
         NlpOutcome
-            Ipopt's outcome.
+            Ipopt's outcome; where the NLP is interpreted while its libraries are built, the solve
+            goes on compiled from the iteration at which they arrive (`handover`).
         """
         from greyfit.solvers.nlp.solver import run_ipopt
-        return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
+
+        def upgrade():
+            better = self.upgrade() if self.upgrade is not None else None
+            if better is None or not better.compiled:
+                return None
+            self.nlp, self.compiled, self.upgrade = better.nlp, True, None   # the next starts too
+            return lambda w: run_ipopt(better.nlp.solver, w, self.problem, p=self.data, lbw=lbw, ubw=ubw)
+
+        return handover.solve(lambda w: run_ipopt(self.nlp.solver, w, self.problem, p=self.data, lbw=lbw, ubw=ubw),
+                              self.nlp.stop, upgrade, w0)
 
 
 def _constraint_copies(oem) -> int:
@@ -688,12 +705,14 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             pvec, pv = _data_blocks(oem, extra=int(folded))
             theta = ca.MX.sym("theta", oem.layout.size)
             keep: tuple = ()
-            if folded:
+            stop = None
+            if folded:   # the folds switch to their compiled loops by themselves when built
                 terms, keep = _single_shooting_terms(oem, folds, theta, pv, pvec)
             else:
                 build = _mapped_single_shooting_terms if single else _multiple_shooting_terms
                 terms = build(oem, stages, theta, pv)
-            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep)
+                stop = handover.stop_callback(is_c)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep, stop)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:
@@ -701,7 +720,8 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
         data = _data_vector(oem)
         if folded:   # the token under which the callbacks cache this record and its points
             data = np.append(data, single_pass.new_token())
-        return StructuredSolver(nlp, data, problem, is_c)
+        upgrade = None if is_c or folded else (lambda: make_solver(max_iter, max_cpu_time))
+        return StructuredSolver(nlp, data, problem, is_c, upgrade)
 
     problem.solver_factory = make_solver
     return problem

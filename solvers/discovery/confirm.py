@@ -136,7 +136,8 @@ def _within_budget(state: LoopState, req: FitRequest) -> FitRequest:
     return req
 
 
-def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored) -> tuple[Model, list[str], FitRequest]:
+def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored,
+                start: FitResult | None = None) -> tuple[Model, list[str], FitRequest]:
     """(augmented model with its start values, new parameter names, refit request) of a candidate.
 
     Parameters
@@ -147,20 +148,35 @@ def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored) -> tuple
         The search so far (the current model, fit and request).
     sc : Scored
         The scored candidate.
+    start : FitResult or None
+        A refit of a sibling variant to start from (a neighbouring lag), instead of the current fit.
 
     Returns
     -------
     tuple of (Model, list of str, FitRequest)
-        The model with the candidate, started at the current estimates (or the declared values) and one
-        Gauss-Newton step on where the step can be formed; the new parameters' names; the refit request
-        with the candidate's data and capped options (`refit_options`).
+        The model with the candidate, started at the current estimates (or the declared values, or the
+        sibling's) and one Gauss-Newton step on where the step can be formed; the new parameters' names;
+        the refit request with the candidate's data and capped options (`refit_options`).
     """
     c = sc.candidate
-    start = with_declared_start(state.model, request.model) if c.fresh_start else \
+    begin = with_declared_start(state.model, request.model) if c.fresh_start else \
         with_estimates(state.model, state.fit)
-    new_model, new_params = c.apply(start)
+    new_model, new_params = c.apply(begin)
+    if start is not None:
+        return _sibling_start(state, sc, new_model, new_params, start)
     if new_params and not c.fresh_start and not c.transform_experiments and sc.scorer is not None:
         new_model = gauss_newton_start(sc.scorer, c, state.fit, new_model, new_params)
+    experiments = (c.transform_experiments(state.request.experiments) if c.transform_experiments
+                   else state.request.experiments)
+    new_req = state.request.model_copy(update={"model": new_model, "experiments": experiments,
+                                               "options": refit_options(state.request, c, sc.score.beta)})
+    return new_model, new_params, new_req
+
+
+def _sibling_start(state: LoopState, sc: Scored, new_model: Model, new_params: list[str],
+                   start: FitResult) -> tuple[Model, list[str], FitRequest]:
+    c = sc.candidate
+    new_model = with_estimates(new_model, start)
     experiments = (c.transform_experiments(state.request.experiments) if c.transform_experiments
                    else state.request.experiments)
     new_req = state.request.model_copy(update={"model": new_model, "experiments": experiments,
@@ -208,20 +224,12 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
         "solver_failed", "evidence").
     """
     opts = request.discovery
-    best = None
-    errors = []
-    for sc in variants:
-        if state.refits_left <= 0 or not state.clock.allows():
-            break
-        new_model, new_params, new_req = build_refit(request, state, sc)
-        state.refits_left -= 1
-        try:
-            new_fit = run_refit(state, new_req)
-        except (FitError, RuntimeError, ValueError) as exc:   # a term the solver cannot handle is rejected
-            errors.append(str(exc))
-            continue
-        if best is None or _rank_refit(new_fit) > _rank_refit(best[1]):
-            best = (sc, new_fit, new_model, new_params, new_req)
+    errors: list[str] = []
+    done = [r for r in (_refit_variant(request, state, sc, errors) for sc in variants
+                        if state.refits_left > 0 and state.clock.allows()) if r is not None]
+    if done and variants[0].candidate.lag > 0:
+        done += walk_lags(request, state, screening, done, errors)
+    best = max(done, key=lambda r: _rank_refit(r[1])) if done else None
     head = variants[0].candidate
     where = equation_names(screening, head)
     if best is None:
@@ -255,6 +263,69 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p)
     out.validation = validate_refit(request, state, out)
     return out
+
+
+VariantRefit = tuple[Scored, FitResult, Model, list[str], FitRequest]
+WALK_MAX_REFITS = 6   # a delay's refits beyond the screen's two
+
+
+def _refit_variant(request: DiscoverRequest, state: LoopState, sc: Scored, errors: list[str],
+                   start: FitResult | None = None) -> VariantRefit | None:
+    new_model, new_params, new_req = build_refit(request, state, sc, start)
+    state.refits_left -= 1
+    try:
+        new_fit = run_refit(state, new_req)
+    except (FitError, RuntimeError, ValueError) as exc:   # a term the solver cannot handle is rejected
+        errors.append(str(exc))
+        return None
+    return sc, new_fit, new_model, new_params, new_req
+
+
+def walk_lags(request: DiscoverRequest, state: LoopState, screening: Screening, done: list[VariantRefit],
+              errors: list[str]) -> list[VariantRefit]:
+    """Refits of a delay at the lags next to the best refitted one, while that one has an untried
+    neighbour: the refit cost, not the screen, picks the lag.
+
+    The screen linearises the delayed input's effect at the fit without it, whose lags have already
+    stretched to mimic the delay; it then ranks short lags first (a two-lag process delayed by 4
+    samples: the screen's best was 1, its second 2). The refit cost along the lag has one minimum
+    near the true one, so a walk from the screen's best to the lag whose two neighbours both refit
+    worse finds it, each refit started from its neighbour's.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (its refits left are counted down, its clock bounds the walk).
+    screening : Screening
+        The screen the candidate came from (it holds every lag of the family).
+    done : list of VariantRefit
+        The refits of the screen's variants, (scored, fit, model, new parameters, request) each.
+    errors : list of str
+        Appended: the errors of refits that could not run.
+
+    Returns
+    -------
+    list of VariantRefit
+        The walk's refits (at most `WALK_MAX_REFITS`).
+    """
+    head = done[0][0]
+    by_lag = {s.candidate.lag: s for s in screening.scored
+              if s.candidate.family == head.candidate.family and s.scored_on == head.scored_on}
+    tried = {r[0].candidate.lag for r in done}
+    walked: list[VariantRefit] = []
+    while len(walked) < WALK_MAX_REFITS and state.refits_left > 0 and state.clock.allows():
+        best = max([*done, *walked], key=lambda r: _rank_refit(r[1]))
+        lag = best[0].candidate.lag
+        nxt = [k for k in (lag + 1, lag - 1) if k in by_lag and k not in tried]
+        if not nxt:
+            break
+        tried.add(nxt[0])
+        r = _refit_variant(request, state, by_lag[nxt[0]], errors, start=best[1])
+        if r is not None:
+            walked.append(r)
+    return walked
 
 
 def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> ValidationSummary | None:

@@ -13,19 +13,24 @@ Per configuration it prints:
 - `spurious`: mean number of steps that are not the true effect;
 - `unexpl.`: runs that end with `unexplained` set;
 - `param err`: median over runs of the largest relative error of the declared free parameters;
-- `time`: median wall time of one discovery, in seconds;
+- `CPU s`, `wall s`: median CPU (process) and wall time of one discovery, in seconds (the load
+  average is printed before and after: on a shared machine the wall time is mostly the load's);
 - `SINDy`: where every state is measured and pySINDy is installed (`pip install -e .[bench]`),
   pySINDy (STLSQ, polynomial library of degree 3, derivatives by finite differences) on the same
   record: recall of the true term in the true equation, spurious terms, the same parameter error.
   Position-only configurations cannot be given to SINDy (it needs every state).
 
-    OPENBLAS_NUM_THREADS=1 python bench/bench_discovery_suite.py [--seeds 10] [--quick]
+    OPENBLAS_NUM_THREADS=1 python bench/bench_discovery_suite.py [--seeds 10] [--quick] [--budget 3600]
+
+`--budget` is `discovery.time_budget_s` (wall seconds, 3600 by default here against the request's
+300): the suite measures what the search finds, not how loaded the machine is.
 
 `--quick` runs 4 of the configurations (40 cases with the default seeds).
 """
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 import time
 from dataclasses import dataclass
@@ -115,17 +120,18 @@ def body_of(cfg: Config, seed: int) -> tuple[dict, dict[str, float]]:
     return body, truth
 
 
-def run_greyfit(cfg: Config, seed: int) -> dict:
+def run_greyfit(cfg: Config, seed: int, budget: float) -> dict:
     body, truth = body_of(cfg, seed)
-    t0 = time.perf_counter()
+    body["discovery"] = {**body.get("discovery", {}), "time_budget_s": budget}
+    t0, c0 = time.perf_counter(), time.process_time()
     res = discover(DiscoverRequest.model_validate(body))
-    wall = time.perf_counter() - t0
+    wall, cpu = time.perf_counter() - t0, time.process_time() - c0
     _, effect, equation, _ = EFFECTS[cfg.effect]
     equation = "yd" if cfg.system == "duffing" else equation   # the Duffing model names its speed yd
     correct = [s for s in res.steps if s.effect == effect and s.equation == equation]
     err = max(abs(res.fit.parameters[k].value - v) / abs(v) for k, v in truth.items())
     return {"found": bool(correct), "steps": len(res.steps), "correct": min(len(correct), 1),
-            "unexplained": res.unexplained is not None, "err": err, "time": wall}
+            "unexplained": res.unexplained is not None, "err": err, "time": wall, "cpu": cpu}
 
 
 def run_sindy(cfg: Config, seed: int) -> dict | None:
@@ -164,30 +170,34 @@ def summarise(cfg: Config, runs: list[dict], sindy: list[dict]) -> str:
     unexpl = np.mean([r["unexplained"] for r in runs])
     err = np.median([r["err"] for r in runs])
     wall = np.median([r["time"] for r in runs])
+    cpu = np.median([r["cpu"] for r in runs])
     s = "-"
     if sindy:
         s_recall = f"{np.mean([r['found'] for r in sindy]):.2f}" if has_effect and EFFECTS[cfg.effect][3] else "n/a"
         s = (f"recall {s_recall}, spurious {np.mean([r['spurious'] for r in sindy]):.1f}, "
              f"err {100 * np.median([r['err'] for r in sindy]):.1f} %")
     return (f"| {cfg.label} | {len(runs)} | {recall} | {precision} | {spurious:.2f} | {unexpl:.2f} | "
-            f"{100 * err:.1f} % | {wall:.1f} | {s} |")
+            f"{100 * err:.1f} % | {cpu:.1f} | {wall:.1f} | {s} |")
 
 
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help="4 configurations only")
+    ap.add_argument("--budget", type=float, default=3600.0, help="discovery.time_budget_s, wall seconds")
     args = ap.parse_args()
     configs = QUICK if args.quick else CONFIGS
-    print(f"{len(configs)} configurations × {args.seeds} seeds = {len(configs) * args.seeds} cases\n")
-    print("| configuration | runs | recall | precision | spurious | unexpl. | param err | time s | pySINDy |")
-    print("|---|---|---|---|---|---|---|---|---|")
-    started = time.perf_counter()
+    print(f"{len(configs)} configurations × {args.seeds} seeds = {len(configs) * args.seeds} cases; "
+          f"load average before: {' '.join(f'{x:.2f}' for x in os.getloadavg())}\n")
+    print("| configuration | runs | recall | precision | spurious | unexpl. | param err | CPU s | wall s | pySINDy |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
+    started, cpu0 = time.perf_counter(), time.process_time()
     for cfg in configs:
-        runs = [run_greyfit(cfg, seed) for seed in range(1, args.seeds + 1)]
+        runs = [run_greyfit(cfg, seed, args.budget) for seed in range(1, args.seeds + 1)]
         sindy = [r for r in (run_sindy(cfg, seed) for seed in range(1, args.seeds + 1)) if r is not None]
         print(summarise(cfg, runs, sindy), flush=True)
-    print(f"\ntotal {time.perf_counter() - started:.0f} s")
+    print(f"\ntotal {time.perf_counter() - started:.0f} s wall, {time.process_time() - cpu0:.0f} s CPU; "
+          f"load average after: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
 if __name__ == "__main__":

@@ -45,6 +45,7 @@ class Candidate:
     # one of C(grid, m) subsets, not one of grid·m columns; its p-value is multiplied by this
     multiplicity: float = 1.0
     width: float = 0.0         # the ε of a smoothed switch tanh(v/ε): its variants differ only in it
+    lag: int = 0               # a delay's whole samples: its variants differ only in it (the refit walks along it)
     modifies: str = ""         # the declared parameter a time- or state-varying law changes (parsimony checks)
     variables: tuple[str, ...] = ()   # the states and inputs the term is a function of (what would separate it)
     # a member of a series that approximates many laws (a power, a smooth p(x)), not a law named for a

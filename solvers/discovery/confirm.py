@@ -6,7 +6,9 @@ Refits start one Gauss-Newton step away from the old fit (`warm_start`), are cap
 `REFIT_MAX_ITER` Ipopt iterations and at what is left of the request's time budget. A smoothed
 switch (Coulomb friction's tanh(v/ε)) is refitted at its widest significant width first, the
 cheapest and most robust refit, and its width then refined by a score test at the refitted model,
-where the linearisation is accurate (`refine_width`).
+where the linearisation is accurate (`revise.refine_width`). A delay's refits walk along the lag
+(`walk_lags`). Every refit is set up by `refit_request`, counted and run by `counted_refit`, and its
+validation records simulated by `timed_validation`; a kept refit becomes a step in `revise.accept`.
 """
 from __future__ import annotations
 
@@ -18,8 +20,6 @@ from greyfit.schemas.discovery import (
     DiscoverRequest,
     DiscoveryOptions,
     DiscoveryStep,
-    Evidence,
-    NewParameter,
     RejectedCandidate,
     ValidationSummary,
 )
@@ -27,10 +27,10 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.effects import Candidate
-from greyfit.solvers.discovery.refit_test import output_residual, refit_likelihood_ratio
+from greyfit.solvers.discovery.refit_test import refit_likelihood_ratio
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
 from greyfit.solvers.discovery.screening import Scored, Screening, screen
-from greyfit.solvers.discovery.summary import equation_names, summarize, validate, validation_worse
+from greyfit.solvers.discovery.summary import equation_names, validate
 from greyfit.solvers.discovery.warm_start import gauss_newton_start
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.errors import FitError
@@ -136,7 +136,8 @@ def _within_budget(state: LoopState, req: FitRequest) -> FitRequest:
     return req
 
 
-def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored) -> tuple[Model, list[str], FitRequest]:
+def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored,
+                start: FitResult | None = None) -> tuple[Model, list[str], FitRequest]:
     """(augmented model with its start values, new parameter names, refit request) of a candidate.
 
     Parameters
@@ -147,25 +148,107 @@ def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored) -> tuple
         The search so far (the current model, fit and request).
     sc : Scored
         The scored candidate.
+    start : FitResult or None
+        A refit of a sibling variant to start from (a neighbouring lag), instead of the current fit.
 
     Returns
     -------
     tuple of (Model, list of str, FitRequest)
-        The model with the candidate, started at the current estimates (or the declared values) and one
-        Gauss-Newton step on where the step can be formed; the new parameters' names; the refit request
-        with the candidate's data and capped options (`refit_options`).
+        The model with the candidate, started at the current estimates (or the declared values, or the
+        sibling's) and one Gauss-Newton step on where the step can be formed; the new parameters' names;
+        the refit request with the candidate's data and capped options (`refit_options`).
     """
     c = sc.candidate
-    start = with_declared_start(state.model, request.model) if c.fresh_start else \
+    begin = with_declared_start(state.model, request.model) if c.fresh_start else \
         with_estimates(state.model, state.fit)
-    new_model, new_params = c.apply(start)
-    if new_params and not c.fresh_start and not c.transform_experiments and sc.scorer is not None:
+    new_model, new_params = c.apply(begin)
+    if start is not None:
+        new_model = with_estimates(new_model, start)
+    elif new_params and not c.fresh_start and not c.transform_experiments and sc.scorer is not None:
         new_model = gauss_newton_start(sc.scorer, c, state.fit, new_model, new_params)
-    experiments = (c.transform_experiments(state.request.experiments) if c.transform_experiments
+    return new_model, new_params, refit_request(state, new_model, c, sc.score.beta)
+
+
+def refit_request(state: LoopState, model: Model, cand: Candidate, beta: float, **options) -> FitRequest:
+    """The request of a refit with `cand` in `model`: the current request with the candidate's data
+    (a delayed input) and the refit's capped options (`refit_options`).
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far (its current request).
+    model : Model
+        The model to refit (with the candidate, and its start values).
+    cand : Candidate
+        The candidate (its `transform_experiments` and `stiffness`).
+    beta : float
+        The candidate's screened coefficient (for the substeps a stiff term needs).
+    **options
+        Further option updates (e.g. ``hessian="exact"`` for a start next to the answer).
+
+    Returns
+    -------
+    FitRequest
+        The refit's request.
+    """
+    experiments = (cand.transform_experiments(state.request.experiments) if cand.transform_experiments
                    else state.request.experiments)
-    new_req = state.request.model_copy(update={"model": new_model, "experiments": experiments,
-                                               "options": refit_options(state.request, c, sc.score.beta)})
-    return new_model, new_params, new_req
+    opts = refit_options(state.request, cand, beta)
+    if options:
+        opts = opts.model_copy(update=options)
+    return state.request.model_copy(update={"model": model, "experiments": experiments, "options": opts})
+
+
+def counted_refit(state: LoopState, req: FitRequest) -> FitResult | str:
+    """One refit counted against `max_refits` and run within the budget (`run_refit`).
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far; its refits left are counted down.
+    req : FitRequest
+        The refit's request.
+
+    Returns
+    -------
+    FitResult or str
+        The refit; or, when the model or data do not compile or the solver raised, the error's text (a
+        term the solver cannot handle is a rejection, not a crash).
+    """
+    state.refits_left -= 1
+    try:
+        return run_refit(state, req)
+    except (FitError, RuntimeError, ValueError) as exc:
+        return str(exc)
+
+
+def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, fit: FitResult,
+                     experiments=None, neutral: set[str] | None = None) -> ValidationSummary | None:
+    """A model on the validation records, timed as validation.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (its validation records, unless `experiments` are given).
+    state : LoopState
+        The search so far (its clock times the simulation).
+    model : Model
+        The model.
+    fit : FitResult
+        Its fit.
+    experiments : list of Experiment or None
+        The records to simulate (the validation records with a candidate's data); None: the request's.
+    neutral : set of str or None
+        Parameters switched off there (record-specific terms); None: those of the steps so far.
+
+    Returns
+    -------
+    ValidationSummary or None
+        Its validation metrics; None without validation records or when they cannot be simulated.
+    """
+    exps = request.validation if experiments is None else experiments
+    with state.clock.phase("validation"):
+        return validate(request, model, fit, exps, state.record_params if neutral is None else neutral)
 
 
 @dataclass
@@ -208,20 +291,12 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
         "solver_failed", "evidence").
     """
     opts = request.discovery
-    best = None
-    errors = []
-    for sc in variants:
-        if state.refits_left <= 0 or not state.clock.allows():
-            break
-        new_model, new_params, new_req = build_refit(request, state, sc)
-        state.refits_left -= 1
-        try:
-            new_fit = run_refit(state, new_req)
-        except (FitError, RuntimeError, ValueError) as exc:   # a term the solver cannot handle is rejected
-            errors.append(str(exc))
-            continue
-        if best is None or _rank_refit(new_fit) > _rank_refit(best[1]):
-            best = (sc, new_fit, new_model, new_params, new_req)
+    errors: list[str] = []
+    done = [r for r in (_refit_variant(request, state, sc, errors) for sc in variants
+                        if state.refits_left > 0 and state.clock.allows()) if r is not None]
+    if done and variants[0].candidate.lag > 0:
+        done += walk_lags(request, state, screening, done, errors)
+    best = max(done, key=lambda r: _rank_refit(r[1])) if done else None
     head = variants[0].candidate
     where = equation_names(screening, head)
     if best is None:
@@ -257,6 +332,67 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     return out
 
 
+VariantRefit = tuple[Scored, FitResult, Model, list[str], FitRequest]
+WALK_MAX_REFITS = 6   # a delay's refits beyond the screen's two
+
+
+def _refit_variant(request: DiscoverRequest, state: LoopState, sc: Scored, errors: list[str],
+                   start: FitResult | None = None) -> VariantRefit | None:
+    new_model, new_params, new_req = build_refit(request, state, sc, start)
+    new_fit = counted_refit(state, new_req)
+    if isinstance(new_fit, str):
+        errors.append(new_fit)
+        return None
+    return sc, new_fit, new_model, new_params, new_req
+
+
+def walk_lags(request: DiscoverRequest, state: LoopState, screening: Screening, done: list[VariantRefit],
+              errors: list[str]) -> list[VariantRefit]:
+    """Refits of a delay at the lags next to the best refitted one, while that one has an untried
+    neighbour: the refit cost, not the screen, picks the lag.
+
+    The screen linearises the delayed input's effect at the fit without it, whose lags have already
+    stretched to mimic the delay; it then ranks short lags first (a two-lag process delayed by 4
+    samples: the screen's best was 1, its second 2). The refit cost along the lag has one minimum
+    near the true one, so a walk from the screen's best to the lag whose two neighbours both refit
+    worse finds it, each refit started from its neighbour's.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, declared model, validation experiments).
+    state : LoopState
+        The search so far (its refits left are counted down, its clock bounds the walk).
+    screening : Screening
+        The screen the candidate came from (it holds every lag of the family).
+    done : list of VariantRefit
+        The refits of the screen's variants, (scored, fit, model, new parameters, request) each.
+    errors : list of str
+        Appended: the errors of refits that could not run.
+
+    Returns
+    -------
+    list of VariantRefit
+        The walk's refits (at most `WALK_MAX_REFITS`).
+    """
+    head = done[0][0]
+    by_lag = {s.candidate.lag: s for s in screening.scored
+              if s.candidate.family == head.candidate.family and s.scored_on == head.scored_on}
+    tried = {r[0].candidate.lag for r in done}
+    walked: list[VariantRefit] = []
+    while len(walked) < WALK_MAX_REFITS and state.refits_left > 0 and state.clock.allows():
+        best = max([*done, *walked], key=lambda r: _rank_refit(r[1]))
+        lag = best[0].candidate.lag
+        nxt = [k for k in (lag + 1, lag - 1) if k in by_lag and k not in tried]
+        if not nxt:
+            break
+        tried.add(nxt[0])
+        r = _refit_variant(request, state, by_lag[nxt[0]], errors, start=best[1])
+        if r is not None:
+            walked.append(r)
+    return walked
+
+
 def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> ValidationSummary | None:
     """The refitted model on the validation records, with the record-specific terms (steps, drifts in
     the estimation record's time) switched off: their clock does not carry over to new data.
@@ -281,236 +417,7 @@ def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> V
         if prior.transform_experiments and exps:
             exps = prior.transform_experiments(exps)
     neutral = state.record_params | (set(r.params) if c.record_specific else set())
-    with state.clock.phase("validation"):
-        return validate(request, r.model, r.fit, exps, neutral)
-
-
-def confirm_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
-                      screening: Screening) -> RejectedCandidate | None:
-    """Refit with the candidate (the best of its variants); None when kept, else why it was not.
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, declared model, validation experiments).
-    state : LoopState
-        The search so far (model, request, fit, steps, refits left, budget).
-        The candidate is accepted into it when kept.
-    variants : list of Scored
-        The candidate's variants to refit (`discriminate.variants_of`); the best refit is judged.
-    screening : Screening
-        The screen the candidate came from.
-
-    Returns
-    -------
-    RejectedCandidate or None
-        None when kept; else the rejection (as `refit_candidate`, or "validation" when the validation
-        records got worse).
-    """
-    r = refit_candidate(request, state, variants, screening)
-    if isinstance(r, RejectedCandidate):
-        return r
-    worse = validation_worse(state.validation, r.validation, request.discovery.validation_tolerance)
-    if worse:
-        c = r.sc.candidate
-        return RejectedCandidate(effect=c.effect, equation=equation_names(screening, c), term=c.term,
-                                 reason="validation",
-                                 detail=f"better on the estimation data (BIC -{r.bic_drop:.0f}) but worse on the "
-                                        f"validation records: {worse}")
-    accept(request, state, r, screening)
-    return None
-
-
-def accept(request: DiscoverRequest, state: LoopState, r: Refitted, screening: Screening, note: str = "",
-           **verdict) -> None:
-    """Add the refitted candidate as a step; `verdict`: the step's verdict, runners_up, separate_by;
-    `note` is appended to its description.
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, declared model, validation experiments).
-    state : LoopState
-        The search so far (model, request, fit, steps, refits left, budget).
-        Updated in place: the step, the model, fit, request and validation; a smoothed switch's width is
-        refined and superseded steps are dropped after.
-    r : Refitted
-        The refitted candidate.
-    screening : Screening
-        The screen the candidate came from.
-    note : str
-        Appended to the step's description in parentheses; "" for none.
-    **verdict
-        `verdict`, `runners_up` and `separate_by` of the `DiscoveryStep`.
-    """
-    sc, c = r.sc, r.sc.candidate
-    state.steps.append(DiscoveryStep(
-        effect=c.effect, equation=equation_names(screening, c), term=c.term,
-        description=c.description + (f" ({note})" if note else ""),
-        parameters=new_parameters(r.fit, r.params),
-        evidence=Evidence(scored_on=sc.scored_on, explained_variance=sc.score.explained,
-                          screening_bic_drop=sc.score.bic_drop, p_value=sc.score.p_value,
-                          bic_before=bic(state.fit), bic_after=bic(r.fit), bic_drop=r.bic_drop,
-                          t_value=r.t_value, noise_model_order=r.order, refit_p_value=r.lr_p,
-                          residual_correlation_before=sc.score.corr_before,
-                          residual_correlation_after=correlation_after(sc, r.request, r.fit, screening)),
-        after=summarize(r.fit, r.validation), record_specific=c.record_specific, **verdict))
-    state.accepted.append(c)
-    if c.record_specific:
-        state.record_params |= set(r.params)
-    # no steps of a step, no drift of a drift
-    state.tried.update(f"{kind}:{n}" for n in r.params for kind in ("parameter_step", "parameter_drift"))
-    model_before = state.model
-    state.model, state.fit, state.request, state.validation = r.model, r.fit, r.request, r.validation
-    if c.width > 0:
-        refine_width(request, state, sc, model_before)
-    drop_superseded(request, state)
-
-
-def refine_width(request: DiscoverRequest, state: LoopState, sc: Scored, model_before: Model) -> None:
-    """Swap the width of the smoothed switch just added while a sibling width explains a significant
-    part (p below `significance` over the siblings, at least `min_explained`) of the refitted model's
-    residual with the physical sign, and its refit lowers the BIC (at most two swaps).
-
-    At the refitted model the current width's column is in the span of its own parameter, so a
-    sibling's score measures exactly what a change of width would explain.
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, declared model, validation experiments).
-    state : LoopState
-        The search so far (model, request, fit, steps, refits left, budget).
-        Updated in place when a width is swapped (the last step, model, fit, request, validation).
-    sc : Scored
-        The scored candidate just accepted.
-    model_before : Model
-        The model before that candidate was added.
-    """
-    opts = request.discovery
-    current = state.accepted[-1]
-    for _ in range(2):
-        if state.refits_left <= 0 or not state.clock.allows():
-            return
-        rescreen = screen_state(state, opts.model_copy(update={"effects": [current.effect], "candidates": []}), set())
-        # the widths are fractions of the RMS of the velocity at the fit they are computed on: the
-        # current one comes back slightly moved, the others a factor ≥ 3 away
-        # on the outputs where there is a simulation: the smoothed derivative of the equation
-        # residual blurs the switch, and cannot tell widths apart
-        on = "outputs" if rescreen.outputs_scored else sc.scored_on
-        siblings = [x for x in rescreen.scored if x.candidate.family == current.family
-                    and x.scored_on == on and x.candidate.width > 0
-                    and max(x.candidate.width / current.width, current.width / x.candidate.width) > 1.5]
-        if not siblings:
-            return
-        # a swap adds friction at the other width (the physical sign); a sibling of the opposite sign
-        # only reshapes the current switch as a mixture of two widths
-        alpha = opts.significance / len(siblings)
-        useful = [x for x in siblings if (x.candidate.sign == 0 or np.sign(x.score.beta) == np.sign(x.candidate.sign))
-                  and x.score.p_value < alpha and x.score.explained >= opts.min_explained]
-        if not useful:
-            return
-        # widths far below what the sampling resolves explain the same: of those within 5 % of the
-        # best, the widest, which needs the fewest RK4 substeps
-        top = max(x.score.explained for x in useful)
-        best = max((x for x in useful if x.score.explained >= 0.95 * top), key=lambda x: x.candidate.width)
-        new_model, new_params = best.candidate.apply(with_estimates(model_before, state.fit))
-        new_model = with_estimates(new_model, state.fit)   # the coefficient of the width it replaces
-        new_req = state.request.model_copy(update={
-            "model": new_model, "options": refit_options(state.request, best.candidate, sc.score.beta)
-            .model_copy(update={"hessian": "exact"})})   # next to the answer: Newton, see run_refit
-        state.refits_left -= 1
-        try:
-            new_fit = run_refit(state, new_req)
-        except (FitError, RuntimeError, ValueError):
-            return
-        if new_fit.quality == "failed" or bic(new_fit) >= bic(state.fit):
-            return
-        with state.clock.phase("validation"):
-            new_validation = validate(request, new_model, new_fit, request.validation, state.record_params)
-        if validation_worse(state.validation, new_validation, opts.validation_tolerance):
-            return
-        step = state.steps[-1]
-        c = best.candidate
-        evidence = step.evidence.model_copy(update={
-            "bic_after": new_fit.metrics.bic, "bic_drop": step.evidence.bic_before - bic(new_fit),
-            "t_value": t_value_of(new_fit, new_params)})
-        state.steps[-1] = step.model_copy(update={
-            "term": c.term, "description": c.description, "parameters": new_parameters(new_fit, new_params),
-            "evidence": evidence, "after": summarize(new_fit, new_validation)})
-        state.accepted[-1] = current = c
-        # later refits go back to the requested Hessian (Newton was for this start next to the answer)
-        new_req = new_req.model_copy(update={"options": new_req.options.model_copy(
-            update={"hessian": state.request.options.hessian})})
-        state.model, state.fit, state.request, state.validation = new_model, new_fit, new_req, new_validation
-
-
-def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
-    """An earlier step whose parameter lost its evidence once a later effect came in is dropped,
-    when the model without it is as good (BIC within `min_bic_drop`): e.g. a stiffness that switches
-    with |y|, taken first, and then a cubic spring that explains it properly.
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, declared model, validation experiments).
-    state : LoopState
-        The search so far (model, request, fit, steps, refits left, budget).
-        Updated in place: a dropped step moves to `rejected` ("superseded") and the model is refitted
-        without it.
-    """
-    opts = request.discovery
-    if any(c.transform_experiments for c in state.accepted):
-        return   # the data were rewritten for a delayed input: no replay
-    for idx in reversed(range(len(state.steps) - 1)):
-        step = state.steps[idx]
-        names = [p.name for p in step.parameters]
-        t_value = t_value_of(state.fit, names) if all(n in state.fit.parameters for n in names) else None
-        if not names or t_value is None or t_value >= opts.min_t_value or state.refits_left <= 0:
-            continue
-        if not state.clock.allows():
-            return
-        model = request.model
-        for k, c in enumerate(state.accepted):
-            if k != idx:
-                model, _ = c.apply(model)
-        model = with_estimates(model, state.fit)
-        new_req = state.request.model_copy(update={"model": model})
-        state.refits_left -= 1
-        try:
-            new_fit = run_refit(state, new_req)
-        except (FitError, RuntimeError, ValueError):
-            continue
-        if new_fit.quality == "failed" or bic(new_fit) > bic(state.fit) + opts.min_bic_drop:
-            continue
-        state.rejected.append(RejectedCandidate(
-            effect=step.effect, equation=step.equation, term=step.term, reason="superseded",
-            detail=f"kept at first; after the effects added later its parameter has t = {t_value:.1f} and the "
-                   f"model without it is as good (BIC {state.fit.metrics.bic:.1f} -> {new_fit.metrics.bic:.1f})"))
-        del state.steps[idx]
-        del state.accepted[idx]
-        state.model, state.fit, state.request = model, new_fit, new_req
-        with state.clock.phase("validation"):
-            state.validation = validate(request, model, new_fit, request.validation, state.record_params)
-
-
-def new_parameters(fit: FitResult, names: list[str]) -> list[NewParameter]:
-    """The new parameters of a step as the result reports them.
-
-    Parameters
-    ----------
-    fit : FitResult
-        The refit.
-    names : list of str
-        The new parameters' names.
-
-    Returns
-    -------
-    list of NewParameter
-        Name, value, standard error and 95 % interval of each.
-    """
-    return [NewParameter(name=n, value=fit.parameters[n].value, stderr=fit.parameters[n].stderr,
-                         ci95=fit.parameters[n].ci95) for n in names]
+    return timed_validation(request, state, r.model, r.fit, exps, neutral)
 
 
 def bic(fit: FitResult) -> float:
@@ -633,37 +540,3 @@ def t_value_of(fit: FitResult, names: list[str]) -> float | None:
             return None
         vals.append(abs(p.value) / p.stderr)
     return min(vals)
-
-
-def correlation_after(sc: Scored, new_req: FitRequest, new_fit: FitResult, screening: Screening) -> float | None:
-    """Correlation of the refitted model's output residual with the candidate's column (was: corr_before).
-    One simulation of the refitted model; the column is the one screened. None where it is not
-    defined.
-
-    Parameters
-    ----------
-    sc : Scored
-        The candidate as screened.
-    new_req : FitRequest
-        The refit's request.
-    new_fit : FitResult
-        The refit.
-    screening : Screening
-        The screen (its output scorer gives the column).
-
-    Returns
-    -------
-    float or None
-        The correlation; None for a candidate not scored on the outputs, without an output scorer, on
-        a size mismatch, a constant column or residual, or when the refit cannot be simulated.
-    """
-    try:
-        if sc.scored_on != "outputs" or screening.output_scorer is None:
-            return None
-        g = screening.output_scorer.stack(sc.candidate.equations, sc.candidate.outputs)
-        r = output_residual(new_req, new_fit)
-        if g is None or g.size != r.size or np.std(g) == 0 or np.std(r) == 0:
-            return None
-        return float(np.corrcoef(r, g)[0, 1])
-    except (FitError, RuntimeError, ValueError):
-        return None

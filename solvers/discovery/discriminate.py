@@ -26,10 +26,11 @@ import numpy as np
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, RunnerUp, ValidationSummary
 from greyfit.solvers.discovery.candidate import Candidate
-from greyfit.solvers.discovery.confirm import LoopState, Refitted, accept, bic, refit_candidate
+from greyfit.solvers.discovery.confirm import LoopState, Refitted, bic, refit_candidate, timed_validation
 from greyfit.solvers.discovery.refit_test import AR_MAX_ORDER, ar_coefficients, residual_series, whiten
+from greyfit.solvers.discovery.revise import accept
 from greyfit.solvers.discovery.screening import Scored, Screening
-from greyfit.solvers.discovery.summary import equation_names, validate, validation_worse
+from greyfit.solvers.discovery.summary import equation_names, validation_worse
 from greyfit.solvers.errors import FitError
 
 MARGIN = 0.2                 # contenders explain at least (1 − MARGIN) of what the leader explains
@@ -93,7 +94,7 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
 
 def variants_of(screening: Screening, sc: Scored) -> list[Scored]:
     """What is refitted for a candidate: a smoothed switch once at its widest significant width (the
-    width is refined after, `confirm.refine_width`); a family with variants (input delays) its two
+    width is refined after, `revise.refine_width`); a family with variants (input delays) its two
     best; anything else itself.
 
     Parameters
@@ -289,8 +290,7 @@ def _mean_nrmse(v: ValidationSummary | None) -> float | None:
 def _validation_now(request: DiscoverRequest, state: LoopState) -> ValidationSummary | None:
     if not request.validation:
         return None
-    with state.clock.phase("validation"):
-        return validate(request, state.model, state.fit, request.validation, state.record_params)
+    return timed_validation(request, state, state.model, state.fit)
 
 
 def _validation_objection(request: DiscoverRequest, r: Refitted, before: ValidationSummary | None,

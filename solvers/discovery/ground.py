@@ -56,11 +56,41 @@ def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[Fi
         fit it starts from, and notes saying what was refitted and why.
     """
     notes: list[str] = []
+    fit_req = with_resolved_substeps(fit_req, base)
     with clock.phase("base_fit"):
         fit_req, base = _finer_steps(fit_req, base, notes)
         if clock.allows():
             base = _multistart(fit_req, base, clock, notes)
     return fit_req, base, notes
+
+
+def with_resolved_substeps(fit_req: FitRequest, base: FitResult) -> FitRequest:
+    """The request with the RK4 substeps the base fit chose for itself made explicit.
+
+    A fit not given `options.substeps` chooses them from the model's fastest mode
+    (`preprocessing.substeps`); the request still says 1. The screens linearise and simulate with
+    the request's options, so they would integrate at one step what the fit integrated at several,
+    and every refit would choose again (and sometimes fit twice, `substeps_retry`). Made explicit,
+    the screens see the trajectory the fit saw, and a refit that needs more gets them from
+    `confirm.refit_options` or the fit's own `integration_step_coarse` warning.
+
+    Parameters
+    ----------
+    fit_req : FitRequest
+        The base fit's request.
+    base : FitResult
+        The base fit.
+
+    Returns
+    -------
+    FitRequest
+        `fit_req` with `options.substeps` set to the base fit's choice; unchanged when the request gave
+        them, or the fit chose none.
+    """
+    chosen = base.preprocessing.substeps if base.preprocessing is not None else None
+    if chosen is None or "substeps" in fit_req.options.model_fields_set:
+        return fit_req
+    return fit_req.model_copy(update={"options": fit_req.options.model_copy(update={"substeps": int(chosen)})})
 
 
 def _coarse(fit: FitResult):

@@ -109,9 +109,10 @@ def test_hysteresis_is_reported_unexplained_with_its_shape_and_nothing_named():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=True, reason="since the merge of discrimination by refit the loop adds one 2-sample "
-                   "delay (truth 4) and no second: the linearised delay screen underestimates the lag; open")
 def test_delay_on_a_coarsely_sampled_two_lag_process():
+    # the screen ranks 1 and 2 samples first (its linearisation is taken where the lags have stretched
+    # to mimic the delay); the refits walk along the lag to where the refit cost is least
+    # (`confirm.walk_lags`). One seed here; bench/bench_discovery_delay.py runs ten.
     model = ss.delay_model()
     model["parameters"][2]["value"] = 1.0   # collapsed the second lag at one RK4 step before main's fit changes
     body = {"model": model, "method": "multiple_shooting", "options": {"input_interpolation": "zoh"},

@@ -168,7 +168,7 @@ class InputDelay:
                 out.append(Candidate(self.name, reg, f"{u}(t) -> {delayed} = {u}(t - {fmt(lag * dt)})",
                                      f"input {u} acts {lag} sample(s) ({fmt(lag * dt)} s) late",
                                      bind(self, input=u, delayed=delayed), sign=1.0, family=f"input_delay:{u}",
-                                     refit_variants=True, generic=True, variables=(u,),
+                                     refit_variants=True, generic=True, variables=(u,), lag=lag,
                                      transform_experiments=_delayed_data(u, delayed, lag)))
         return out
 

@@ -29,6 +29,7 @@ import numpy as np
 
 from greyfit.solvers.dynamics.columns import Fold, evaluate
 from greyfit.solvers.dynamics.compiled import compiled, loaded
+from greyfit.solvers.dynamics.compiled import mode as compile_mode
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.methods.shooting import handover, single_pass
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
@@ -139,7 +140,8 @@ def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
     def fold(name: str) -> Fold:
         fn = kernels[name]
         known = _FOLDS.get(id(fn))
-        if known is not None and known.fn is fn:
+        # a fold that loaded its library before GREYFIT_COMPILE became "never" is not reused
+        if known is not None and known.fn is fn and not (known.compiled and compile_mode() == "never"):
             _FOLDS.move_to_end(id(fn))
             known.find_library(work[name])
             return known

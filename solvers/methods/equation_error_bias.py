@@ -22,7 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from greyfit.schemas.fit import FitWarning
-from greyfit.solvers.dynamics.integration import make_step
+from greyfit.solvers.checks.simulation import numeric_step
 from greyfit.solvers.methods.equation_error import EquationErrorProblem
 from greyfit.solvers.model.parameters import ParameterLayout
 
@@ -87,14 +87,14 @@ def simulated_instruments(eep: EquationErrorProblem, cm, data, layout: Parameter
     """
     if eep.sample is None:
         return None
-    step = make_step(cm, options)
+    step = numeric_step(cm, options, sum(d.n for d in data))
     neq, blocks = len(eep.equations), []
     for e, (d, ed) in enumerate(zip(data, eep.per_experiment)):
         first, last = int(ed.rows[0]), int(ed.rows[-1])
         k = np.arange(first, last)
         p = np.asarray(layout.full(e, w), dtype=float)
-        sim = np.array(step.mapaccum(k.size)(ed.x[:, first], d.u[:, k], d.u[:, k + 1], p, d.t[k][None, :],
-                                             (d.t[k + 1] - d.t[k])[None, :]))
+        sim = step(ed.x[:, first], d.u[:, k], d.u[:, k + 1], p, d.t[k][None, :], (d.t[k + 1] - d.t[k])[None, :],
+                   n=k.size, accumulate=True)[0] if k.size else np.zeros((cm.nx, 0))
         states = np.column_stack([ed.x[:, first], sim])[:, ed.rows - first]
         size = np.nanmax(np.abs(ed.x[:, ed.rows]), axis=1, keepdims=True)
         if not np.all(np.isfinite(states)) or np.any(np.abs(states) > DIVERGED * np.maximum(size, 1e-300)):

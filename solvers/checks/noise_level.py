@@ -34,7 +34,7 @@ def _bound(*terms: float) -> float:
 
 
 def _series(values) -> np.ndarray:
-    return np.array([np.nan if v is None else v for v in values], dtype=float)
+    return np.array(values, dtype=float)   # None (a missing sample) becomes NaN
 
 
 def _warning(output: str, test: str, ratio: float, bound: float, noise: float, rmse: float, what: str,
@@ -150,6 +150,8 @@ def replicate_warnings(request: FitRequest, result: FitResult) -> list[FitWarnin
         One ``residual_above_noise`` warning per output with at least `MIN_SAMPLES` replicate
         differences whose variance ratio exceeds the bound (at least `REPLICATE_FLOOR`).
     """
+    if len(request.experiments) < 2:
+        return []   # no replicates (and no need to key a long record by its every sample)
     groups = _replicate_groups(request)
     out = []
     for name, rmse in result.metrics.rmse.items():

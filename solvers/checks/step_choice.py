@@ -15,8 +15,8 @@ import numpy as np
 from greyfit.schemas.fit import FitMethod
 from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.fit_checks import fastest_rate
+from greyfit.solvers.checks.simulation import numeric_step
 from greyfit.solvers.data.experiments import prepare_experiments
-from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
 
@@ -53,8 +53,8 @@ def _applies(request) -> bool:
 
 
 def _guess_states(cm, data, layout, options, substeps: int) -> list[np.ndarray]:
-    """States at every sample, simulated at the initial guess with `substeps` (CasADi, no C compile)."""
-    step = make_step(cm, options.model_copy(update={"substeps": substeps}))
+    """States at every sample, simulated at the initial guess with `substeps`."""
+    step = numeric_step(cm, options.model_copy(update={"substeps": substeps}), sum(d.n for d in data))
     theta_s = layout.initial / layout.scale
     out = []
     for e, d in enumerate(data):
@@ -67,9 +67,11 @@ def _guess_states(cm, data, layout, options, substeps: int) -> list[np.ndarray]:
                 first = first[np.isfinite(first)]
                 x0[cm.states.index(state)] = first[0] if first.size else 0.0
         p = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
-        sim = step.mapaccum("guess", d.n - 1)
-        xs = np.array(sim(x0, d.u[:, :-1], d.u[:, 1:], np.tile(p[:, None], (1, d.n - 1)), d.t[None, :-1],
-                          np.diff(d.t)[None, :]))
+        if d.n < 2:
+            out.append(x0[:, None])
+            continue
+        xs, = step(x0, d.u[:, :-1], d.u[:, 1:], p, d.t[None, :-1], np.diff(d.t)[None, :], n=d.n - 1,
+                   accumulate=True)
         out.append(np.hstack([x0[:, None], xs]))
     return out
 

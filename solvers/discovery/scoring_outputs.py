@@ -22,27 +22,44 @@ import casadi as ca
 import numpy as np
 
 from greyfit.solvers.discovery.scoring import RegressionScorer
+from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 from greyfit.solvers.model.compiler import CompiledModel
 
 
-def _disturbed_step(oem: OutputErrorModel) -> ca.Function:
-    """(x, u0, u1, p, t0, dt) -> x+, ∂x+/∂x, ∂x+/∂[u0; d0], ∂x+/∂[u1; d1] with a disturbance d on ẋ."""
-    cm = oem.cm
+def _disturbed_step(oem: OutputErrorModel) -> Columns:
+    """(x, u0, u1, p, t0, dt) -> ∂x+/∂x, ∂x+/∂[u0; d0], ∂x+/∂[u1; d1] with a disturbance d on ẋ, on
+    numpy columns.
+
+    Built once per compiled model and integrator settings (every output-error fit screens for lack
+    of fit, and building the step and its Jacobians costs more than the screen's arithmetic); an SX
+    step (RK4) is differentiated in SX, so the per-sample Jacobians run as one compiled loop.
+    """
+    cm, o = oem.cm, oem.options
+    key = ("disturbed_sens", o.integrator, o.substeps, o.input_interpolation)
+    samples = sum(d.n for d in oem.data)
+    if not isinstance(cm, CompiledModel):   # a stand-in model: for this request only, not compiled
+        return Columns(_disturbed_sens(cm, o), compile=False)
+    return cm.derive(key, lambda: Columns(_disturbed_sens(cm, o), 2 * samples))
+
+
+def _disturbed_sens(cm: CompiledModel, options) -> ca.Function:
     x, u, d = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("d", cm.nx)
     p, t = ca.SX.sym("p", cm.np), ca.SX.sym("t")
     ud = ca.vertcat(u, d)
     rhs = ca.Function("rhs_d", [x, ud, p, t], [cm.rhs(x, u, p, t) + d])
     disturbed = SimpleNamespace(rhs=rhs, nx=cm.nx, nu=cm.nu + cm.nx, np=cm.np, model=cm.model)
     # the step builder reads only rhs, nx, nu, np and model: a namespace with the disturbed rhs
-    step = make_step(cast(CompiledModel, disturbed), oem.options)
-    xm = ca.MX.sym("x", cm.nx)
-    u0m, u1m = ca.MX.sym("u0", cm.nu + cm.nx), ca.MX.sym("u1", cm.nu + cm.nx)
-    pm, t0m, dtm = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
+    step = make_step(cast(CompiledModel, disturbed), options)
+    sym = ca.SX.sym if step.is_a("SXFunction") else ca.MX.sym   # CVODES is MX only
+    xm = sym("x", cm.nx)
+    u0m, u1m = sym("u0", cm.nu + cm.nx), sym("u1", cm.nu + cm.nx)
+    pm, t0m, dtm = sym("p", cm.np), sym("t0"), sym("dt")
     xn = step(xm, u0m, u1m, pm, t0m, dtm)
-    return ca.Function("disturbed_sens", [xm, u0m, u1m, pm, t0m, dtm],
-                       [ca.jacobian(xn, xm), ca.jacobian(xn, u0m), ca.jacobian(xn, u1m)])
+    # dense: a Jacobian may be structurally zero (u1 under zero-order hold), and the callers reshape
+    return ca.Function("greyfit_disturbed_sens", [xm, u0m, u1m, pm, t0m, dtm],
+                       [ca.densify(ca.jacobian(xn, v)) for v in (xm, u0m, u1m)])
 
 
 class OutputScorer(RegressionScorer):
@@ -53,7 +70,7 @@ class OutputScorer(RegressionScorer):
         cm = oem.cm
         jac, r, self.groups = sensitivity_jacobian(oem, theta_s, x0s)
         self.states, self.a, self.d0, self.d1, self.hx, self.y = [], [], [], [], [], []
-        sens = _disturbed_step(oem).map
+        sens = _disturbed_step(oem)
         _, out_sens = oem.sensitivity_functions()
         for e, d in enumerate(oem.data):
             p = np.asarray(oem.layout.full(e, theta_s), dtype=float).ravel()
@@ -62,8 +79,7 @@ class OutputScorer(RegressionScorer):
             n = d.n
             u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
             zero = np.zeros((cm.nx, n - 1))
-            a, j0, j1 = sens(n - 1)(states[:, :-1], np.vstack([u0, zero]), np.vstack([u1, zero]),
-                                   np.repeat(p[:, None], n - 1, 1), t0, dt)
+            a, j0, j1 = sens(states[:, :-1], np.vstack([u0, zero]), np.vstack([u1, zero]), p, t0, dt, n=n - 1)
             nud = cm.nu + cm.nx
             self.a.append(np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2))
             self.d0.append(np.array(j0).reshape(cm.nx, n - 1, nud).transpose(1, 0, 2)[:, :, cm.nu:])

@@ -121,17 +121,30 @@ def hac_meat(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray,
         blocks = [scores[exp_of_key == e] for e in np.unique(exp_of_key)]
     bandwidth = andrews_bandwidth(blocks)
     lags = int(np.floor(bandwidth))
-    meat = np.sum([_bartlett_sum(b, lags) for b in blocks], axis=0)
+    meat = np.sum([bartlett_sum(b, lags) for b in blocks], axis=0)
     return meat, bandwidth
 
 
-def _bartlett_sum(b: np.ndarray, lags: int) -> np.ndarray:
+def bartlett_sum(b: np.ndarray, lags: int) -> np.ndarray:
     """Γ_0 + Σ_{l=1..L} w_l (Γ_l + Γ_lᵀ) = Σ_{t,τ} w(t − τ) s_t s_τᵀ, w(l) = 1 − |l|/(L+1).
 
     (L+1) w(t − τ) counts the windows of L+1 consecutive samples that hold both t and τ (windows
     that run past either end included), so the sum is CᵀC/(L+1) with C_t the sum of the score over
     window t: two cumulative sums, whatever L (lag by lag costs L products of the whole score
-    matrix, and L reaches hundreds for a smooth residual)."""
+    matrix, and L reaches hundreds for a smooth residual).
+
+    Parameters
+    ----------
+    b : numpy.ndarray
+        The series in time order, shape (T, columns).
+    lags : int
+        The Bartlett bandwidth L (at most T − 1 is used).
+
+    Returns
+    -------
+    numpy.ndarray
+        The weighted sum of the lag products, shape (columns, columns).
+    """
     n = b.shape[0]
     width = min(lags, n - 1) + 1
     cum = np.zeros((n + 1, b.shape[1]))

@@ -22,7 +22,8 @@ from __future__ import annotations
 import numpy as np
 
 from greyfit.schemas.fit import FitWarning
-from greyfit.solvers.dynamics.integration import make_step
+from greyfit.solvers.checks.simulation import numeric_step
+from greyfit.solvers.inference.robust_covariance import bartlett_sum
 from greyfit.solvers.methods.equation_error import EquationErrorProblem
 from greyfit.solvers.model.parameters import ParameterLayout
 
@@ -87,16 +88,18 @@ def simulated_instruments(eep: EquationErrorProblem, cm, data, layout: Parameter
     """
     if eep.sample is None:
         return None
-    step = make_step(cm, options)
+    step = numeric_step(cm, options, sum(d.n for d in data))
     neq, blocks = len(eep.equations), []
     for e, (d, ed) in enumerate(zip(data, eep.per_experiment)):
         first, last = int(ed.rows[0]), int(ed.rows[-1])
         k = np.arange(first, last)
         p = np.asarray(layout.full(e, w), dtype=float)
-        sim = np.array(step.mapaccum(k.size)(ed.x[:, first], d.u[:, k], d.u[:, k + 1], p, d.t[k][None, :],
-                                             (d.t[k + 1] - d.t[k])[None, :]))
+        sim = step(ed.x[:, first], d.u[:, k], d.u[:, k + 1], p, d.t[k][None, :], (d.t[k + 1] - d.t[k])[None, :],
+                   n=k.size, accumulate=True)[0] if k.size else np.zeros((cm.nx, 0))
         states = np.column_stack([ed.x[:, first], sim])[:, ed.rows - first]
-        size = np.nanmax(np.abs(ed.x[:, ed.rows]), axis=1, keepdims=True)
+        measured = np.abs(ed.x[:, ed.rows])
+        size = np.max(measured, axis=1, keepdims=True, initial=0.0) if np.isfinite(measured).all() else \
+            np.nanmax(measured, axis=1, keepdims=True)
         if not np.all(np.isfinite(states)) or np.any(np.abs(states) > DIVERGED * np.maximum(size, 1e-300)):
             return None
         n = ed.rows.size
@@ -110,6 +113,8 @@ def simulated_instruments(eep: EquationErrorProblem, cm, data, layout: Parameter
 
 def _hac(moments: np.ndarray, bandwidth: int) -> np.ndarray:
     """Newey-West long-run covariance of the rows of `moments` (Bartlett weights)."""
+    if bandwidth < moments.shape[0]:   # two cumulative sums instead of a product per lag
+        return bartlett_sum(moments, bandwidth)
     s = moments.T @ moments
     for lag in range(1, bandwidth + 1):
         g = moments[lag:].T @ moments[:-lag]
@@ -162,8 +167,9 @@ def instrumental_estimate(eep: EquationErrorProblem, w: np.ndarray, z: np.ndarra
             break
     jac, r = eep.problem.evaluate_jacobian(theta)
     j_ls = jac_ls[:, columns]
-    psi_iv = np.linalg.solve(z.T @ jac[:, columns], (z * r[:, None]).T).T
-    psi_ls = np.linalg.solve(j_ls.T @ j_ls, (j_ls * r_ls[:, None]).T).T
+    # the influence functions row by row: (z r)ᵢ A⁻ᵀ, one small inverse instead of a solve per row
+    psi_iv = (z * r[:, None]) @ np.linalg.inv(z.T @ jac[:, columns]).T
+    psi_ls = (j_ls * r_ls[:, None]) @ np.linalg.inv(j_ls.T @ j_ls).T
     return theta, _hac(psi_iv - psi_ls, bandwidth=bandwidth * len(eep.equations))
 
 

@@ -55,10 +55,10 @@ def test_robust_stderr_matches_monte_carlo_spread_where_classical_does_not():
 @pytest.mark.parametrize("n,lags,cols", [(1000, 500, 8), (300, 40, 3), (50, 49, 2), (400, 12, 4)])
 def test_bartlett_sum_equals_the_lag_by_lag_definition(n, lags, cols):
     """Γ0 + Σ w_l (Γ_l + Γ_lᵀ) from moving-window sums = the sum written out."""
-    from greyfit.solvers.inference.robust_covariance import _bartlett_sum
+    from greyfit.solvers.inference.robust_covariance import bartlett_sum
     b = np.cumsum(np.random.default_rng(n).standard_normal((n, cols)), axis=0)   # smooth scores
     expected = b.T @ b
     for lag in range(1, lags + 1):
         gamma = b[lag:].T @ b[:-lag]
         expected = expected + (1 - lag / (lags + 1)) * (gamma + gamma.T)
-    assert np.abs(_bartlett_sum(b, lags) - expected).max() <= 1e-12 * np.abs(expected).max()
+    assert np.abs(bartlett_sum(b, lags) - expected).max() <= 1e-12 * np.abs(expected).max()

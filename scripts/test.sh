@@ -16,4 +16,5 @@ bash scripts/lint.sh .venv/bin/python
 # The docs site (mkdocs.yml) in strict mode: a broken link, a page left out of the navigation or an
 # option table that no longer builds from the schemas fails the run. No network needed.
 NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet
-exec .venv/bin/python -m pytest -q "$@"
+# the slowest tests are listed at the end, so a run that grows shows where
+exec .venv/bin/python -m pytest -q --durations=25 "$@"

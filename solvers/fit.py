@@ -106,7 +106,7 @@ def fit_model(request: FitRequest) -> FitResult:
     online = online_method(request.method)
     if online is not None:
         return attach_model(online.fit(request), request.model)
-    prepared, preprocessing = _choose_substeps(*prepare_request(request))
+    prepared, preprocessing = choose_substeps(*prepare_request(request))
     result = _fit_chosen(prepared)
     # from here on the request names the method that ran: the checks after the fit ask it
     prepared = prepared.model_copy(update={"method": result.solver.method})
@@ -120,14 +120,6 @@ def fit_model(request: FitRequest) -> FitResult:
     result.preprocessing = preprocessing
     # lack of fit and input handling in the verdict; units and the model travel with the result
     return attach_model(review_fit(prepared, result), request.model)
-
-
-def _choose_substeps(request: FitRequest, report):
-    """`choose_substeps`, for auto as for the shooting method it will run (the steps do not depend on which)."""
-    if request.method != FitMethod.auto:
-        return choose_substeps(request, report)
-    chosen, report = choose_substeps(request.model_copy(update={"method": FitMethod.single_shooting}), report)
-    return chosen.model_copy(update={"method": FitMethod.auto}), report
 
 
 def _fit_chosen(request: FitRequest) -> FitResult:

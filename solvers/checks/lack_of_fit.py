@@ -18,8 +18,9 @@ from __future__ import annotations
 from typing import Any
 
 from greyfit.schemas.discovery import DiscoveryOptions, Effect
-from greyfit.schemas.fit import FitMethod, FitRequest, FitResult, FitWarning
+from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.solvers.errors import FitError
+from greyfit.solvers.methods.registry import simulates_outputs
 
 SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
                     "output_offset", "output_gain"]
@@ -52,7 +53,7 @@ def negligible_residual(result: FitResult) -> bool:
 def _why_not_screened(request: FitRequest, result: FitResult) -> str | None:
     """None: nothing to screen or say; "": screen; else why the screen is skipped."""
     model, opts = request.model, request.options
-    if request.method not in (FitMethod.single_shooting, FitMethod.multiple_shooting):
+    if not simulates_outputs(request.method):
         return None   # the screen needs a simulated output; equation error's residuals are derivatives
     if model.discrete is not None or opts.prefilter is not None or \
             any(p.time_varying is not None or p.per_experiment for p in model.parameters):

@@ -18,9 +18,10 @@ import math
 
 import numpy as np
 
-from greyfit.schemas.fit import FitMethod, FitRequest, FitResult, FitWarning
+from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.solvers.checks.lack_of_fit import negligible_residual
 from greyfit.solvers.checks.quality import noise_level
+from greyfit.solvers.methods.registry import method_family
 
 Z = 4.0
 MIN_SAMPLES = 50
@@ -189,7 +190,7 @@ def noise_level_warnings(request: FitRequest, result: FitResult) -> list[FitWarn
         The high-frequency, validation and replicate warnings; none for equation error, a failed fit,
         a negligible residual, or a fit with every parameter fixed.
     """
-    if request.method == FitMethod.equation_error:
+    if method_family(request.method) == "equation_error":
         return []   # its channels are smoothed derivatives, not the measured outputs
     if result.quality == "failed" or negligible_residual(result):
         return []

@@ -12,7 +12,7 @@ import numpy as np
 
 from greyfit.schemas.fit import FitResult, FitWarning
 from greyfit.solvers.inference.covariance import CovarianceEstimate, combination, null_directions
-from greyfit.solvers.methods.registry import method_family
+from greyfit.solvers.methods.registry import has_shooting_nodes, method_family
 
 FAILED_CODES = {"not_converged", "non_finite_cost", "simulation_failed"}
 SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "parameter_uncertain",
@@ -112,7 +112,7 @@ def _fit_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
 
 def _solution_warnings(result: FitResult, q: QualityInputs) -> list[FitWarning]:
     out = []
-    if q.method == "multiple_shooting" and np.isfinite(q.cost) and np.isfinite(q.nlp_cost) \
+    if has_shooting_nodes(q.method) and np.isfinite(q.cost) and np.isfinite(q.nlp_cost) \
             and q.cost > GAP_RATIO * q.nlp_cost + 1e-12:
         out.append(FitWarning(
             code="continuity_gap",

@@ -12,17 +12,16 @@ import math
 
 import numpy as np
 
-from greyfit.schemas.fit import FitMethod
 from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.fit_checks import fastest_rate
 from greyfit.solvers.checks.simulation import numeric_step
 from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.methods.registry import simulates_outputs
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
 
 TARGET_RATE_STEP = 0.25
 MAX_SUBSTEPS = 100      # the schema's bound on options.substeps
-SHOOTING = (FitMethod.single_shooting, FitMethod.multiple_shooting)
 
 
 def substeps_for(rate: float, dt: float) -> int:
@@ -48,7 +47,8 @@ def substeps_for(rate: float, dt: float) -> int:
 
 def _applies(request) -> bool:
     model, opts = request.model, request.options
-    return (request.method in SHOOTING and opts.integrator == "rk4" and "substeps" not in opts.model_fields_set
+    return (simulates_outputs(request.method) and opts.integrator == "rk4"
+            and "substeps" not in opts.model_fields_set
             and model.discrete is None and not any(p.time_varying is not None for p in model.parameters))
 
 
@@ -79,8 +79,9 @@ def _guess_states(cm, data, layout, options, substeps: int) -> list[np.ndarray]:
 def choose_substeps(request, report: PreprocessingReport | None):
     """(request with options.substeps chosen, report saying so); unchanged where it does not apply.
 
-    Applies to shooting fits with RK4 of continuous models without time-varying parameters whose
-    request did not give `options.substeps`.
+    Applies to output-error fits (auto as the shooting method it will run: the steps do not depend
+    on which) with RK4 of continuous models without time-varying
+    parameters whose request did not give `options.substeps`.
 
     Parameters
     ----------

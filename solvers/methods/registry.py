@@ -3,8 +3,9 @@
 Why: the method used to be decided again in the fit pipeline, inside the shooting builders and by
 name comparisons in the checks, discovery and validation. Everything that depends on the method now
 asks its entry here: `family` says what kind of residual it minimises (equation error compares
-derivatives, output error simulates), `build` makes its problem for `fit_model`, and online
-estimators run their own `fit`. Adding a method is one class and one line in `METHODS`.
+derivatives, output error simulates), `has_nodes` whether its solution is pieces joined at shooting
+nodes, `build` makes its problem for `fit_model`, and online estimators run their own `fit`. Adding a
+method is one class and one line in `METHODS`.
 """
 from __future__ import annotations
 
@@ -33,6 +34,17 @@ class BatchMethod(Protocol):
         -------
         Family
             'equation_error', 'output_error', 'online' or 'frequency'.
+        """
+        ...
+
+    @property
+    def has_nodes(self) -> bool:
+        """Whether the solution is trajectory pieces joined at shooting nodes (multiple shooting).
+
+        Returns
+        -------
+        bool
+            True when the fitted pieces may fail to join into one simulation (a continuity gap).
         """
         ...
 
@@ -73,6 +85,17 @@ class OnlineMethod(Protocol):
         """
         ...
 
+    @property
+    def has_nodes(self) -> bool:
+        """Whether the solution is trajectory pieces joined at shooting nodes (multiple shooting).
+
+        Returns
+        -------
+        bool
+            True when the fitted pieces may fail to join into one simulation (a continuity gap).
+        """
+        ...
+
     def fit(self, request: FitRequest) -> FitResult:
         """Estimate over the request's single experiment.
 
@@ -92,6 +115,7 @@ class OnlineMethod(Protocol):
 @dataclass(frozen=True)
 class _EquationError:
     family: Family = "equation_error"
+    has_nodes: bool = False
 
     def build(self, cm, data, layout, options):
         from greyfit.solvers.methods.batch import EquationErrorFit
@@ -103,6 +127,10 @@ class _OutputError:
     shooting: Literal["single", "multiple", "auto"]   # auto: solvers.methods.method_choice decides
     family: Family = "output_error"
 
+    @property
+    def has_nodes(self) -> bool:
+        return self.shooting == "multiple"   # auto: not known before it has chosen
+
     def build(self, cm, data, layout, options):
         from greyfit.solvers.methods.batch import OutputErrorFit
         return OutputErrorFit.build(cm, data, layout, options, self.shooting)
@@ -111,6 +139,7 @@ class _OutputError:
 @dataclass(frozen=True)
 class _Online:
     family: Family = "online"
+    has_nodes: bool = False
 
     def fit(self, request: FitRequest) -> FitResult:
         from greyfit.solvers.methods.online.estimate import fit_online
@@ -122,6 +151,7 @@ class _Frequency:
     """Frequency-response fits take a `FrequencyFitRequest` (solvers.frequency); the entry is here
     so that every `FitMethod` has one and results can be asked about their family."""
     family: Family = "frequency"
+    has_nodes: bool = False
 
 
 METHODS: dict[FitMethod, _EquationError | _OutputError | _Online | _Frequency] = {
@@ -165,6 +195,22 @@ def simulates_outputs(method: FitMethod | str) -> bool:
         True for single and multiple shooting, and for auto (which runs one of them).
     """
     return method_family(method) == "output_error"
+
+
+def has_shooting_nodes(method: FitMethod | str) -> bool:
+    """Whether the method's solution is pieces joined at shooting nodes, not one simulation.
+
+    Parameters
+    ----------
+    method : FitMethod or str
+        The method, or its value.
+
+    Returns
+    -------
+    bool
+        True for multiple shooting only (auto has not chosen yet; a result names the method that ran).
+    """
+    return METHODS[FitMethod(method)].has_nodes
 
 
 def batch_method(method: FitMethod) -> BatchMethod:

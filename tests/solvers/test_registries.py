@@ -3,7 +3,13 @@ import typing
 
 from greyfit.schemas.fit import FitMethod, FitOptions
 from greyfit.solvers.dynamics.integration import INTEGRATORS
-from greyfit.solvers.methods.registry import METHODS, batch_method, method_family, online_method
+from greyfit.solvers.methods.registry import (
+    METHODS,
+    batch_method,
+    has_shooting_nodes,
+    method_family,
+    online_method,
+)
 
 
 def test_every_fit_method_has_one_entry_and_family():
@@ -18,6 +24,9 @@ def test_every_fit_method_has_one_entry_and_family():
         assert (online is not None) == (method_family(m) == "online")
         if method_family(m) in ("equation_error", "output_error"):
             assert callable(batch_method(m).build)
+    # only multiple shooting joins pieces at nodes (auto has not chosen yet: a result names the method that ran)
+    assert {m for m in FitMethod if has_shooting_nodes(m)} == {FitMethod.multiple_shooting}
+    assert has_shooting_nodes("multiple_shooting") and not has_shooting_nodes("single_shooting")
 
 
 def test_every_integrator_the_schema_offers_is_described():

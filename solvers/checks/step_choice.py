@@ -16,6 +16,7 @@ from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.fit_checks import fastest_rate
 from greyfit.solvers.checks.simulation import numeric_step
 from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.methods.registry import simulates_outputs
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
@@ -47,7 +48,7 @@ def substeps_for(rate: float, dt: float) -> int:
 
 def _applies(request) -> bool:
     model, opts = request.model, request.options
-    return (simulates_outputs(request.method) and opts.integrator == "rk4"
+    return (simulates_outputs(request.method) and integrator_of(opts).fixed_step
             and "substeps" not in opts.model_fields_set
             and model.discrete is None and not any(p.time_varying is not None for p in model.parameters))
 
@@ -80,7 +81,7 @@ def choose_substeps(request, report: PreprocessingReport | None):
     """(request with options.substeps chosen, report saying so); unchanged where it does not apply.
 
     Applies to output-error fits (auto as the shooting method it will run: the steps do not depend
-    on which) with RK4 of continuous models without time-varying
+    on which) with a fixed-step integrator (RK4) of continuous models without time-varying
     parameters whose request did not give `options.substeps`.
 
     Parameters

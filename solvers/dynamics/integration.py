@@ -97,7 +97,9 @@ class Integrator:
 
     fixed_step : a step h = dt / substeps whose accuracy is judged by the fastest mode's |λ|·h
         (and refined by raising `options.substeps`); False for adaptive ones.
-    symbolic : the step expands to SX, so kernels compile to C and shooting takes its structured form.
+    symbolic : the step expands to SX, so kernels compile to C, shooting takes its structured form and
+        the exact Hessian is differentiation of an expression (not second-order sensitivities: the
+        exact-Hessian polish of `solvers.methods.multistart` runs only then).
     """
 
     name: str

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from greyfit.schemas.fit import AlternativeOptimum, FitOptions, FitWarning
+from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.inference.statistics import student_t_quantile
 from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.methods.shooting.hybrid import make_solver
@@ -135,8 +136,9 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
     model on a cascaded-tanks-like record, whose optimum has a double pole: 2000 iterations and
     still not converged; the exact Hessian from the same start in 11). Bounded by max_iter like
     every other solve; kept only if it converges, and then `run.polished` says so. Not tried
-    with CVODES (second-order sensitivities) nor beyond POLISH_MAX_RESIDUALS residuals (the
-    exact Hessian of a long graph takes long to build).
+    with an integrator whose step is not symbolic (CVODES: its exact Hessian takes second-order
+    sensitivities) nor beyond POLISH_MAX_RESIDUALS residuals (the exact Hessian of a long graph
+    takes long to build).
     `exact`: () -> the problem in a form with a graph (`exact_form`); else `problem.graph()`.
 
     Parameters
@@ -158,7 +160,7 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
         that status.
     """
     best = run.best
-    if best.success or options.hessian != "gauss_newton" or options.integrator != "rk4" \
+    if best.success or options.hessian != "gauss_newton" or not integrator_of(options).symbolic \
             or best.status in CPU_STATUSES or not np.all(np.isfinite(best.w)):
         return
     graph = exact() if exact is not None else problem.graph()

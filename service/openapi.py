@@ -40,8 +40,8 @@ ANSWERS = {
            "or shutting down; see Retry-After",
     "504": "the synchronous fit (or report) exceeded its CPU- or wall-time limit",
 }
-SYNC_PATHS = ("/v1/fits", "/v1/discover", "/v1/simulate", "/v1/frequency-fits", "/v1/report",
-              "/v1/jobs/{job_id}/report")
+# answered by a worker while the client waits (501, 504): every kind's sync route, and the job report
+SYNC_PATHS = tuple(k.sync_path for k in KINDS.values() if k.sync_path) + ("/v1/jobs/{job_id}/report",)
 PUBLIC = ("/healthz", "/readyz")
 JOB_PATHS = tuple(k.jobs_path for k in KINDS.values() if k.jobs_path)
 IDEMPOTENCY_HEADER = {

@@ -3,15 +3,16 @@
 FastAPI would generate an example from the schema alone (a state named "X1upTr6t…"), which "Try it
 out" cannot send. These come from the repository's examples (copies shipped in
 service/static/examples; tests/service/test_offline_docs.py keeps them equal), so each UI offers a
-request that validates and converges.
+request that validates and converges. Each task kind names its example on its entry in
+service/task_kinds.py; the builders are here.
 """
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
-from typing import Callable
+
+from greyfit.service.task_kinds import KINDS, Example
 
 EXAMPLES_DIR = Path(__file__).resolve().parent / "static" / "examples"
 
@@ -34,34 +35,35 @@ def msd_simulation() -> dict:
             "options": msd.get("options", {})}
 
 
-@dataclass(frozen=True)
-class Example:
-    name: str
-    summary: str
-    build: Callable[[], dict]
+def msd_job() -> dict:
+    """The mass-spring-damper fit as a batch job of one request."""
+    return {"requests": [msd_fit()], "label": "demo"}
 
 
-# path of a POST operation -> its example body
-EXAMPLES: dict[str, Example] = {
-    "/v1/fits": Example("msd_fit", "Mass-spring-damper m x'' + c x' + k x = u: c and k from noisy x and v",
-                        msd_fit),
-    "/v1/jobs": Example("msd_job", "The mass-spring-damper fit as a batch job of one request",
-                        lambda: {"requests": [msd_fit()], "label": "demo"}),
-    "/v1/discover": Example("msd_discover", "The mass-spring-damper fit, then a search for an effect it lacks "
-                            "(its model is complete: nothing is added)",
-                            lambda: {**msd_fit(), "discovery": {"max_terms": 1}}),
-    "/v1/simulate": Example("msd_simulate", "The mass-spring-damper record simulated with c = 0.8, k = 5",
-                            msd_simulation),
-    "/v1/frequency-fits": Example("pi_loop", "A fourth-order plant measured in a PI loop at two controller "
-                                  "settings (Parameter estimation from frequency data, Ohki)",
-                                  lambda: example_request("frequency_pi_loop_request.json")),
-}
+def msd_discover() -> dict:
+    """The mass-spring-damper fit with a search for one missing effect."""
+    return {**msd_fit(), "discovery": {"max_terms": 1}}
+
+
+def frequency_pi_loop() -> dict:
+    """The PI-loop frequency-response fit of examples/frequency_pi_loop_request.json."""
+    return example_request("frequency_pi_loop_request.json")
+
+
+def examples() -> dict[str, Example]:
+    """Path of a POST operation -> its example body: the task kinds' (service/task_kinds.py)."""
+    out = {}
+    for kind in KINDS.values():
+        for path, example in ((kind.sync_path, kind.example), (kind.jobs_path, kind.job_example)):
+            if path is not None and example is not None:
+                out[path] = example
+    return out
 
 
 def add_examples(spec: dict) -> None:
-    """Give each request body in EXAMPLES its example (media-type `examples`, shown by both UIs)."""
+    """Give each request body with an example its example (media-type `examples`, shown by both UIs)."""
     components = spec.setdefault("components", {}).setdefault("examples", {})
-    for path, example in EXAMPLES.items():
+    for path, example in examples().items():
         body = spec["paths"].get(path, {}).get("post", {}).get("requestBody")
         if body is None:
             continue

@@ -2,8 +2,10 @@
 
 Why: a kind used to be spelt in five places (the worker's runners, the jobs schema's Literal, the
 CLI batch's schema table, the client's job table, the routes), so a new route with jobs cost eight
-files. Every one of those now reads `KINDS`. A new kind is its schemas, its solver function and one
-entry here; `service/routes/tasks.py` makes its synchronous and job routes from the entry.
+files. Every one of those now reads `KINDS`, and so do the OpenAPI description (which paths answer
+synchronously, the example bodies) and the tests that send every route its example. A new kind is
+its schemas, its solver function and one entry here; `service/routes/tasks.py` makes its synchronous
+and job routes from the entry.
 
 This module imports only the schemas and the standard library: the client reads it too.
 """
@@ -22,6 +24,21 @@ def _load(path: str) -> Any:
 
 
 @dataclass(frozen=True)
+class Example:
+    """An example request body for the OpenAPI description: a real request that works as sent.
+
+    `body` is the "module:name" path of a function () -> dict, called when the description is built.
+    """
+
+    name: str      # its key in the description's components/examples
+    summary: str
+    body: str
+
+    def build(self) -> dict:
+        return _load(self.body)()
+
+
+@dataclass(frozen=True)
 class TaskKind:
     """One kind of task.
 
@@ -35,8 +52,10 @@ class TaskKind:
     run: str                          # function(request) -> result, in solvers/ (or service/ for pages)
     caps_cpu: bool = True             # options.max_cpu_time is capped below the worker's CPU limit
     sync_path: Optional[str] = None   # POST route answering synchronously (generated when `generate`)
+    example: Optional[Example] = None   # the sync route's example body (OpenAPI; the tests send it)
     jobs_path: Optional[str] = None   # POST route taking a batch job of these (generated when `generate`)
     job_body: Optional[str] = None    # the job body schema (`schemas.jobs.job_create`), with jobs_path
+    job_example: Optional[Example] = None   # the jobs route's example body (else none is shown)
     limits: str = "greyfit.service.limits:check_limits"    # check(request, settings, prefix)
     values: str = "greyfit.service.limits:data_values"     # number of data values (sync size limit)
     tag: str = "fits"
@@ -69,11 +88,16 @@ class TaskKind:
 
 
 _FREQ_LIMITS = "greyfit.service.limits:check_frequency_limits"
+_EXAMPLES = "greyfit.service.openapi_examples"
 
 KINDS: dict[str, TaskKind] = {k.name: k for k in (
     TaskKind("fit", "greyfit.schemas.fit:FitRequest", "greyfit.schemas.fit:FitResult",
              "greyfit.solvers.fit:fit_model", sync_path="/v1/fits", jobs_path="/v1/jobs",
              job_body="greyfit.schemas.fit:JobCreate",
+             example=Example("msd_fit", "Mass-spring-damper m x'' + c x' + k x = u: c and k from noisy x and v",
+                             f"{_EXAMPLES}:msd_fit"),
+             job_example=Example("msd_job", "The mass-spring-damper fit as a batch job of one request",
+                                 f"{_EXAMPLES}:msd_job"),
              summary="Run one fit synchronously (small problems); larger ones belong in /v1/jobs.",
              job_summary="Accept a batch of fits; each request becomes a task. Poll the Location header.",
              elsewhere='Submit it as a batch job: POST /v1/jobs {"requests": [<this body>]}',
@@ -81,6 +105,8 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
     TaskKind("discover", "greyfit.schemas.discovery:DiscoverRequest", "greyfit.schemas.discovery:DiscoveryResult",
              "greyfit.solvers.discovery:discover", sync_path="/v1/discover", jobs_path="/v1/discover/jobs",
              job_body="greyfit.schemas.discovery:DiscoverJobCreate",
+             example=Example("msd_discover", "The mass-spring-damper fit, then a search for an effect it lacks "
+                             "(its model is complete: nothing is added)", f"{_EXAMPLES}:msd_discover"),
              summary="Fit, trace the residual to a missing physical effect, add it, refit: before/after and "
                      "evidence.",
              job_summary="Discovery requests as a batch job; results at /v1/jobs/{id}/results.",
@@ -91,15 +117,22 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              jobs_path="/v1/frequency-fits/jobs", job_body="greyfit.schemas.frequency:FrequencyJobCreate",
              limits=_FREQ_LIMITS,
              values="greyfit.service.limits:frequency_values",
+             example=Example("pi_loop", "A fourth-order plant measured in a PI loop at two controller "
+                             "settings (Parameter estimation from frequency data, Ohki)",
+                             f"{_EXAMPLES}:frequency_pi_loop"),
              summary="Fit a transfer-function model (optionally in a known feedback loop) to frequency "
                      "responses.",
              job_summary="Frequency-response fits as a batch job; results at /v1/jobs/{id}/results.",
              elsewhere="Decimate the sine-test records, or submit it as a job: POST /v1/frequency-fits/jobs",
              operation="create_frequency_fit", job_operation="create_frequency_job", tag="frequency fits"),
     TaskKind("simulate", "greyfit.schemas.simulate:SimulateRequest", "greyfit.schemas.simulate:SimulateResult",
-             "greyfit.solvers.simulation.simulate:simulate_request", caps_cpu=False, generate=False),
+             "greyfit.solvers.simulation.simulate:simulate_request", caps_cpu=False, generate=False,
+             sync_path="/v1/simulate",   # service/routes/simulate.py
+             example=Example("msd_simulate", "The mass-spring-damper record simulated with c = 0.8, k = 5",
+                             f"{_EXAMPLES}:msd_simulation")),
     TaskKind("report", "greyfit.schemas.report:ReportRequest", "greyfit.schemas.report:ReportPublic",
-             "greyfit.service.task_kinds:run_report", caps_cpu=False, generate=False),
+             "greyfit.service.task_kinds:run_report", caps_cpu=False, generate=False,
+             sync_path="/v1/report"),   # service/routes/report.py
 )}
 
 TASK_KINDS = tuple(KINDS)

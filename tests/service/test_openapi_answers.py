@@ -18,7 +18,6 @@ from sqlalchemy import create_engine
 from greyfit.service.app import CountRequests, create_app
 from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import SYNC_PATHS
-from greyfit.service.openapi_examples import EXAMPLES
 from greyfit.service.task_kinds import KINDS
 from tests.servers import free_port
 from tests.service.conftest import make_settings
@@ -77,11 +76,14 @@ def test_every_integer_query_parameter_takes_integers_written_in_digits_only(ser
 
 
 def _body(path: str):
-    """A valid body for a POST operation: its example, or a job of its kind's example."""
-    if path in EXAMPLES:
-        return EXAMPLES[path].build()
-    sync = next(k.sync_path for k in KINDS.values() if k.jobs_path == path)
-    return {"requests": [EXAMPLES[sync].build()]}
+    """A valid body for a POST operation: its task kind's example, or a job of it."""
+    for kind in KINDS.values():
+        if path == kind.jobs_path and kind.job_example is not None:
+            return kind.job_example.build()
+        if kind.example is not None and path in (kind.sync_path, kind.jobs_path):
+            body = kind.example.build()
+            return body if path == kind.sync_path else {"requests": [body]}
+    raise LookupError(f"POST {path}: its task kind has no `example` (service/task_kinds.py)")
 
 
 def test_with_the_job_store_out_of_reach_every_operation_needing_it_answers_503_with_retry_after(tmp_path):

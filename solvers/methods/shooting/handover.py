@@ -38,21 +38,83 @@ class StopWhenCompiled(ca.Callback):
         self.construct("greyfit_stop_when_compiled", {})
 
     def get_n_in(self) -> int:
+        """Number of inputs: one per output of an `nlpsol` (CasADi's callback interface).
+
+        Returns
+        -------
+        int
+            ``casadi.nlpsol_n_out()``.
+        """
         return ca.nlpsol_n_out()
 
     def get_n_out(self) -> int:
+        """Number of outputs: the one stop flag.
+
+        Returns
+        -------
+        int
+            1.
+        """
         return 1
 
     def get_name_in(self, i: int) -> str:
+        """Name of input `i`: the `nlpsol` output it receives.
+
+        Parameters
+        ----------
+        i : int
+            Index of the input.
+
+        Returns
+        -------
+        str
+            ``casadi.nlpsol_out(i)`` (x, f, g, lam_x, ...).
+        """
         return ca.nlpsol_out(i)
 
     def get_name_out(self, i: int) -> str:
+        """Name of output `i`.
+
+        Parameters
+        ----------
+        i : int
+            Index of the output (0, the only one).
+
+        Returns
+        -------
+        str
+            "ret", the name Ipopt's iteration callback reads.
+        """
         return "ret"
 
     def get_sparsity_in(self, i: int) -> ca.Sparsity:
+        """Shape of input `i`: empty, so that no iterate is copied per iteration.
+
+        Parameters
+        ----------
+        i : int
+            Index of the input.
+
+        Returns
+        -------
+        casadi.Sparsity
+            A 0×0 sparsity.
+        """
         return ca.Sparsity(0, 0)
 
     def eval(self, arg):
+        """One Ipopt iteration: stop when the background builds have ended since the solve began.
+
+        Parameters
+        ----------
+        arg : list
+            The (empty) inputs.
+
+        Returns
+        -------
+        list of int
+            [1] to stop the solve (once: the callback disarms itself and records `fired`), else [0].
+        """
         if self.armed and not compiled.building_any():
             self.armed, self.fired = False, True
             return [1]

@@ -139,13 +139,9 @@ def add_parameter_term(model: Model, *, equation: str, term: str, stem: str, sig
     return add_term(model, equation, f"{name}*{term}", sign), [name]
 
 
-class TermFamily:
-    """A family whose candidates are one term `sign p*term` in one state equation (subclasses
-    provide `candidates`)."""
-
-    name = ""
-    scope: Scope = "equation"
-    generic = False
+class NeedsTracedEquation:
+    """The `supports` of a family whose columns are regressed on the traced state equations' fitted
+    derivatives: it has something to look at when at least one equation is traced."""
 
     def supports(self, ctx: LibraryContext) -> bool:
         """Whether any state equation is traced (has a fitted derivative to regress on).
@@ -161,6 +157,15 @@ class TermFamily:
             True when the trace has at least one traced equation.
         """
         return bool(ctx.trace.traced)
+
+
+class TermFamily(NeedsTracedEquation):
+    """A family whose candidates are one term `sign p*term` in one state equation (subclasses
+    provide `candidates`)."""
+
+    name = ""
+    scope: Scope = "equation"
+    generic = False
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with the term `sign p*term` in its equation (`add_parameter_term`).

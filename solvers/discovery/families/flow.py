@@ -8,10 +8,10 @@ import numpy as np
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.augment import replace_in_equations
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import Scope, bind, sensitivity_regressor
+from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, sensitivity_regressor
 
 
-class SqrtFlow:
+class SqrtFlow(NeedsTracedEquation):
     """The declared flows through s (say k1*h1, out of tank 1 and into tank 2) change law together,
     so mass stays conserved: s -> sqrt(max(s, 0)) in the equations. Scored as the family
     s -> s + β (sqrt(s) − s): forcing ∂f/∂s · (sqrt(s) − s); the flow coefficients absorb the
@@ -20,21 +20,6 @@ class SqrtFlow:
     name = "sqrt_flow"
     scope: Scope = "equation"
     generic = False
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether any state equation is traced.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when the trace has at least one traced equation.
-        """
-        return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with state s replaced by sqrt(max(s, floor)) in its equations and definitions.

@@ -14,7 +14,7 @@ import numpy as np
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import Scope, bind, param_regressor
+from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, param_regressor
 from greyfit.solvers.discovery.families.time_varying import varying_parameters
 
 # an absolute temperature in a process rarely doubles over a record (300 -> 600 K); a variable that
@@ -28,26 +28,11 @@ def _law_variables(ctx: LibraryContext, j: int) -> list[tuple[str, list[np.ndarr
     return [(s, ctx.state_values(s)) for s in ctx.states] + [(u, ctx.input_values(u)) for u in ctx.trace.cm.inputs]
 
 
-class ParameterLaw:
+class ParameterLaw(NeedsTracedEquation):
     name = "parameter_law"
     scope: Scope = "parameter"
     generic = False
     POWERS = ((1, "linear"), (2, "quadratic"))
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether any state equation is traced.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when any state equation is traced.
-        """
-        return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with parameter p replaced by p + d·(x − x₀)^power, d a new parameter.
@@ -109,25 +94,10 @@ class ParameterLaw:
         return out
 
 
-class Arrhenius:
+class Arrhenius(NeedsTracedEquation):
     name = "arrhenius"
     scope: Scope = "parameter"
     generic = False
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether any state equation is traced.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when any state equation is traced.
-        """
-        return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with parameter p replaced by p·exp(Ê·(1 − T₀/T)), Ê a new parameter.

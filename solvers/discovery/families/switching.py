@@ -10,31 +10,22 @@ import numpy as np
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import Scope, bind, declared_differences, param_regressor
+from greyfit.solvers.discovery.families.base import (
+    NeedsTracedEquation,
+    Scope,
+    bind,
+    declared_differences,
+    param_regressor,
+)
 from greyfit.solvers.discovery.families.time_varying import varying_parameters
 
 THRESHOLDS = np.linspace(0.1, 0.9, 17)   # quantiles of |s| the switch is tried at
 
 
-class StateDependent:
+class StateDependent(NeedsTracedEquation):
     name = "state_dependent"
     scope: Scope = "parameter"
     generic = True
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether any state equation is traced.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when any state equation is traced.
-        """
-        return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with p replaced by p + d·½(1 + tanh((|s| − thr)/(0.05·thr))), d a new parameter.

@@ -13,7 +13,7 @@ import numpy as np
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import Scope, bind, param_regressor, shared_free
+from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, param_regressor, shared_free
 
 MAX_SWITCHES = 6   # switch times of one parameter chosen jointly at most
 # candidate switch times per parameter: every column is propagated through the output sensitivities
@@ -170,27 +170,12 @@ def _select_switches(ctx: LibraryContext, base, grid: np.ndarray, t_all: np.ndar
     return scorer.prune(columns, kept, min_gain)
 
 
-class ParameterDrift:
+class ParameterDrift(NeedsTracedEquation):
     """θ -> θ + dθ/dt·(t − t̄): a slow change over the record (a clogging outlet, a warming motor)."""
 
     name = "parameter_drift"
     scope: Scope = "parameter"
     generic = False
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether any state equation is traced.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when any state equation is traced.
-        """
-        return bool(ctx.trace.traced)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with p replaced by p + d·(t − t̄), d a new parameter.

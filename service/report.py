@@ -21,6 +21,7 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.model import Model
 from greyfit.schemas.report import ReportPublic, ReportRequest
+from greyfit.schemas.text_report import level_percent
 from greyfit.service.report_frequency import frequency_figures
 from greyfit.service.report_html import summary_html
 
@@ -239,11 +240,12 @@ def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | 
         ax.annotate(label, (0, i), xytext=(8, 6), textcoords="offset points", fontsize=8)
     ax.set_yticks(range(len(free)), [_short(k) for k, _ in free])
     ax.axvline(0, color="0.7", lw=0.8)
-    ax.set_xlabel("95 % confidence interval [% of the estimate]")
+    level = level_percent(fit.confidence_level)
+    ax.set_xlabel(f"{level} confidence interval [% of the estimate]")
     ax.invert_yaxis()
     fig.tight_layout()
-    return _save(plt, fig, "parameters", "Estimates with their 95 % confidence intervals (bars; the labels give "
-                 "each interval in the parameter's unit; the standard errors are in the table)", svg)
+    return _save(plt, fig, "parameters", f"Estimates with their {level} confidence intervals (bars; the labels "
+                 "give each interval in the parameter's unit; the standard errors are in the table)", svg)
 
 
 def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:

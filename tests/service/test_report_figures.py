@@ -68,3 +68,55 @@ def test_an_older_result_without_the_level_reads_as_95_percent():
     del older["confidence_level"]
     assert type(result).model_validate(older).confidence_level == 0.95
     assert "95 % CI" in result.report()
+
+
+def lightly_damped_fit():
+    """G = b0 / (s² + a1 s + a0), ω_n = 10 rad/s, ζ = 0.02, measured at 24 frequencies none of which
+    is within 2 % of the resonance (its half-power band is ±2 %)."""
+    from greyfit.schemas.frequency import FrequencyFitRequest
+    from greyfit.solvers.frequency import fit_frequency_response
+    omega = np.geomspace(0.4, 200, 24)
+    s = 1j * omega
+    g = 100 / (s ** 2 + 0.4 * s + 100) * (1 + 0.01 * np.random.default_rng(0).standard_normal(omega.size))
+    request = {"model": {"kind": "transfer_function", "name": "resonance",
+                         "parameters": [{"name": "b0", "value": 80, "lower": 0}, {"name": "a1", "value": 0.6, "lower": 0},
+                                        {"name": "a0", "value": 90, "lower": 0}],
+                         "numerator": ["b0"], "denominator": ["1", "a1", "a0"]},
+               "data": [{"name": "sweep", "omega": omega.tolist(), "real": g.real.tolist(), "imag": g.imag.tolist()}],
+               "options": {"confidence_level": 0.9}}
+    return fit_frequency_response(FrequencyFitRequest.model_validate(request))
+
+
+def test_bode_and_nyquist_draw_the_model_through_its_resonance_not_a_chord(plt):
+    from greyfit.service.report_frequency import frequency_figures, model_response
+    result = lightly_damped_fit()
+    assert result.quality == "good" and result.confidence_level == 0.9   # the frequency fit records it too
+    p = {k: v.value for k, v in result.parameters.items()}
+    ds = result.frequency_response.data[0]
+    omega = np.asarray(ds.omega)
+
+    def fitted_model(w):   # the fitted model, evaluated here from its parameters
+        return p["b0"] / ((1j * w) ** 2 + p["a1"] * 1j * w + p["a0"])
+
+    resonance = np.sqrt(p["a0"])
+    assert np.min(np.abs(omega / resonance - 1)) > 0.02   # no data point on the peak
+    peak = abs(fitted_model(resonance))
+    assert peak > 1.4 * np.max(np.abs(fitted_model(omega)))   # drawn at the data alone, the peak is cut
+
+    w, g = model_response(ds)
+    assert w.size >= 10 * omega.size and np.all(np.diff(w) > 0)
+    assert w[0] < omega[0] and w[-1] > omega[-1]
+    np.testing.assert_allclose(g, fitted_model(w), rtol=1e-9)
+    at = np.argmin(np.abs(w - resonance))
+    assert w[at] == pytest.approx(resonance, rel=1e-9) and abs(g[at]) == pytest.approx(peak, rel=1e-9)
+    assert np.all(np.isin(omega, w))   # and through the fitted values at the data
+
+    notes: list[str] = []
+    figures = frequency_figures(plt, result.frequency_response, False, notes)
+    assert [f.name for f in figures] == ["bode", "nyquist"] and not notes
+    bode, nyquist = plt.figures[-2:]
+    model_line = next(line for line in bode.axes[0].get_lines() if line.get_linestyle() == "-")
+    assert model_line.get_xdata().size == w.size
+    assert np.max(model_line.get_ydata()) == pytest.approx(20 * np.log10(peak), abs=1e-6)
+    curve = next(line for line in nyquist.axes[0].get_lines() if line.get_label() == "model")
+    np.testing.assert_allclose(curve.get_xdata() + 1j * curve.get_ydata(), fitted_model(w), rtol=1e-9)

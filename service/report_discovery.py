@@ -86,10 +86,15 @@ def discrepancy_figure(plt, result: DiscoveryResult, svg: bool, notes: list[str]
         x, d = _pooled(eq.variable_samples), _pooled(eq.samples)
         n = min(x.size, d.size)
         ax.plot(x[:n], d[:n], ".", ms=2.5, color="0.45", label="d (estimated)")
-        law = _pooled(getattr(eq, "law_samples", None) or {})
-        if law.size >= n > 0:
-            order = np.argsort(x[:n], kind="stable")
-            ax.plot(x[:n][order], law[:n][order], "-", color="C3", lw=1.4, label="fitted smooth law")
+        grid = np.asarray(getattr(eq, "law_grid", None) or [], dtype=float)
+        law = np.asarray(getattr(eq, "law_values", None) or [], dtype=float)
+        if grid.size and grid.size == law.size:
+            ax.plot(grid, law, "-", color="C3", lw=1.4, label="fitted smooth law")
+        elif getattr(eq, "law_samples", None):
+            # an older result: its fitted values hold terms in the other states too, and drawn as a
+            # line against the variable they zigzag
+            notes.append(f"discrepancy of {eq.equation}: the result has no law on a grid of its variable "
+                         "(written by an older version); the smooth law is not drawn")
         share = getattr(eq, "share_explained", None)
         where = eq.equation if str(eq.equation).startswith("output") else f"d{eq.equation}/dt"
         ax.set_title(f"{_short(where, 30)}: d against {_short(eq.variable, 30)}"

@@ -120,3 +120,52 @@ def test_bode_and_nyquist_draw_the_model_through_its_resonance_not_a_chord(plt):
     assert np.max(model_line.get_ydata()) == pytest.approx(20 * np.log10(peak), abs=1e-6)
     curve = next(line for line in nyquist.axes[0].get_lines() if line.get_label() == "model")
     np.testing.assert_allclose(curve.get_xdata() + 1j * curve.get_ydata(), fitted_model(w), rtol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def duffing_discovery():
+    """A real discovery: Duffing measured in position, declared without its cubic spring (401 samples)."""
+    from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.solvers.discovery import discover
+    from tests import coloured_records as cr
+    from tests import partial_systems as ps
+    body = {"model": ps.duffing_model(), "experiments": [cr.duffing_record(401, 1)], "method": "multiple_shooting"}
+    body["model"]["units"] = {"y": "m", "yd": "m/s", "u": "N", "t": "s"}
+    request = DiscoverRequest.model_validate(body)
+    return request, discover(request)
+
+
+def sign_changes(values: np.ndarray, tol: float) -> int:
+    signs = np.sign(values[np.abs(values) > tol])
+    return int(np.sum(signs[1:] != signs[:-1]))
+
+
+def test_the_discrepancy_figure_draws_the_smooth_law_of_its_variable_not_a_sawtooth(plt, duffing_discovery):
+    """The line was the fit at the samples (the law plus terms in the other states), sorted by the
+    variable: a sawtooth. It is now the law on a grid of the variable."""
+    from greyfit.service.report_discovery import discrepancy_figure
+    from tests import partial_systems as ps
+    _, result = duffing_discovery
+    assert [s.effect for s in result.steps] == ["cubic_stiffness"], result.conclusion
+    eq = result.discrepancy.equations[0]
+    assert eq.equation == "yd" and eq.variable == "y"
+    x = np.array(eq.variable_samples["est"])
+    grid, law = np.array(eq.law_grid), np.array(eq.law_values)
+    assert grid.size == law.size == 200 and np.all(np.diff(grid) > 0)
+    assert grid[0] == pytest.approx(x.min()) and grid[-1] == pytest.approx(x.max())
+
+    notes: list[str] = []
+    figure = discrepancy_figure(plt, result, False, notes)
+    assert figure is not None and not notes
+    line = next(ln for ln in plt.figures[-1].axes[0].get_lines() if ln.get_label() == "fitted smooth law")
+    np.testing.assert_array_equal(line.get_xdata(), grid)
+    np.testing.assert_array_equal(line.get_ydata(), law)
+    tol = 1e-9 * np.ptp(law)
+    # smooth: a cubic bends one way then the other (one inflection); the spline may add a wobble or two
+    assert sign_changes(np.diff(law, 2), tol) <= 3
+    sorted_fit = np.array(eq.law_samples["est"])[np.argsort(x)]
+    assert sign_changes(np.diff(sorted_fit, 2), tol) > 100   # what was drawn before
+    # and it is the missing term: -k3/m y³, plus the linear part the fitted k took up
+    cubic = np.polyfit(grid, law, 3)
+    assert cubic[0] == pytest.approx(-ps.DUFFING_TRUTH["k3"] / ps.DUFFING_TRUTH["m"], rel=0.1)
+    assert np.sqrt(np.mean((law - np.polyval(cubic, grid)) ** 2)) < 0.02 * np.ptp(law)

@@ -75,6 +75,11 @@ MAX_INPUTS = 3        # cross-correlation columns of the residual figure
 MAX_PARAMETERS = 40   # rows of the estimates figure
 MAX_LABELLED = 40     # correlation matrix: names on its axes up to this size
 
+# measured outputs under simulated ones: the measured line wide and light, the simulated ones narrow
+# and dark on top, so that at a 98 % fit both stay visible (the measured one as a halo where they agree)
+MEASURED_LINE = {"color": "0.72", "lw": 3.2, "solid_capstyle": "round", "zorder": 1}
+SIMULATED_LW = 1.0
+
 
 def _short(name: str, limit: int = 40) -> str:
     """A name as a label: a 5 000-character one cost two seconds of text layout."""
@@ -146,6 +151,7 @@ def estimation_series(fit: FitResult, request: FitRequest | None, model) -> tupl
 
 
 def _with_unit(label: str, units: dict[str, str], name: str) -> str:
+    """`label [unit]` where `units` (a model's `units`) has one for `name`, else the label."""
     return f"{label} [{units[name]}]" if name in units else label
 
 
@@ -166,10 +172,8 @@ def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
                 y, yh = rec.measured[out], rec.simulated[out]
                 ok = np.isfinite(y) & np.isfinite(yh)
                 fit = 100 * (1 - np.linalg.norm(yh[ok] - y[ok]) / max(np.linalg.norm(y[ok] - y[ok].mean()), 1e-300))
-                # the measured line wide and light, the simulated one narrow and dark on top: at a
-                # 98 % fit both stay visible (the measured one as a halo where they agree)
-                ax.plot(rec.time, y, color="0.72", lw=3.2, solid_capstyle="round", label="measured", zorder=1)
-                ax.plot(rec.time, yh, color="C0", lw=1.0, label=f"simulated (fit {fit:.1f} %)", zorder=2)
+                ax.plot(rec.time, y, label="measured", **MEASURED_LINE)
+                ax.plot(rec.time, yh, color="C0", lw=SIMULATED_LW, label=f"simulated (fit {fit:.1f} %)", zorder=2)
                 ax.legend(loc="upper right", fontsize=7, frameon=False)
             ax.set_ylabel(_with_unit(_short(out), units, out))
             if r == 0:

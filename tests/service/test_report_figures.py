@@ -169,3 +169,29 @@ def test_the_discrepancy_figure_draws_the_smooth_law_of_its_variable_not_a_sawto
     cubic = np.polyfit(grid, law, 3)
     assert cubic[0] == pytest.approx(-ps.DUFFING_TRUTH["k3"] / ps.DUFFING_TRUTH["m"], rel=0.1)
     assert np.sqrt(np.mean((law - np.polyval(cubic, grid)) ** 2)) < 0.02 * np.ptp(law)
+
+
+def test_the_discovery_overlay_keeps_the_measured_line_visible_and_its_axes_carry_units(plt, duffing_discovery):
+    """The measured line was thin grey under two model lines; now it is drawn as the compare figure
+    draws it (wide and light, underneath), and the axes name the model's units."""
+    import io
+
+    import matplotlib.image as mpimg
+
+    from greyfit.service.report_discovery import discovery_figures
+    request, result = duffing_discovery
+    figures, notes = discovery_figures(plt, result, request)
+    assert [f.name for f in figures] == ["discovery_metrics", "discrepancy", "discovery_overlay"], notes
+    overlay = plt.figures[-1]
+    ax = overlay.axes[0]
+    measured, without, final = ax.get_lines()
+    assert measured.get_label() == "measured"
+    assert measured.get_linewidth() > 2.5 * max(without.get_linewidth(), final.get_linewidth())
+    assert measured.get_zorder() < min(without.get_zorder(), final.get_zorder())
+    assert ax.get_ylabel() == "y [m]" and ax.get_xlabel() == "t [s]"
+    assert plt.figures[-2].axes[0].get_xlabel() == "y [m]"   # d against y, in y's unit
+
+    rgb = mpimg.imread(io.BytesIO(figures[-1].png))[:, :, :3]
+    light = int((np.abs(rgb - 0.72).max(axis=2) < 0.03).sum())
+    blue = int((np.abs(rgb - np.array((0.12, 0.47, 0.71))).max(axis=2) < 0.08).sum())
+    assert blue > 300 and light > blue, (light, blue)   # the measured line shows beside the final model's

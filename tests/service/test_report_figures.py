@@ -79,7 +79,8 @@ def lightly_damped_fit():
     s = 1j * omega
     g = 100 / (s ** 2 + 0.4 * s + 100) * (1 + 0.01 * np.random.default_rng(0).standard_normal(omega.size))
     request = {"model": {"kind": "transfer_function", "name": "resonance",
-                         "parameters": [{"name": "b0", "value": 80, "lower": 0}, {"name": "a1", "value": 0.6, "lower": 0},
+                         "parameters": [{"name": "b0", "value": 80, "lower": 0},
+                                        {"name": "a1", "value": 0.6, "lower": 0},
                                         {"name": "a0", "value": 90, "lower": 0}],
                          "numerator": ["b0"], "denominator": ["1", "a1", "a0"]},
                "data": [{"name": "sweep", "omega": omega.tolist(), "real": g.real.tolist(), "imag": g.imag.tolist()}],

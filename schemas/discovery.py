@@ -249,9 +249,18 @@ class DiscrepancyEquation(BaseModel):
     variable_samples: dict[str, list[float]] = Field(default_factory=dict,
                                                      description="per experiment, that variable at `time`")
     law_samples: dict[str, list[float]] = Field(
-        default_factory=dict, description="per experiment, the smooth function of `variable` (plus terms linear "
-                                          "in the states and inputs, which the declared parameters can take up) "
-                                          "fitted to d, at `time`: the curve to draw over d against `variable`")
+        default_factory=dict, description="per experiment, the fit to d at `time`: the smooth function of "
+                                          "`variable` plus terms linear in the states and inputs (which the "
+                                          "declared parameters can take up). Not a function of `variable` alone: "
+                                          "to draw the law against it, use `law_grid` and `law_values`")
+    law_grid: list[float] = Field(
+        default_factory=list, description="values of `variable`, evenly spaced from its smallest sample to its "
+                                          "largest (ascending); empty where no variable was related")
+    law_values: list[float] = Field(
+        default_factory=list, description="the smooth law at `law_grid`, in d's units: the part of the fit that "
+                                          "depends on `variable` alone (the linear terms in the other states and "
+                                          "inputs held at their means): the curve to draw over d against "
+                                          "`variable`")
     share_explained: Optional[float] = Field(
         default=None, description="share of d's variance that smooth function explains (1: d is a function of "
                                   "`variable`; well below 1: it depends on more, e.g. on its history)")

@@ -161,7 +161,9 @@ class FitRequest(BaseModel):
 class ParameterEstimate(BaseModel):
     value: float
     stderr: Optional[float] = None
-    ci95: Optional[tuple[float, float]] = None
+    ci95: Optional[tuple[float, float]] = Field(
+        default=None, description="confidence interval at the result's `confidence_level` (95 % unless "
+        "options.confidence_level says otherwise; the name is kept for compatibility)")
     fixed: bool = False
     at_bound: Optional[Literal["lower", "upper"]] = None
     initial: float
@@ -302,6 +304,10 @@ class FitResult(BaseModel):
     status: str
     message: str
     parameters: dict[str, ParameterEstimate]
+    confidence_level: float = Field(
+        default=0.95, gt=0, lt=1,
+        description="level of the parameters' confidence intervals (`ci95`): the request's "
+        "options.confidence_level (0.95 where a result written by an older version does not say)")
     covariance: Optional[CovariancePublic] = None
     covariance_note: Optional[str] = None
     correlation: Optional[CovariancePublic] = None

@@ -42,6 +42,11 @@ def verdict(result: "FitResult") -> str:
     return f"converged, but quality {quality}" + (f": {codes}" if codes else f": {result.message}")
 
 
+def level_percent(level: float) -> str:
+    """A confidence level as people write it: 0.95 -> "95 %", 0.9 -> "90 %", 0.975 -> "97.5 %"."""
+    return f"{100 * level:.4g} %"
+
+
 def _num(value: Optional[float], fmt: str = ".6g") -> str:
     return "-" if value is None else format(value, fmt)
 
@@ -78,7 +83,8 @@ def _header(result: "FitResult") -> list[str]:
 
 
 def _parameter_rows(result: "FitResult") -> list[str]:
-    rows = [["name", "value", "stderr", "rel.", "95 % CI", "unit", "initial", "note"]]
+    level = level_percent(result.confidence_level)
+    rows = [["name", "value", "stderr", "rel.", f"{level} CI", "unit", "initial", "note"]]
     for name, p in result.parameters.items():
         rel = (f"{100 * p.stderr / abs(p.value):.2f} %" if p.stderr is not None and p.value != 0 else "")
         ci = f"[{p.ci95[0]:.6g}, {p.ci95[1]:.6g}]" if p.ci95 is not None else ""
@@ -87,7 +93,8 @@ def _parameter_rows(result: "FitResult") -> list[str]:
             note = (note + "; " if note else "") + "no stderr"
         rows.append([name, f"{p.value:.6g}", _num(p.stderr, ".3g") if not p.fixed else "", rel, ci,
                      p.unit or "", f"{p.initial:.6g}", note])
-    lines = ["[[Parameters]]  (CI at options.confidence_level, 95 % unless changed; rel. = stderr / |value|)"]
+    lines = [f"[[Parameters]]  (CI at the {level} confidence level, options.confidence_level; "
+             "rel. = stderr / |value|)"]
     lines += _table(rows, right={1, 2, 3, 6})
     if result.covariance_note:
         lines.append(f"{INDENT}covariance: {result.covariance_note}")

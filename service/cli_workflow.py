@@ -75,7 +75,8 @@ def add_report(sub) -> None:
     p.add_argument("result", help="FitResult or DiscoveryResult JSON (as `greyfit fit` or `discover` wrote it)")
     p.add_argument("--request", help="the request of the fit (FitRequest, DiscoverRequest or FrequencyFitRequest): "
                                      "its measured data for the compare figures")
-    p.add_argument("--out", required=True, help="directory for the figures and report.html (made if missing)")
+    p.add_argument("-o", "--out", required=True, metavar="DIR",
+                   help="directory for the figures and report.html (made if missing)")
     p.add_argument("--formats", default="png,svg", help="figure files to write: png,svg (default both)")
     p.add_argument("--title", help="the page's title (default: greyfit fit report / discovery report)")
     p.set_defaults(func=cmd_report)

@@ -21,6 +21,7 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.model import Model
 from greyfit.schemas.report import ReportPublic, ReportRequest
+from greyfit.schemas.text_report import level_percent
 from greyfit.service.report_frequency import frequency_figures
 from greyfit.service.report_html import summary_html
 
@@ -73,6 +74,11 @@ MAX_OUTPUTS = 6       # rows of the compare and residual figures
 MAX_INPUTS = 3        # cross-correlation columns of the residual figure
 MAX_PARAMETERS = 40   # rows of the estimates figure
 MAX_LABELLED = 40     # correlation matrix: names on its axes up to this size
+
+# measured outputs under simulated ones: the measured line wide and light, the simulated ones narrow
+# and dark on top, so that at a 98 % fit both stay visible (the measured one as a halo where they agree)
+MEASURED_LINE = {"color": "0.72", "lw": 3.2, "solid_capstyle": "round", "zorder": 1}
+SIMULATED_LW = 1.0
 
 
 def _short(name: str, limit: int = 40) -> str:
@@ -145,6 +151,7 @@ def estimation_series(fit: FitResult, request: FitRequest | None, model) -> tupl
 
 
 def _with_unit(label: str, units: dict[str, str], name: str) -> str:
+    """`label [unit]` where `units` (a model's `units`) has one for `name`, else the label."""
     return f"{label} [{units[name]}]" if name in units else label
 
 
@@ -165,10 +172,8 @@ def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
                 y, yh = rec.measured[out], rec.simulated[out]
                 ok = np.isfinite(y) & np.isfinite(yh)
                 fit = 100 * (1 - np.linalg.norm(yh[ok] - y[ok]) / max(np.linalg.norm(y[ok] - y[ok].mean()), 1e-300))
-                # the measured line wide and light, the simulated one narrow and dark on top: at a
-                # 98 % fit both stay visible (the measured one as a halo where they agree)
-                ax.plot(rec.time, y, color="0.72", lw=3.2, solid_capstyle="round", label="measured", zorder=1)
-                ax.plot(rec.time, yh, color="C0", lw=1.0, label=f"simulated (fit {fit:.1f} %)", zorder=2)
+                ax.plot(rec.time, y, label="measured", **MEASURED_LINE)
+                ax.plot(rec.time, yh, color="C0", lw=SIMULATED_LW, label=f"simulated (fit {fit:.1f} %)", zorder=2)
                 ax.legend(loc="upper right", fontsize=7, frameon=False)
             ax.set_ylabel(_with_unit(_short(out), units, out))
             if r == 0:
@@ -239,11 +244,12 @@ def parameter_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | 
         ax.annotate(label, (0, i), xytext=(8, 6), textcoords="offset points", fontsize=8)
     ax.set_yticks(range(len(free)), [_short(k) for k, _ in free])
     ax.axvline(0, color="0.7", lw=0.8)
-    ax.set_xlabel("95 % confidence interval [% of the estimate]")
+    level = level_percent(fit.confidence_level)
+    ax.set_xlabel(f"{level} confidence interval [% of the estimate]")
     ax.invert_yaxis()
     fig.tight_layout()
-    return _save(plt, fig, "parameters", "Estimates with their 95 % confidence intervals (bars; the labels give "
-                 "each interval in the parameter's unit; the standard errors are in the table)", svg)
+    return _save(plt, fig, "parameters", f"Estimates with their {level} confidence intervals (bars; the labels "
+                 "give each interval in the parameter's unit; the standard errors are in the table)", svg)
 
 
 def correlation_figure(plt, fit: FitResult, svg: bool = False, notes: list[str] | None = None) -> Figure | None:

@@ -5,13 +5,24 @@ from __future__ import annotations
 import numpy as np
 
 from greyfit.schemas.discovery import DiscoveryResult
-from greyfit.service.report import MAX_OUTPUTS, Figure, _save, _short, _shown, _simulated_series
+from greyfit.service.report import (
+    MAX_OUTPUTS,
+    MEASURED_LINE,
+    SIMULATED_LW,
+    Figure,
+    _save,
+    _short,
+    _shown,
+    _simulated_series,
+    _with_unit,
+)
 
 MAX_DISCREPANCIES = 4   # equations drawn (the most likely first)
 
 
 def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) -> tuple[list[Figure], list[str]]:
     figs, notes = [], []
+    units = dict(result.model.units)
     outs = _shown(list(result.before.rmse), 4 * MAX_OUTPUTS, "outputs", "discovery metrics", notes)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
     x = np.arange(len(outs))
@@ -50,12 +61,15 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
     fig, axes = plt.subplots(len(outputs), 1, figsize=(9, 2.4 * len(outputs) + 0.6), squeeze=False, sharex=True)
     for r, out in enumerate(outputs):
         ax = axes[r][0]
-        ax.plot(rec_a.time, rec_a.measured[out], color="0.55", lw=0.9, label="measured")
-        ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=1.0, label="without the added terms")
-        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=1.2, label="with " + _short(terms, 100))
-        ax.set_ylabel(_short(out))
+        # as in the compare figure: the measured line wide and light under the two models
+        ax.plot(rec_a.time, rec_a.measured[out], label="measured", **MEASURED_LINE)
+        ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=SIMULATED_LW, zorder=2,
+                label="without the added terms")
+        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=SIMULATED_LW, zorder=3,
+                label="with " + _short(terms, 100))
+        ax.set_ylabel(_with_unit(_short(out), units, out))
         ax.legend(fontsize=7, frameon=False, loc="upper right")
-    axes[-1][0].set_xlabel("t")
+    axes[-1][0].set_xlabel(_with_unit("t", units, "t"))
     fig.tight_layout()
     figs.append(_save(plt, fig, "discovery_overlay", f"{rec_a.name}: the final model with and without the added terms",
                       svg))
@@ -81,20 +95,26 @@ def discrepancy_figure(plt, result: DiscoveryResult, svg: bool, notes: list[str]
     if not equations:
         return None
     equations = _shown(equations, MAX_DISCREPANCIES, "equations", "discrepancy", notes)
+    units = dict(getattr(getattr(result, "model", None), "units", None) or {})
     fig, axes = plt.subplots(1, len(equations), figsize=(4.4 * len(equations), 3.6), squeeze=False)
     for ax, eq in zip(axes[0], equations):
         x, d = _pooled(eq.variable_samples), _pooled(eq.samples)
         n = min(x.size, d.size)
         ax.plot(x[:n], d[:n], ".", ms=2.5, color="0.45", label="d (estimated)")
-        law = _pooled(getattr(eq, "law_samples", None) or {})
-        if law.size >= n > 0:
-            order = np.argsort(x[:n], kind="stable")
-            ax.plot(x[:n][order], law[:n][order], "-", color="C3", lw=1.4, label="fitted smooth law")
+        grid = np.asarray(getattr(eq, "law_grid", None) or [], dtype=float)
+        law = np.asarray(getattr(eq, "law_values", None) or [], dtype=float)
+        if grid.size and grid.size == law.size:
+            ax.plot(grid, law, "-", color="C3", lw=1.4, label="fitted smooth law")
+        elif getattr(eq, "law_samples", None):
+            # an older result: its fitted values hold terms in the other states too, and drawn as a
+            # line against the variable they zigzag
+            notes.append(f"discrepancy of {eq.equation}: the result has no law on a grid of its variable "
+                         "(written by an older version); the smooth law is not drawn")
         share = getattr(eq, "share_explained", None)
         where = eq.equation if str(eq.equation).startswith("output") else f"d{eq.equation}/dt"
         ax.set_title(f"{_short(where, 30)}: d against {_short(eq.variable, 30)}"
                      + (f" ({100 * share:.0f} % explained)" if share is not None else ""), fontsize=9)
-        ax.set_xlabel(_short(eq.variable))
+        ax.set_xlabel(_with_unit(_short(eq.variable), units, eq.variable))   # a state's or input's unit
         ax.set_ylabel(f"d in {_short(where, 30)}")
         ax.legend(fontsize=7, frameon=False, loc="best")
     fig.tight_layout()

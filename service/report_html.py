@@ -10,7 +10,7 @@ from greyfit.schemas.discovery import DiscoveryResult
 from greyfit.schemas.fit import FitResult
 from greyfit.schemas.frequency import TransferFunctionModel
 from greyfit.schemas.model import Model
-from greyfit.schemas.text_report import converged, effective_quality
+from greyfit.schemas.text_report import converged, effective_quality, level_percent
 
 
 def _e(text) -> str:
@@ -55,8 +55,8 @@ def estimates_table(fit: FitResult) -> str:
         note = "fixed" if p.fixed else (f"at {p.at_bound} bound" if p.at_bound else "")
         rows.append([_e(name), f"{p.value:.6g}", "" if p.fixed else _n(p.stderr, ".3g"), rel, ci, _e(p.unit or ""),
                      f"{p.initial:.6g}", note])
-    table = _table("estimates", ["parameter", "value", "stderr (1σ)", "rel.", "95 % CI", "unit", "initial", ""],
-                   rows)
+    table = _table("estimates", ["parameter", "value", "stderr (1σ)", "rel.",
+                                 f"{level_percent(fit.confidence_level)} CI", "unit", "initial", ""], rows)
     note = f"<p class='note'>covariance: {_e(fit.covariance_note)}</p>" if fit.covariance_note else ""
     return "<h2>Estimates</h2>" + table + note
 

@@ -260,7 +260,7 @@ def _result(request: FitRequest, built: BatchFit, outcome: NlpOutcome, layout: P
     aic, bic = information_criteria(2 * cost, ndata, nvarys)
     return FitResult(
         success=outcome.success, status="success" if outcome.success else "failed",
-        message=_message(outcome.status), parameters=params,
+        message=_message(outcome.status), parameters=params, confidence_level=opts.confidence_level,
         covariance=covariance, covariance_note=cov.note, correlation=correlation,
         initial_states=built.initial_states(x0s),
         metrics=FitMetrics(cost=cost, ndata=ndata, nfree=ndata - nvarys, nvarys=nvarys,

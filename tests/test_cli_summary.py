@@ -4,13 +4,15 @@ The example (examples/msd_request.json) was simulated with c = 0.8 N s/m, k = 5.
 and measured with noise: the printed report must give those back, agree with the JSON result, and
 carry the declared units.
 """
+import difflib
 import json
 import re
+from decimal import Decimal
 from importlib.metadata import version
 
 import pytest
 
-from tests.test_cli import EXAMPLE, run_cli
+from tests.test_cli import EXAMPLE, ROOT, run_cli
 
 TRUTH = {"c": 0.8, "k": 5.0}
 UNITS = {"c": "N s/m", "k": "N/m"}
@@ -83,6 +85,43 @@ def test_summary_numbers_are_the_json_result(summary):
         assert rmse == pytest.approx(result["metrics"]["rmse"][name], rel=1e-3)
         assert fit > 95   # the example's noise allows about 98 %
     assert f"data points:  {result['metrics']['ndata']}" in report
+
+
+def documented_summary() -> str:
+    """The text block docs/cli.md shows under `greyfit fit examples/msd_request.json --summary`."""
+    page = (ROOT / "docs" / "cli.md").read_text(encoding="utf-8")
+    after = page[page.index("`greyfit fit examples/msd_request.json --summary` prints"):]
+    return re.search(r"```text\n(.*?)```", after, re.S).group(1)
+
+
+def without_timing(report: str) -> str:
+    """The solver line's wall time is the one thing that differs from run to run."""
+    return re.sub(r"^(    solver: .*), \d+\.\d+ s$", r"\1, <time> s", report, flags=re.M)
+
+
+def same_report(shown: str, printed: str) -> bool:
+    """Equal text; equal integers; decimals within one unit of the last digit shown (the solver's last
+    bits may differ between machines' BLAS)."""
+    token = re.compile(rf"({NUMBER})")
+    a, b = token.split(shown), token.split(printed)
+    if len(a) != len(b):
+        return False
+    for i, (x, y) in enumerate(zip(a, b)):
+        if i % 2 == 0 or "." not in x + y:
+            if x != y:
+                return False
+        elif abs(Decimal(x) - Decimal(y)) > Decimal(1).scaleb(Decimal(x).as_tuple().exponent):
+            return False
+    return True
+
+
+def test_the_summary_in_the_docs_is_what_the_command_prints():
+    proc = run_cli("fit", "examples/msd_request.json", "--summary")
+    assert proc.returncode == 0, proc.stderr
+    shown, printed = without_timing(documented_summary()), without_timing(proc.stdout)
+    assert "<time> s" in shown and "<time> s" in printed
+    assert same_report(shown, printed), "docs/cli.md shows another report than the command prints:\n" + "".join(
+        difflib.unified_diff(shown.splitlines(True), printed.splitlines(True), "docs/cli.md", "printed"))
 
 
 def test_the_result_carries_its_model_so_simulate_needs_only_the_records(summary, tmp_path):

@@ -23,6 +23,10 @@ from greyfit.schemas.online import MrasOptions, Prefilter, RlsOptions
 ROOT = Path(__file__).resolve().parents[1]
 OPTION_MODELS = (FitOptions, RlsOptions, MrasOptions, Prefilter, DiscoveryOptions, FrequencyFitOptions)
 SEED_WORDING = re.compile(r"\bseeds? 0\d\d\b", re.I)   # "seed 001": the documents' file numbers
+# an engineering log's references, which a reader of the docs cannot follow: commit hashes, branches
+# ("this branch against main", "main's registry") and issue numbers
+LOG_WORDING = re.compile(r"\bcommit [0-9a-f]{7,40}\b|\bbranch\b|\bissue #\d|\b(?:on|against) main\b|\bmain's\b",
+                         re.I)
 
 
 def docs_hook():
@@ -69,6 +73,14 @@ def test_user_facing_text_cites_the_source_documents_by_title():
 
     spec = json.dumps(create_app(Settings(data_dir=ROOT / "build" / "docs-test")).openapi(), ensure_ascii=False)
     assert not SEED_WORDING.findall(spec)
+
+
+def test_user_facing_text_names_no_commit_branch_or_issue():
+    pages = [ROOT / "README.md", ROOT / "CHANGELOG.md", *sorted((ROOT / "docs").rglob("*.md"))]
+    for page in pages:
+        hits = LOG_WORDING.findall(page.read_text(encoding="utf-8"))
+        assert not hits, (f"{page.relative_to(ROOT)} says {hits}: say what was measured and on what machine, "
+                          "as a user's page would, without commit hashes, branches or issue numbers")
 
 
 def test_readme_is_short_and_links_pages_that_exist():

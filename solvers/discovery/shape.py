@@ -266,6 +266,7 @@ def _to_estimate(sm: ShapeModel, ch: Channel, related: bool = True) -> ShapeEsti
     est = ShapeEstimate(equation=ch.name, d=[tr.d for tr in ch.tracks], time=[d.t for d in sm.data],
                         variables=candidate_variables(cm.states, states, cm.inputs, inputs),
                         linear=[np.vstack([x, u]).T for x, u in zip(states, inputs)],
+                        linear_names=list(cm.states) + list(cm.inputs),
                         log_likelihood=ch.log_likelihood, q=ch.q, residual_share=ch.explained)
     if related:
         relate(est)
@@ -340,7 +341,8 @@ def to_public(sm: ShapeModel, estimates: list[ShapeEstimate], best: Channel, noi
         equation=est.equation, log_likelihood=float(est.log_likelihood), intensity=float(est.q),
         residual_share=float(est.residual_share), time=per_exp(est.time), samples=per_exp(est.d),
         variable=est.variable, variable_samples=per_exp(est.variables[est.variable]) if est.variable else {},
-        law_samples=per_exp(est.law) if est.law else {}, share_explained=est.share_explained,
+        law_samples=per_exp(est.law) if est.law else {}, law_grid=est.law_grid.tolist(),
+        law_values=est.law_values.tolist(), share_explained=est.share_explained,
         alternatives=est.alternatives) for est in estimates]
     states = {name: {s: public_samples([tr.x[i]], stride)[0] for i, s in enumerate(sm.cm.states)}
               for name, tr in zip(names, best.tracks)}

@@ -5,6 +5,9 @@ is fitted to d̂ together with terms linear in every state and input (those the 
 can take up when the model is refitted: a damping absorbed a friction, a stiffness a cubic spring).
 The share of d̂'s variance explained ranks the variables; every variable gets the same number of
 basis functions, so the shares are comparable. `shape_agreement` scores a candidate law the same way.
+The best variable's law is also evaluated on a grid of that variable alone (`law_grid`, `law_values`):
+the fitted values at the samples hold the linear terms in the other states too, and drawn against the
+variable they zigzag.
 """
 from __future__ import annotations
 
@@ -15,6 +18,7 @@ import numpy as np
 KNOTS = 6                  # interior knots of the spline
 MAX_PUBLIC_SAMPLES = 1000  # series in the result are thinned to this many samples per experiment
 TOP_ALTERNATIVES = 5
+LAW_POINTS = 200           # points of the law on its variable's grid
 
 
 @dataclass
@@ -33,6 +37,9 @@ class ShapeEstimate:
     share_explained: float | None = None
     law: list[np.ndarray] = field(default_factory=list)
     alternatives: dict[str, float] = field(default_factory=dict)
+    linear_names: list[str] = field(default_factory=list)   # the columns of `linear` (states, then inputs)
+    law_grid: np.ndarray = field(default_factory=lambda: np.zeros(0))     # `variable` from its min to its max
+    law_values: np.ndarray = field(default_factory=lambda: np.zeros(0))   # the law at `law_grid`
 
 
 def candidate_variables(state_names, states, input_names, inputs) -> dict[str, list[np.ndarray]]:
@@ -67,22 +74,26 @@ def candidate_variables(state_names, states, input_names, inputs) -> dict[str, l
     return out
 
 
-def spline_basis(z: np.ndarray) -> np.ndarray:
+def spline_basis(z: np.ndarray, reference: np.ndarray | None = None) -> np.ndarray:
     """[z, z², z³, (z - κ)³₊ …] on z standardised, knots at quantiles (a natural choice for any law).
 
     Parameters
     ----------
     z : numpy.ndarray
-        (n,) samples of the variable.
+        (n,) values of the variable to evaluate the basis at.
+    reference : numpy.ndarray or None
+        The samples whose mean, spread and quantiles define the basis; None: `z` itself. Give the
+        samples the law was fitted on to evaluate it elsewhere (on a grid).
 
     Returns
     -------
     numpy.ndarray
         (n, 3 + KNOTS) basis columns.
     """
-    s = np.std(z)
-    zs = (z - np.mean(z)) / (s if s > 0 else 1.0)
-    knots = np.quantile(zs, np.linspace(0, 1, KNOTS + 2)[1:-1])
+    ref = z if reference is None else reference
+    s = np.std(ref)
+    zs = (z - np.mean(ref)) / (s if s > 0 else 1.0)
+    knots = np.quantile((ref - np.mean(ref)) / (s if s > 0 else 1.0), np.linspace(0, 1, KNOTS + 2)[1:-1])
     cols = [zs, zs ** 2, zs ** 3] + [np.clip(zs - k, 0, None) ** 3 for k in knots]
     return np.column_stack(cols)
 
@@ -102,20 +113,74 @@ def explained_share(d: np.ndarray, columns: np.ndarray) -> tuple[float, np.ndarr
     tuple of (float, numpy.ndarray)
         R² (0 when d is constant) and the (n,) fitted values.
     """
+    _, fit = least_squares(d, columns)
+    sst = float(np.sum((d - d.mean()) ** 2))
+    return (1.0 - float(np.sum((d - fit) ** 2)) / sst if sst > 0 else 0.0), fit
+
+
+def least_squares(d: np.ndarray, columns: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(coefficients of [1, columns], fitted values) of d by least squares.
+
+    Parameters
+    ----------
+    d : numpy.ndarray
+        (n,) the series to explain.
+    columns : numpy.ndarray
+        (n, k) regressors (a constant is added as the first column).
+
+    Returns
+    -------
+    tuple of (numpy.ndarray, numpy.ndarray)
+        The (k + 1,) coefficients, in the units of the columns as given (the constant's first), and
+        the (n,) fitted values.
+    """
     a = np.column_stack([np.ones(d.size), columns])
-    a = a / np.maximum(np.abs(a).max(axis=0), 1e-300)
+    scale = np.maximum(np.abs(a).max(axis=0), 1e-300)
+    a = a / scale
     # normal equations with a whisper of ridge: a few columns, thousands of rows, many variables to
     # try (an SVD per variable cost 0.1 s here); the ridge only guards collinear columns
     gram = a.T @ a
     gram[np.diag_indices_from(gram)] += 1e-10 * np.trace(gram) / gram.shape[0]
     coef = np.linalg.solve(gram, a.T @ d)
-    fit = a @ coef
-    sst = float(np.sum((d - d.mean()) ** 2))
-    return (1.0 - float(np.sum((d - fit) ** 2)) / sst if sst > 0 else 0.0), fit
+    return coef / scale, a @ coef
+
+
+def law_on_grid(est: ShapeEstimate, name: str, points: int = LAW_POINTS) -> tuple[np.ndarray, np.ndarray]:
+    """The smooth law of one variable fitted to d̂, as a function of that variable alone.
+
+    d̂ is fitted (as in `relate`) by a constant, the spline in z and terms linear in the states and
+    inputs. On a grid of z the law is the constant plus the spline plus, where z is itself one of the
+    states or inputs, its linear term; the other linear terms are held at their means, so the curve
+    runs through the middle of d̂ plotted against z.
+
+    Parameters
+    ----------
+    est : ShapeEstimate
+        One channel's estimate (its `linear_names` name the columns of `linear`).
+    name : str
+        The variable (a key of `est.variables`).
+    points : int
+        Grid points, evenly spaced from the variable's smallest sample to its largest.
+
+    Returns
+    -------
+    tuple of (numpy.ndarray, numpy.ndarray)
+        (grid, law at the grid), each (points,).
+    """
+    z, d = np.concatenate(est.variables[name]), np.concatenate(est.d)
+    linear = np.concatenate(est.linear)
+    basis = spline_basis(z)
+    coef, _ = least_squares(d, np.column_stack([basis, linear]))
+    grid = np.linspace(z.min(), z.max(), points)
+    held = np.tile(linear.mean(axis=0), (points, 1))
+    if name in est.linear_names:
+        held[:, est.linear_names.index(name)] = grid
+    k = basis.shape[1]
+    return grid, coef[0] + spline_basis(grid, reference=z) @ coef[1:1 + k] + held @ coef[1 + k:]
 
 
 def relate(est: ShapeEstimate) -> None:
-    """Fill `variable`, `share_explained`, `law` and `alternatives` of an estimate.
+    """Fill `variable`, `share_explained`, `law`, `law_grid`, `law_values` and `alternatives` of an estimate.
 
     Left unchanged when d̂ has too few samples, is not finite or is constant, or no variable can be used.
 
@@ -146,6 +211,7 @@ def relate(est: ShapeEstimate) -> None:
     best = ranked[0]
     est.variable, est.share_explained = best, float(max(shares[best][0], 0.0))
     est.law = np.split(shares[best][1], np.cumsum([x.size for x in est.d])[:-1])
+    est.law_grid, est.law_values = law_on_grid(est, best)
     est.alternatives = {k: round(float(shares[k][0]), 4) for k in ranked[1:1 + TOP_ALTERNATIVES]}
 
 

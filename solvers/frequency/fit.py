@@ -235,7 +235,8 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         correlation = CovariancePublic(names=cov.names, matrix=correlation_from(cov.matrix).tolist())
     result = attach_model(FitResult(
         success=outcome.success, status="success" if outcome.success else "failed", message=message, parameters=params,
-        covariance=covariance, covariance_note="; ".join(notes) or None, correlation=correlation,
+        confidence_level=opts.confidence_level, covariance=covariance, covariance_note="; ".join(notes) or None,
+        correlation=correlation,
         initial_states={s.name: {} for s in sets},
         metrics=FitMetrics(cost=cost, ndata=ndata, nfree=ndata - nvarys, nvarys=nvarys, rmse=rmse,
                            fit_percent=fitp, aic=aic, bic=bic),

@@ -84,6 +84,7 @@ def fixed_parameter_result(request: FitRequest, cm: CompiledModel, data: list[Ex
         success=True, status="success", message=message,
         parameters={name: ParameterEstimate(value=value, fixed=True, initial=value)
                     for name, value in layout.fixed.items()},
+        confidence_level=opts.confidence_level,
         covariance=None, covariance_note="no free parameter: there is no covariance to estimate",
         correlation=None,
         initial_states={d.name: {s: float(x0s[e][i]) for i, s in enumerate(cm.states)} for e, d in enumerate(data)},

@@ -115,10 +115,14 @@ def test_discrepancy_is_drawn_against_its_variable_where_discovery_returns_it():
     x = np.linspace(-1, 1, 200)
     equation = SimpleNamespace(equation="v", variable="x", variable_samples={"e1": x.tolist()},
                                samples={"e1": (20 * x ** 3 + 0.01 * np.sin(40 * x)).tolist()},
-                               law_samples={"e1": (20 * x ** 3).tolist()}, share_explained=0.99)
+                               law_samples={"e1": (20 * x ** 3).tolist()}, law_grid=x.tolist(),
+                               law_values=(20 * x ** 3).tolist(), share_explained=0.99)
     notes: list[str] = []
     figure = discrepancy_figure(plt, SimpleNamespace(discrepancy=SimpleNamespace(equations=[equation])), False, notes)
-    assert figure is not None and figure.name == "discrepancy" and figure.png[:4] == b"\x89PNG"
+    assert figure is not None and figure.name == "discrepancy" and figure.png[:4] == b"\x89PNG" and not notes
+    older = SimpleNamespace(**{k: v for k, v in vars(equation).items() if k not in ("law_grid", "law_values")})
+    assert discrepancy_figure(plt, SimpleNamespace(discrepancy=SimpleNamespace(equations=[older])), False, notes)
+    assert notes and "older version" in notes[0]   # its per-sample fit is not drawn as a line
     assert discrepancy_figure(plt, SimpleNamespace(), False, notes) is None             # an older result
     assert discrepancy_figure(plt, SimpleNamespace(discrepancy=None), False, notes) is None
     no_variable = SimpleNamespace(equations=[SimpleNamespace(equation="v", variable=None, variable_samples={})])

@@ -218,7 +218,8 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
                + "; bounds and constraints are not enforced by online estimators")
     result = FitResult(
         success=bool(np.all(np.isfinite(theta))), status="success" if np.all(np.isfinite(theta)) else "failed",
-        message=message, parameters=params, covariance=covariance, covariance_note=cov_note,
+        message=message, parameters=params, confidence_level=opts.confidence_level, covariance=covariance,
+        covariance_note=cov_note,
         correlation=correlation,
         initial_states={d.name: {s: float(ed.x[i, ed.rows[0]]) for i, s in enumerate(cm.states)}},
         metrics=FitMetrics(cost=cost, ndata=weighted.size, nfree=weighted.size - n, nvarys=n,

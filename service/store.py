@@ -112,6 +112,16 @@ _CLAIM_CANDIDATES = (select(tasks.c.job_id, tasks.c.idx, tasks.c.attempts, jobs.
                      .order_by(tasks.c.queued_at, tasks.c.job_id, tasks.c.idx).limit(bindparam("b_limit")))
 # PostgreSQL: a row another replica is claiming is passed over, not waited for
 _CLAIM_CANDIDATES_SKIP_LOCKED = _CLAIM_CANDIDATES.with_for_update(skip_locked=True, of=tasks)
+# SQLite: the same select naming its index. SQLite keeps no statistics unless ANALYZE runs, and
+# without them its planner read ix_tasks_status and sorted every queued row in a temporary B-tree
+# (10.7 ms a claim at 10 000 queued; 0.04 ms through the queue index). INDEXED BY holds whatever the
+# statistics say; the status is written out, not bound: SQLite matches a partial index's WHERE
+# against the statement's text (with `status = ?` INDEXED BY fails to prepare: "no query solution").
+_CLAIM_CANDIDATES_SQLITE = text(
+    f"SELECT tasks.job_id, tasks.idx, tasks.attempts, jobs.kind FROM tasks INDEXED BY {QUEUE_INDEX.name} "
+    "JOIN jobs ON jobs.id = tasks.job_id WHERE tasks.status = 'queued' "
+    "ORDER BY tasks.queued_at, tasks.job_id, tasks.idx LIMIT :b_limit").columns(
+    tasks.c.job_id, tasks.c.idx, tasks.c.attempts, jobs.c.kind)
 _REQUEST_TEXTS = select(task_requests.c.idx, task_requests.c.request).where(
     task_requests.c.job_id == bindparam("b_job"), task_requests.c.idx.in_(bindparam("b_idxs", expanding=True)))
 _START = (update(tasks)
@@ -321,7 +331,8 @@ class JobStore:
         self.sqlite_path = _sqlite_file(engine)
         # the file we opened: a file deleted or replaced under a running server takes jobs to nowhere
         self._sqlite_id = self._file_identity()
-        self._skip_locked = engine.dialect.name == "postgresql"
+        self._claim_candidates = {"postgresql": _CLAIM_CANDIDATES_SKIP_LOCKED,
+                                  "sqlite": _CLAIM_CANDIDATES_SQLITE}.get(engine.dialect.name, _CLAIM_CANDIDATES)
 
     def _file_identity(self) -> Optional[tuple[int, int]]:
         if self.sqlite_path is None:
@@ -497,8 +508,7 @@ class JobStore:
                   limit: int) -> Optional[list[TaskRow]]:
         # the texts are read for the claimed tasks only: sorting the candidates with them would read
         # every queued request
-        query = _CLAIM_CANDIDATES_SKIP_LOCKED if self._skip_locked else _CLAIM_CANDIDATES
-        rows = conn.execute(query, {"b_limit": limit}).all()
+        rows = conn.execute(self._claim_candidates, {"b_limit": limit}).all()
         if not rows:
             return []
         now = time.time()

@@ -5,7 +5,20 @@ import time
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import Column, Float, Integer, MetaData, String, Table, Text, create_engine, inspect, select, text
+from sqlalchemy import (
+    Column,
+    Float,
+    Integer,
+    MetaData,
+    String,
+    Table,
+    Text,
+    create_engine,
+    event,
+    inspect,
+    select,
+    text,
+)
 
 from greyfit.service.app import create_app
 from greyfit.service.store import JobStore, make_engine, task_requests, tasks
@@ -50,6 +63,38 @@ def test_claim_many_takes_the_oldest_tasks_in_one_go_and_finish_many_writes_only
     assert [r["status"] for r in store.results(a)] == ["succeeded", "failed", "running"]
     assert store.results(a)[1]["error"] == {"type": "DataError"}
     assert store.get_job(b)["tasks"][1]["status"] == "running"
+
+
+def test_the_sqlite_claim_reads_the_queue_index_and_sorts_nothing(tmp_path):
+    """Defect: SQLite keeps no planner statistics unless ANALYZE runs, and without them the claim read
+    ix_tasks_status and sorted every queued row ("USE TEMP B-TREE FOR ORDER BY": 10.7 ms a claim at
+    10 000 queued, 0.04 ms through the queue index). The plan must be right with and without them."""
+    store = JobStore(make_engine(f"sqlite:///{tmp_path / 'greyfit.db'}"))
+    try:
+        a = store.create_job("fit", requests(3), None)
+        store.create_job("fit", requests(2), None)
+        selects = []
+
+        def remember(_conn, _cursor, statement, parameters, _context, _many):
+            if statement.lstrip().upper().startswith("SELECT") and "ORDER BY" in statement:
+                selects.append((statement, parameters))
+
+        event.listen(store.engine, "before_cursor_execute", remember)
+        try:
+            claimed = store.claim_many("o", 30, 3, 2)      # the statement as the claim runs it
+        finally:
+            event.remove(store.engine, "before_cursor_execute", remember)
+        assert [(t.job_id, t.idx) for t in claimed] == [(a, 0), (a, 1)]
+        (statement, parameters), = [s for s in selects if "FROM tasks" in s[0]]
+        for analyse in (False, True):
+            with store.engine.connect() as conn:
+                if analyse:
+                    conn.exec_driver_sql("ANALYZE")
+                plan = [row[-1] for row in conn.exec_driver_sql("EXPLAIN QUERY PLAN " + statement, parameters)]
+            assert any("ix_tasks_queue" in step for step in plan), plan
+            assert not any("TEMP B-TREE" in step for step in plan), plan
+    finally:
+        store.engine.dispose()
 
 
 def test_a_store_made_with_requests_in_the_task_rows_is_migrated(store_url):

@@ -73,7 +73,9 @@ def idempotency_of(request: Request, kind: str, texts: list, label: Optional[str
     key = key.strip().strip('"')   # the draft sends it as a structured-field string: "abc"
     if not IDEMPOTENCY_KEY.match(key):
         raise HTTPException(400, "Idempotency-Key must be 1 to 200 printable ASCII characters without spaces")
-    digest = hashlib.sha256(f"{kind}\0{label}".encode())
+    # [kind, label] as JSON: no label (null) and the label "None" differ; the requests are JSON texts,
+    # which hold no NUL byte, so NUL separates them
+    digest = hashlib.sha256(json.dumps([kind, label]).encode())
     for text in texts:
         digest.update(b"\0" + (text if isinstance(text, str) else json.dumps(text, sort_keys=True)).encode())
     return key, digest.hexdigest()

@@ -97,6 +97,23 @@ def test_the_sqlite_claim_reads_the_queue_index_and_sorts_nothing(tmp_path):
         store.engine.dispose()
 
 
+def test_sqlite_connections_write_ahead_and_sync_each_commit(tmp_path):
+    """A job answered 202 survives a power loss: every pooled connection is in WAL mode with
+    synchronous=FULL (2); NORMAL (1), as before, could lose the last commits then."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'greyfit.db'}")
+    try:
+        held = [engine.connect() for _ in range(3)]     # several connections of the pool at once
+        try:
+            for conn in held:
+                assert conn.exec_driver_sql("PRAGMA journal_mode").scalar() == "wal"
+                assert conn.exec_driver_sql("PRAGMA synchronous").scalar() == 2
+        finally:
+            for conn in held:
+                conn.close()
+    finally:
+        engine.dispose()
+
+
 def test_a_store_made_with_requests_in_the_task_rows_is_migrated(store_url):
     """Before request texts had their own table, `tasks` held them: opening such a store moves them
     out once, and its queued, running and finished tasks carry on."""

@@ -12,6 +12,7 @@ from sqlalchemy.exc import InterfaceError, InternalError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
+from greyfit.service.deps import carries_api_key
 from greyfit.service.error_text import describe
 from greyfit.service.json_body import InvalidBody, body_model
 from greyfit.service.logs import REQUEST_ID
@@ -113,11 +114,25 @@ def allowed_methods(request: Request) -> list[str]:
     return sorted({m for pattern, methods in table if pattern.match(path) for m in methods})
 
 
-def store_error_detail(exc: Exception) -> str:
+# a database error's condition in words of our own, for callers who may not read its text
+STORE_CONDITIONS = (("is read-only", ("readonly database", "read-only transaction")),
+                    ("is full", ("disk is full", "no space left", "could not extend file")),
+                    ("is locked", ("database is locked",)),
+                    ("cannot be reached", ("connection", "could not connect", "timeout")))
+
+
+def store_error_detail(exc: Exception, full: bool = True) -> str:
+    """What a store error says. The database's own text names files, hosts and ports (the SQLite
+    path; 'connection to server at "10.0.0.5", port 5432'): only with `full`; else the component,
+    its condition where known and the error's class, as /readyz answers a caller without the API key."""
     if isinstance(exc, StoreUnavailable):
-        return str(exc)
+        return str(exc) if full else exc.public
     cause = getattr(exc, "orig", None) or exc
     first = (str(cause).splitlines() or [""])[0][:300]
+    if not full:
+        text = str(cause).lower()
+        condition = next((words for words, marks in STORE_CONDITIONS if any(m in text for m in marks)), "failed")
+        return f"the job store {condition} ({type(cause).__name__}); retry later"
     return f"the job store failed ({type(cause).__name__}: {first}); retry later"
 
 
@@ -163,10 +178,10 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(InterfaceError)
     @app.exception_handler(PoolTimeout)
     async def _store(request: Request, exc: Exception):
-        detail = store_error_detail(exc)
-        log.error("job store error on %s %s: %s", request.method, request.url.path, detail)
-        return retry_later(503, "Job store unavailable", detail, "store-unavailable",
-                           request.app.state.settings.retry_after_seconds)
+        log.error("job store error on %s %s: %s", request.method, request.url.path, store_error_detail(exc))
+        # the database's text only for a caller with the API key (the same rule as /readyz)
+        return retry_later(503, "Job store unavailable", store_error_detail(exc, carries_api_key(request)),
+                           "store-unavailable", request.app.state.settings.retry_after_seconds)
 
     @app.exception_handler(RequestTooLarge)
     async def _too_large(_: Request, exc: RequestTooLarge):

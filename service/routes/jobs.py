@@ -15,7 +15,7 @@ from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
 from greyfit.service.query import QueryInt
-from greyfit.service.store import IdempotencyKeyReused, job_status, status_of_counts
+from greyfit.service.store import IdempotencyKeyReused, status_of_counts
 
 router = APIRouter(prefix="/v1/jobs", tags=["jobs"], route_class=StrictJSONRoute)
 
@@ -25,25 +25,8 @@ MAX_INDEX = 2 ** 31 - 1    # PostgreSQL's INTEGER: a larger task index cannot ex
 JOB_ID = Path(description="the job's id, as POST returned it", max_length=36, pattern=r"^[0-9A-Za-z-]+$")
 
 
-def job_public(record: dict[str, Any]) -> JobPublic:
-    job, rows = record["job"], record["tasks"]
-    done = [r for r in rows if r["status"] in ("succeeded", "failed", "cancelled")]
-    started = [r["started_at"] for r in rows if r["started_at"]]
-    finished = [r["finished_at"] for r in rows if r["finished_at"]]
-    return JobPublic(
-        id=job["id"], kind=job["kind"], label=job["label"], status=job_status(job, rows),
-        progress=JobProgress(done=len(done), total=job["total"],
-                             succeeded=sum(r["status"] == "succeeded" for r in rows),
-                             failed=sum(r["status"] == "failed" for r in rows)),
-        created_at=job["created_at"], started_at=min(started) if started else None,
-        finished_at=max(finished) if len(done) == len(rows) and finished else None,
-        tasks=[TaskPublic(index=r["idx"], status=r["status"], attempts=r["attempts"],
-                          started_at=r["started_at"], finished_at=r["finished_at"],
-                          error=json.loads(r["error"]) if r["error"] else None) for r in rows])
-
-
 def job_summary(entry: dict[str, Any]) -> JobSummary:
-    """A job of the list, from its task counts by status (store.list_jobs)."""
+    """A job's status, progress and times, from its task counts by status (store.list_jobs, store.get_job)."""
     job, counts = entry["job"], entry["counts"]
     done = sum(counts.get(s, 0) for s in ("succeeded", "failed", "cancelled"))
     return JobSummary(
@@ -52,6 +35,14 @@ def job_summary(entry: dict[str, Any]) -> JobSummary:
                              failed=counts.get("failed", 0)),
         created_at=job["created_at"], started_at=entry["started_at"],
         finished_at=entry["finished_at"] if done == job["total"] else None)
+
+
+def job_public(record: dict[str, Any]) -> JobPublic:
+    """A job's summary with the tasks `store.get_job` read (all of them, or a page)."""
+    return JobPublic(**dict(job_summary(record)), tasks=[
+        TaskPublic(index=r["idx"], status=r["status"], attempts=r["attempts"], started_at=r["started_at"],
+                   finished_at=r["finished_at"], error=json.loads(r["error"]) if r["error"] else None)
+        for r in record["tasks"]])
 
 
 def as_json(model: BaseModel, status_code: int = 200, headers: Optional[dict] = None) -> Response:
@@ -73,7 +64,9 @@ def idempotency_of(request: Request, kind: str, texts: list, label: Optional[str
     key = key.strip().strip('"')   # the draft sends it as a structured-field string: "abc"
     if not IDEMPOTENCY_KEY.match(key):
         raise HTTPException(400, "Idempotency-Key must be 1 to 200 printable ASCII characters without spaces")
-    digest = hashlib.sha256(f"{kind}\0{label}".encode())
+    # [kind, label] as JSON: no label (null) and the label "None" differ; the requests are JSON texts,
+    # which hold no NUL byte, so NUL separates them
+    digest = hashlib.sha256(json.dumps([kind, label]).encode())
     for text in texts:
         digest.update(b"\0" + (text if isinstance(text, str) else json.dumps(text, sort_keys=True)).encode())
     return key, digest.hexdigest()
@@ -107,8 +100,8 @@ def list_jobs(request: Request, offset: Annotated[QueryInt, Query(ge=0, le=MAX_O
     return as_json(JobsPublic(data=[job_summary(e) for e in entries], count=count))
 
 
-def _record(request: Request, job_id: str) -> dict:
-    record = request.app.state.store.get_job(job_id)
+def _record(request: Request, job_id: str, task_offset: int = 0, task_limit: Optional[int] = None) -> dict:
+    record = request.app.state.store.get_job(job_id, task_offset, task_limit)
     if record is None:
         raise HTTPException(404, f"no job with id '{job_id}'")
     return record
@@ -130,10 +123,7 @@ def _tasks_that_fit(public: JobPublic, size: int, limit: int) -> int:
 def get_job(job_id: Annotated[str, JOB_ID], request: Request, task_offset: Annotated[QueryInt, TASK_OFFSET] = 0,
             task_limit: Annotated[Optional[QueryInt], TASK_LIMIT] = None) -> Response:
     """Status, progress and per-task status of a job (`task_offset`, `task_limit` page the tasks)."""
-    public = job_public(_record(request, job_id))
-    end = None if task_limit is None else task_offset + task_limit
-    if task_offset or end is not None:
-        public.tasks = public.tasks[task_offset:end]
+    public = job_public(_record(request, job_id, task_offset, task_limit))   # the page only, read in SQL
     body = public.model_dump_json()
     limit = request.app.state.settings.max_answer_bytes
     if len(body) > limit:   # a bounded answer, and the way to the rest of it
@@ -154,8 +144,7 @@ def get_results(job_id: Annotated[str, JOB_ID], request: Request, offset: Annota
                 limit: Annotated[Optional[QueryInt], RESULT_LIMIT] = None) -> Response:
     """One entry per request, in order; failed tasks carry their error, unfinished ones no result yet.
     Streamed from the job store a few results at a time; `offset` and `limit` page them."""
-    record = _record(request, job_id)
-    status = job_status(record["job"], record["tasks"])
+    status = job_summary(_record(request, job_id, task_limit=0)).status   # from counts: no task rows read
     pages = request.app.state.store.result_pages(job_id, offset, limit)
 
     def body():

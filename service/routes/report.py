@@ -59,7 +59,7 @@ async def job_report(job_id: Annotated[str, JOB_ID], request: Request,
                      index: Annotated[QueryInt, Query(ge=0, le=MAX_INDEX)] = 0) -> HTMLResponse:
     """The report page of task `index` of a finished job (its stored request supplies the data)."""
     store = request.app.state.store
-    if store.get_job(job_id) is None:
+    if store.get_job(job_id, task_limit=0) is None:
         raise HTTPException(404, f"no job with id '{job_id}'")
     with store.engine.connect() as conn:
         row = conn.execute(select(tasks.c.status, task_requests.c.request, tasks.c.result)

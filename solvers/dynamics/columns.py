@@ -12,16 +12,29 @@ k·size2_j .. (k+1)·size2_j − 1, dense.
 """
 from __future__ import annotations
 
+import _ctypes
 import ctypes
 import threading
+import weakref
+from collections import OrderedDict
+from typing import Callable
 
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.dynamics.compiled import library
+from greyfit.solvers.dynamics.compiled import library, max_loaded
 from greyfit.solvers.dynamics.function_cache import FunctionCache
 
-_libraries: dict[str, ctypes.CDLL] = {}
+# POSIX's dlclose; elsewhere a library stays loaded once loaded (as before the bound)
+_dlclose: Callable[[int], None] | None = getattr(_ctypes, "dlclose", None)
+
+# The libraries loaded through ctypes, bounded like the compiled Functions (`compiled.max_loaded`,
+# GREYFIT_COMPILED_IN_MEMORY): past the bound the least recently used leaves this table. A driver (a
+# ctypes function pointer) holds its library object, so a library left out is closed (dlclose) when
+# the last Columns or Fold using it is gone, never while one can still call it; asked for meanwhile,
+# the same open library is taken back into the table.
+_libraries: "OrderedDict[str, ctypes.CDLL]" = OrderedDict()    # most recently used last
+_open: "weakref.WeakValueDictionary[str, ctypes.CDLL]" = weakref.WeakValueDictionary()
 _lock = threading.Lock()
 
 
@@ -186,12 +199,27 @@ def evaluate(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
     return [flat.reshape(fn.size_out(i), order="F") for i, flat in enumerate(nonzeros(fn, args))]
 
 
-def _driver(path: str, name: str, kind: str = "columns"):
+def _load_library(path: str) -> ctypes.CDLL:
+    """The library at `path`, loaded once while anything holds it, and now the most recently used."""
     with _lock:
-        lib = _libraries.get(path)
+        lib = _libraries.pop(path, None)
         if lib is None:
-            lib = _libraries[path] = ctypes.CDLL(path)
-    fn = getattr(lib, f"greyfit_{kind}_{name}")
+            lib = _open.get(path)
+        if lib is None:
+            lib = _open[path] = ctypes.CDLL(path)
+            if _dlclose is not None:
+                # when the object goes (out of the table, no driver left): nothing can call into it
+                weakref.finalize(lib, _dlclose, lib._handle).atexit = False
+        _libraries[path] = lib
+        while len(_libraries) > max_loaded():
+            _libraries.popitem(last=False)
+    return lib
+
+
+def _driver(path: str, name: str, kind: str = "columns"):
+    # lib[name], not getattr: getattr keeps the function on the library object too (a cycle that
+    # only the garbage collector would break)
+    fn = _load_library(path)[f"greyfit_{kind}_{name}"]
     if kind == "columns":
         fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
                        ctypes.c_int]

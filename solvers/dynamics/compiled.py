@@ -286,7 +286,14 @@ def loaded(fn: ca.Function) -> ca.Function | None:
         return ext
 
 
-def _max_loaded() -> int:
+def max_loaded() -> int:
+    """How many compiled model structures a process keeps loaded (`GREYFIT_COMPILED_IN_MEMORY`).
+
+    Returns
+    -------
+    int
+        The setting (at least 1), else MAX_LOADED.
+    """
     value = os.environ.get("GREYFIT_COMPILED_IN_MEMORY", "")
     return max(1, int(value)) if value.strip().isdigit() else MAX_LOADED
 
@@ -423,7 +430,7 @@ def _load(fn: ca.Function, key: str, library: Path) -> ca.Function:
     ext = ca.external(fn.name(), str(library), {"enable_fd": True})
     with _lock:
         _memory[key] = ext
-        while len(_memory) > _max_loaded():
+        while len(_memory) > max_loaded():
             del _memory[next(iter(_memory))]   # the least recently used
     return ext
 

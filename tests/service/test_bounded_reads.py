@@ -4,6 +4,7 @@ results are streamed from the store.
 Defect: GET /v1/jobs?limit=200 over 200 jobs of 1 000 tasks answered every task of every job
 (73.5 MB, server RSS +550 MB)."""
 from fastapi.testclient import TestClient
+from sqlalchemy import event
 
 from greyfit.service.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
@@ -53,3 +54,34 @@ def test_tasks_and_results_are_paged_and_streamed_in_order(tmp_path):
         job = c.get(f"/v1/jobs/{job_id}", params={"task_offset": 40, "task_limit": 3}).json()
         assert [t["index"] for t in job["tasks"]] == [40, 41, 42] and job["progress"]["done"] == 45
         assert c.get(f"/v1/jobs/{job_id}/results", params={"limit": 0}).status_code == 422
+
+
+def test_a_page_of_tasks_is_read_from_the_store_not_cut_from_all_of_them(tmp_path):
+    """Defect: the job route loaded every task of the job, then cut the page in Python; the results
+    route loaded them all for the job's status. Reads: the page's task rows, counts for the rest."""
+    with TestClient(create_app(make_settings(tmp_path, workers=1))) as c:
+        store = c.app.state.store
+        assert c.app.state.dispatcher._lock.acquire(timeout=30)   # the tasks stay queued meanwhile
+        try:
+            job_id = store.create_job("fit", [{"i": i} for i in range(60)], "sixty")
+            whole = c.get(f"/v1/jobs/{job_id}").json()
+            task_reads = []
+
+            def remember(_conn, _cursor, statement, parameters, _context, _many):
+                if "tasks.attempts, tasks.started_at, tasks.finished_at" in statement:   # rows of tasks
+                    task_reads.append((statement, parameters))
+
+            event.listen(store.engine, "before_cursor_execute", remember)
+            try:
+                page = c.get(f"/v1/jobs/{job_id}", params={"task_offset": 50, "task_limit": 4}).json()
+                results = c.get(f"/v1/jobs/{job_id}/results", params={"offset": 58}).json()
+            finally:
+                event.remove(store.engine, "before_cursor_execute", remember)
+        finally:
+            c.app.state.dispatcher._lock.release()
+        assert [t["index"] for t in page["tasks"]] == [50, 51, 52, 53]
+        assert page["tasks"] == whole["tasks"][50:54]
+        assert {k: v for k, v in page.items() if k != "tasks"} == {k: v for k, v in whole.items() if k != "tasks"}
+        assert page["status"] == results["status"] == "queued" and page["progress"]["total"] == 60
+        assert [r["index"] for r in results["results"]] == [58, 59]
+        assert len(task_reads) == 1 and "LIMIT" in task_reads[0][0], task_reads   # one page, in SQL

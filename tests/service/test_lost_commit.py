@@ -128,3 +128,15 @@ def test_the_same_key_and_body_give_one_job(client):
     assert a["id"] == b["id"] != c["id"]
     bad = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "has space"})
     assert bad.status_code == 400 and "Idempotency-Key" in bad.text
+
+
+def test_a_key_sent_again_with_the_label_none_is_another_body(client):
+    """Defect: the fingerprint joined the kind and the label as text, so no label and the label
+    "None" were the same body: the second POST got 202 with the first job instead of 422."""
+    body = {"requests": [msd_request(0)]}
+    first = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "label-none"})
+    assert first.status_code == 202 and first.json()["label"] is None
+    other = client.post("/v1/jobs", json={**body, "label": "None"}, headers={"Idempotency-Key": "label-none"})
+    assert other.status_code == 422 and "Idempotency-Key" in other.text, other.text
+    again = client.post("/v1/jobs", json=body, headers={"Idempotency-Key": "label-none"})
+    assert again.status_code == 202 and again.json()["id"] == first.json()["id"]

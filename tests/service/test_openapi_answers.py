@@ -6,7 +6,8 @@
 - each integer query parameter takes integers only as written in digits (pydantic's lax mode took
   "1.0", " 1", "+1" and "1_0");
 - with the job store out of reach, each operation that needs it answers 503 with `Retry-After`, a
-  status its description lists; a 503 made anywhere else gets `Retry-After` too.
+  status its description lists; a 503 made anywhere else gets `Retry-After` too;
+- the job report's 409 (a task without a result) is answered in that case and described.
 """
 import uuid
 
@@ -20,7 +21,7 @@ from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import SYNC_PATHS
 from greyfit.service.task_kinds import KINDS
 from tests.servers import free_port
-from tests.service.conftest import make_settings
+from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 METHODS = {"GET", "POST", "PUT", "PATCH", "DELETE"}
 NOT_INTEGERS = ["1.0", " 1", "1 ", "+1", "1_0", "1e1", "\u0663", "0x1", "true"]
@@ -134,3 +135,18 @@ def test_a_503_made_without_retry_after_gets_one_on_its_way_out():
     with TestClient(CountRequests(inner, Metrics(), retry_after=7)) as c:
         assert c.get("/busy").headers["retry-after"] == "7"
         assert c.get("/told").headers.get_list("retry-after") == ["9"]   # the route's own, not a second
+
+
+def test_the_job_report_of_a_task_without_a_result_is_the_409_its_description_lists(served):
+    c, spec = served
+    described = spec["paths"]["/v1/jobs/{job_id}/report"]["get"]["responses"]
+    assert "409" in described and "failed" in described["409"]["description"]   # the case below
+    assert described["409"]["content"]["application/problem+json"]["schema"] == {"$ref": "#/components/schemas/Problem"}
+    failing = msd_request(0, n=41)
+    failing["model"]["equations"]["v"] = "(u - c*v - kk*x)/m"      # fails in the worker: ModelDefinitionError
+    job = c.post("/v1/jobs", json={"requests": [failing]}).json()
+    assert wait_for_job(c, job["id"])["tasks"][0]["status"] == "failed"
+    resp = c.get(f"/v1/jobs/{job['id']}/report", params={"index": 0})
+    assert resp.status_code == 409, resp.text
+    assert resp.headers["content-type"].startswith("application/problem+json")
+    assert "failed" in resp.json()["detail"] and "result" in resp.json()["detail"]

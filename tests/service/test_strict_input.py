@@ -12,6 +12,8 @@ from fastapi.testclient import TestClient
 
 from greyfit.service.app import create_app
 from greyfit.service.json_body import LARGE_BODY_BYTES
+from greyfit.service.openapi_examples import EXAMPLES
+from greyfit.service.task_kinds import KINDS
 from tests.service.conftest import EXAMPLE, assert_problem, make_settings
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -41,6 +43,49 @@ def test_a_string_or_boolean_is_not_a_number(client, example, where, value):
     loc = "".join(f"[{p}]" if isinstance(p, int) else (f".{p}" if i else p) for i, p in enumerate(where))
     assert list(errors) == [loc], errors
     assert "not a string" in errors[loc] or "true or false is expected" in errors[loc]
+
+
+def _routes_taking_a_seed(spec: dict) -> set[str]:
+    """The POST routes whose body holds a `seed` somewhere (options of a fit, a discovery or a frequency fit)."""
+    schemas = spec["components"]["schemas"]
+
+    def holds_seed(node, seen: frozenset) -> bool:
+        if isinstance(node, dict):
+            ref = node.get("$ref", "").rsplit("/", 1)[-1]
+            if ref:
+                return ref not in seen and holds_seed(schemas[ref], seen | {ref})
+            return "seed" in node.get("properties", {}) or any(holds_seed(v, seen) for v in node.values())
+        return isinstance(node, list) and any(holds_seed(v, seen) for v in node)
+
+    return {path for path, ops in spec["paths"].items()
+            if holds_seed(ops.get("post", {}).get("requestBody", {}), frozenset())}
+
+
+@pytest.mark.parametrize("seed", [False, True, "0", 0.0])
+def test_a_seed_is_an_integer_on_every_route_that_takes_options(client, seed):
+    """`seed: false` was taken for the integer 0; a string or a float is not an integer either."""
+    routes = _routes_taking_a_seed(client.get("/openapi.json").json())
+    jobs = {k.jobs_path: k.sync_path for k in KINDS.values() if k.jobs_path}
+    assert routes == {"/v1/fits", "/v1/discover", "/v1/frequency-fits", "/v1/simulate", "/v1/report", *jobs}
+    def example(path: str) -> dict:   # a copy: build() may hand out the example itself
+        return copy.deepcopy(EXAMPLES[path].build())
+
+    fit = example("/v1/fits")
+    fitted = client.post("/v1/fits", json=fit)
+    assert fitted.status_code == 200, fitted.text
+    result = fitted.json()
+    for path in sorted(routes):
+        if path in jobs:
+            body, loc = {"requests": [example(jobs[path])]}, "requests[0].options.seed"
+            request = body["requests"][0]
+        elif path == "/v1/report":
+            body, loc = {"result": result, "request": copy.deepcopy(fit)}, "request.options.seed"
+            request = body["request"]
+        else:
+            body = request = example(path)
+            loc = "options.seed"
+        request.setdefault("options", {})["seed"] = seed
+        assert list(errors_of(client.post(path, json=body))) == [loc], path
 
 
 def test_integers_stay_numbers_and_the_valid_example_still_fits(client, example):

@@ -16,10 +16,12 @@ moment (the first fits of a batch) run the compiler once: the others wait and lo
 interpreted work is large enough to repay the compile, and otherwise compiles in the background so
 the next fit of that model finds it (a failed background compile is tried again after a back-off:
 1 min, doubling, at most hourly); `always` compiles whenever it can; `never` keeps the interpreter.
-A caller that can change horses mid-solve (`interpret_meanwhile=True`: the structured shooting NLP,
-which stops Ipopt once no build runs and goes on compiled) never waits for gcc in `auto`: the build runs
-in the background however large the work, so a first fit never waits longer than interpreting it
-would take (gcc took 1 s on a quiet machine, a minute on a loaded one). `wait_for_builds` lets a
+A caller that can go on interpreted meanwhile (`interpret_meanwhile=True`: the structured shooting
+NLP, which moves to the compiled one at the start of its next solve, and the folded sample loops,
+which move at their next call) never waits for gcc in `auto`: the build runs in the background
+however large the work, so a first fit never waits longer than interpreting it would take (gcc took
+1 s on a quiet machine, a minute on a loaded one). Compiled and interpreted give the same numbers
+bit for bit (-ffp-contract=off, below), so when the build ends changes no result. `wait_for_builds` lets a
 process that is about to exit (the CLI) leave the libraries it started on disk for the next one.
 """
 from __future__ import annotations

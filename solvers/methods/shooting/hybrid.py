@@ -137,7 +137,7 @@ class HybridShootingSolver:
         self.problem, self.options = problem, options
         self.short: Solver = plain_gauss_newton_solver(problem, options,
                                                        max_iter=min(GN_ITERATIONS, options.max_iter))
-        self.compiled = self.short.compiled   # read again after each solve: it may move to C (handover.py)
+        self.compiled = self.short.compiled   # read again after each solve: the next may start in C (handover.py)
         self.curved: LeastSquaresSolver | None = None
         self.plain: Solver | None = None
         self.phases: list[str] = []   # what the last solve did, for tests and notes

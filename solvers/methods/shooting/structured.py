@@ -297,7 +297,6 @@ def _sparse(nrow: int, ncol: int, rows: np.ndarray, cols: np.ndarray, values: ca
 class _Nlp:
     solver: ca.Function
     keep: tuple = ()   # the Python callbacks the solver calls (alive as long as it is)
-    stop: handover.StopWhenCompiled | None = None   # its iteration callback, which must outlive it
 
 
 @dataclass
@@ -488,10 +487,9 @@ def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
 
 
 def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float,
-               keep: tuple = (), stop: handover.StopWhenCompiled | None = None) -> _Nlp:
+               keep: tuple = ()) -> _Nlp:
     """The Ipopt instance over the terms plus the user's parameter constraints and a penalty on θ;
-    `keep`: the Python callbacks it calls; `stop`: its iteration callback (an interpreted NLP whose
-    libraries are being built)."""
+    `keep`: the Python callbacks it calls."""
     cm, nth = oem.cm, oem.layout.size
     w = terms.w
     nw = w.numel()
@@ -539,9 +537,8 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
         "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
         # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
         # reverse mode through the compiled blocks ran finite differences for 17 s
-        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True,
-        **({"iteration_callback": stop} if stop is not None else {})})
-    return _Nlp(solver, keep, stop)
+        "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True})
+    return _Nlp(solver, keep)
 
 
 def _data_vector(oem) -> np.ndarray:
@@ -587,20 +584,16 @@ class StructuredSolver:
         Returns
         -------
         NlpOutcome
-            Ipopt's outcome; where the NLP is interpreted while its libraries are built, the solve
-            goes on compiled from the iteration at which they arrive (`handover`).
+            Ipopt's outcome. An NLP interpreted while its libraries are built moves to compiled
+            code before a solve begins once they exist, never during one (`handover`): the same
+            numbers either way.
         """
         from greyfit.solvers.nlp.solver import run_ipopt
 
-        def upgrade():
-            better = self.upgrade() if self.upgrade is not None else None
-            if better is None or not better.compiled:
-                return None
-            self.nlp, self.compiled, self.upgrade = better.nlp, True, None   # the next starts too
-            return lambda w: run_ipopt(better.nlp.solver, w, self.problem, p=self.data, lbw=lbw, ubw=ubw)
-
-        return handover.solve(lambda w: run_ipopt(self.nlp.solver, w, self.problem, p=self.data, lbw=lbw, ubw=ubw),
-                              self.nlp.stop, upgrade, w0)
+        better = handover.built_meanwhile(self.compiled, self.upgrade)
+        if better is not None:   # this solve and the next ones run compiled
+            self.nlp, self.compiled, self.upgrade = better.nlp, True, None
+        return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
 
 
 def _constraint_copies(oem) -> int:
@@ -707,14 +700,12 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             pvec, pv = _data_blocks(oem, extra=int(folded))
             theta = ca.MX.sym("theta", oem.layout.size)
             keep: tuple = ()
-            stop = None
-            if folded:   # the folds switch to their compiled loops by themselves when built
+            if folded:   # the folds switch to their compiled loops by themselves when built (the same numbers)
                 terms, keep = _single_shooting_terms(oem, folds, theta, pv, pvec)
             else:
                 build = _mapped_single_shooting_terms if single else _multiple_shooting_terms
                 terms = build(oem, stages, theta, pv)
-                stop = handover.stop_callback(is_c)
-            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep, stop)
+            nlp = _build_nlp(oem, terms, theta, pvec, pv, penalty, iters, cpu, keep)
             if penalty is None:
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:

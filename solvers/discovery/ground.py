@@ -11,8 +11,11 @@ Two cases the fit itself flags:
   starts from the declared values when |λ|h was beyond RK4's stability limit (the mode may be the
   integrator's artefact), else from the base fit's estimates (only its accuracy was in doubt).
 - `suspect` with the sign of a local minimum (`fit_below_noise_level`: the residual far above the
-  data's own noise level): a multistart from the declared start and draws inside the bounds, within
-  a share of the time budget and a multiple of the base fit's time; the best is kept when better.
+  data's own noise level): a multistart from the declared start and draws inside the bounds, bounded
+  by its number of starts and iterations per start, so its answer does not depend on machine load;
+  the best is kept when better. The CPU limit (the request's `max_cpu_time`, at most what is left
+  of the discovery budget) is a safety net: a multistart it cuts off is not an answer, the base fit
+  is kept and the note says the limit ended it.
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.confirm import with_estimates
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.methods.multistart import CPU_STATUSES
 
 MAX_SUBSTEPS = 100          # FitOptions.substeps' limit
 RK4_STABILITY_LIMIT = 2.78  # |λ|h where RK4 stops being stable on a real mode
@@ -31,9 +35,7 @@ REFINE_ROUNDS = 2
 # residual that is merely not white is the usual sign of a missing term, and no reason to restart)
 LOCAL_MINIMUM_CODES = {"fit_below_noise_level"}
 MULTISTART_STARTS = 8
-MULTISTART_BUDGET_SHARE = 0.2   # of what is left of discovery.time_budget_s ...
-MULTISTART_COST_RATIO = 6.0     # ... and at most this many times the base fit's own time
-MULTISTART_MAX_ITER = 100
+MULTISTART_MAX_ITER = 100   # per start
 
 
 def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[FitRequest, FitResult, list[str]]:
@@ -47,7 +49,8 @@ def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[Fi
     base : FitResult
         The base fit.
     clock : Clock
-        The discovery budget (the multistart is skipped once it is spent, and takes a share of what is left).
+        The discovery budget (the multistart is skipped once it is spent; what is left caps its CPU
+        time as a safety net).
 
     Returns
     -------
@@ -134,21 +137,32 @@ def _multistart(fit_req: FitRequest, base: FitResult, clock: Clock, notes: list[
     codes = {w.code for w in base.warnings}
     if base.quality != "suspect" or not codes & LOCAL_MINIMUM_CODES or fit_req.options.multistart > 1:
         return base
-    cpu = min(fit_req.options.max_cpu_time, max(MULTISTART_BUDGET_SHARE * clock.left(), 1.0),
-              max(MULTISTART_COST_RATIO * base.solver.wall_time_s, 1.0))
+    # bounded by starts and iterations; the CPU limit is only the safety net
+    cpu = min(fit_req.options.max_cpu_time, max(clock.left(), 1.0))
     req = fit_req.model_copy(update={"options": fit_req.options.model_copy(update={
         "multistart": MULTISTART_STARTS, "max_cpu_time": cpu,
         "max_iter": min(fit_req.options.max_iter, MULTISTART_MAX_ITER)})})
+    why = f"the base fit was suspect ({', '.join(sorted(codes & LOCAL_MINIMUM_CODES))})"
     try:
         best = fit_model(req)
-    except (FitError, RuntimeError, ValueError):
+    except (FitError, RuntimeError, ValueError) as exc:
+        notes.append(f"{why}; a multistart of {MULTISTART_STARTS} starts failed ({exc}); the search starts "
+                     "from the base fit")
         return base
-    if best.metrics.cost is None or base.metrics.cost is None or best.quality == "failed" \
-            or not best.metrics.cost < base.metrics.cost * (1 - 1e-6):
-        notes.append(f"the base fit was suspect ({', '.join(sorted(codes & LOCAL_MINIMUM_CODES))}); a multistart "
-                     f"of {best.solver.starts} starts found no better minimum")
+    status = best.solver.return_status
+    if status in CPU_STATUSES:
+        notes.append(f"{why}; a multistart of {MULTISTART_STARTS} starts was cut off by its CPU limit of "
+                     f"{cpu:.3g} s (options.max_cpu_time, at most what was left of discovery.time_budget_s; "
+                     f"{status}): it is no answer, and whether a start does better is not known; the search "
+                     "starts from the base fit (raise max_cpu_time or time_budget_s for the multistart)")
         return base
-    notes.append(f"the base fit was suspect ({', '.join(sorted(codes & LOCAL_MINIMUM_CODES))}), perhaps at a "
-                 f"local minimum: a multistart of {best.solver.starts} starts lowered the cost from "
-                 f"{base.metrics.cost:.4g} to {best.metrics.cost:.4g}; the search starts from that fit")
+    if best.quality == "failed" or best.metrics.cost is None or base.metrics.cost is None:
+        notes.append(f"{why}; a multistart of {best.solver.starts} starts did not converge ({status}); the "
+                     "search starts from the base fit")
+        return base
+    if not best.metrics.cost < base.metrics.cost * (1 - 1e-6):
+        notes.append(f"{why}; a multistart of {best.solver.starts} starts found no better minimum")
+        return base
+    notes.append(f"{why}, perhaps at a local minimum: a multistart of {best.solver.starts} starts lowered the "
+                 f"cost from {base.metrics.cost:.4g} to {best.metrics.cost:.4g}; the search starts from that fit")
     return best

@@ -7,6 +7,8 @@ import pytest
 from greyfit.schemas.discovery import DiscoverRequest
 from greyfit.schemas.fit import FitRequest
 from greyfit.solvers.discovery import discover
+from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.discovery.ground import solid_ground
 from greyfit.solvers.discovery.leftover import what_is_left
 from greyfit.solvers.discovery.shape import estimate_shape
 from greyfit.solvers.discovery.shape_relate import shape_agreement
@@ -15,6 +17,7 @@ from greyfit.solvers.simulation.simulate import validation_metrics
 from tests import coloured_records as cr
 from tests import partial_systems as ps
 from tests import shape_systems as ss
+from tests.machine_load import burning_cpu
 
 
 def _fit(model, records, **options):
@@ -173,3 +176,17 @@ def test_a_base_fit_at_a_local_minimum_is_restarted_before_screening():
     assert p["k"].value == pytest.approx(30.0, rel=0.05) and p["d"].value == pytest.approx(0.3, rel=0.05)
     assert res.steps[0].parameters[0].value == pytest.approx(20.0, rel=0.05)
     assert res.unexplained is None
+    # the restart is bounded by its starts and iterations: the same notes and fit, bit for bit, with
+    # two CPU-burning processes beside it; its CPU limit is only a safety net, which when it ends the
+    # multistart says so and keeps the base fit (it once said "found no better minimum")
+    req = FitRequest.model_validate({k: body[k] for k in ("model", "method", "experiments")})
+    base = fit_model(req)
+    _, quiet, quiet_notes = solid_ground(req, base, Clock(1e6))
+    with burning_cpu(2):
+        _, loaded, loaded_notes = solid_ground(req, base, Clock(1e6))
+    assert loaded_notes == quiet_notes and loaded.parameters == quiet.parameters
+    assert loaded.solver.iterations == quiet.solver.iterations
+    tiny = req.model_copy(update={"options": req.options.model_copy(update={"max_cpu_time": 0.01})})
+    _, kept, notes = solid_ground(tiny, base, Clock(1e6))
+    assert kept is base and len(notes) == 1 and "cut off by its CPU limit" in notes[0], notes
+    assert "no better minimum" not in notes[0]

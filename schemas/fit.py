@@ -265,7 +265,8 @@ class ProfileInterval(BaseModel):
     """Profile likelihood of one parameter: the others re-optimised at each fixed value."""
 
     lower: Optional[float] = Field(description="null: the cost stays below `threshold` up to a bound "
-                                   "or the step limit (the data do not bound the parameter there)")
+                                   "or the step limit (the data do not bound the parameter there), or the "
+                                   "profile was not computed (its CPU limit ran out; `note` says which)")
     upper: Optional[float]
     values: list[float] = Field(description="the parameter values visited, ascending")
     costs: list[Optional[float]] = Field(description="the re-optimised cost at each value")

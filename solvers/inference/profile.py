@@ -15,6 +15,12 @@ towards a bound when the data cannot exclude it.
 Steps adapt so that each raises the cost by about Δ/4 (doubled when it rose by less than Δ/10,
 halved above Δ/2); once a step passes the threshold, the crossing is found by regula falsi on
 √(rise), exact for a quadratic profile, with up to REFINE more solves.
+
+The walk is bounded by counts only (MAX_STEPS steps and MAX_FAILURES unconverged points per side,
+REFINE solves per crossing), so an interval does not depend on machine load. `max_cpu_time` (CPU
+seconds for all the profiles of a fit) is a safety net: when it runs out, or a re-optimisation hits
+Ipopt's own CPU limit, that parameter's profile and the ones after it are reported as not computed
+(no ends, no points) with a note saying so, never as an interval a quiet machine would not give.
 """
 from __future__ import annotations
 
@@ -34,6 +40,11 @@ MAX_STEPS = 20        # per side
 REFINE = 4            # solves to locate a crossing
 TOLERANCE = 0.02      # of Δ, at the crossing
 MAX_FAILURES = 3      # unconverged re-optimisations on one side before giving up there
+CPU_LIMIT_STATUS = "Maximum_CpuTime_Exceeded"   # Ipopt's, for one re-optimisation
+
+
+class _CpuLimitReached(Exception):
+    """The profiles' safety net ended a walk: no interval for this parameter."""
 
 
 @dataclass
@@ -128,7 +139,8 @@ def profile_parameters(ctx: ProfileContext, names: list[str], labels: list[str],
     dict of str to ProfileInterval
         Per name: the interval ends (None where the profile stays below the threshold), the visited
         values (physical units) and re-optimised costs, the threshold, notes and the adjustment used.
-        Without a degree of freedom or a finite cost, an empty profile with a note.
+        Without a degree of freedom or a finite cost, an empty profile with a note; once the CPU
+        limit has run out, an empty profile whose note says so.
     """
     adjustment = adjustment or {}
     dof = ctx.ndata - ctx.nvarys
@@ -148,12 +160,21 @@ def profile_parameters(ctx: ProfileContext, names: list[str], labels: list[str],
             0.1 * max(abs(ctx.w_hat[i]), 1.0)
         points = [(float(ctx.w_hat[i]), ctx.cost_hat)]
         ends, notes = [], []
-        for direction in (-1.0, 1.0):
-            end, pts, note = _walk(ctx, i, direction, h0, delta, start)
-            ends.append(end)
-            points += pts
-            if note:
-                notes.append(note)
+        try:
+            for direction in (-1.0, 1.0):
+                end, pts, note = _walk(ctx, i, direction, h0, delta, start)
+                ends.append(end)
+                points += pts
+                if note:
+                    notes.append(note)
+        except _CpuLimitReached:
+            ctx.notes = []
+            out[name] = ProfileInterval(
+                lower=None, upper=None, values=[], costs=[], threshold=ctx.cost_hat + delta,
+                note=f"not computed: the CPU limit of the profiles (options.max_cpu_time = {ctx.max_cpu_time:g} s) "
+                     "ran out, a safety net; the walk itself is bounded by its steps, so raise max_cpu_time",
+                noise_adjustment=factor)
+            continue
         points.sort()
         notes += ctx.notes
         ctx.notes = []
@@ -175,11 +196,15 @@ def _solve_fixed(ctx: ProfileContext, i: int, v: float, w_start: np.ndarray):
     lbw[i] = ubw[i] = v
     w0 = w_start.copy()
     w0[i] = v
-    return ctx.solver.solve(w0, lbw=lbw, ubw=ubw)
+    out = ctx.solver.solve(w0, lbw=lbw, ubw=ubw)
+    if out.status == CPU_LIMIT_STATUS:
+        raise _CpuLimitReached
+    return out
 
 
 def _walk(ctx: ProfileContext, i: int, direction: float, h0: float, delta: float, start: float):
-    """(crossing in scaled units or None, [(value, cost)], note) on one side of the estimate."""
+    """(crossing in scaled units or None, [(value, cost)], note) on one side of the estimate;
+    raises _CpuLimitReached when the CPU limit (since `start`) has run out."""
     bound = ctx.problem.lbw[i] if direction < 0 else ctx.problem.ubw[i]
     side = "lower" if direction < 0 else "upper"
     v_prev, rise_prev, w_prev = float(ctx.w_hat[i]), 0.0, ctx.w_hat
@@ -187,7 +212,7 @@ def _walk(ctx: ProfileContext, i: int, direction: float, h0: float, delta: float
     pts: list[tuple[float, float]] = []   # (scaled value, cost)
     for _ in range(MAX_STEPS):
         if time.process_time() - start > ctx.max_cpu_time:
-            return None, pts, f"{side} end not reached within max_cpu_time"
+            raise _CpuLimitReached
         if v_prev == bound:
             return None, pts, f"the cost stays below the threshold up to the {side} bound"
         v = v_prev + direction * h

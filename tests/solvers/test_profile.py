@@ -1,5 +1,8 @@
 """Profile-likelihood intervals (`options.profile`, issue #8) against a brute-force profile and the
 Wald interval."""
+import dataclasses
+import types
+
 import numpy as np
 import pytest
 from scipy.optimize import brentq, minimize_scalar
@@ -8,6 +11,7 @@ from greyfit.schemas.fit import FitRequest
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.inference.statistics import student_t_quantile
+from tests.machine_load import burning_cpu
 
 T = np.linspace(0, 3, 31)
 
@@ -102,3 +106,46 @@ def test_profile_interval_covers_the_truth_about_95_percent_of_the_time():
         hits += prof.lower <= 1.5 <= prof.upper
     # measured 57/60 (the Wald interval 58/60); one from half the cost rise (~83 %) would fail this
     assert hits >= 53
+
+
+def test_profile_interval_is_the_same_on_a_loaded_machine():
+    """Determinism, not timing: the walk is bounded by its steps, so the interval and every point
+    are the same, bit for bit, with two CPU-burning processes beside the fit."""
+    y = np.exp(-1.5 * T) + 0.1 * np.random.default_rng(3).standard_normal(T.size)
+    request = FitRequest.model_validate(decay_body(y, method="multiple_shooting"))
+    quiet = fit_model(request).profile["k"]
+    with burning_cpu(2):
+        loaded = fit_model(request).profile["k"]
+    assert loaded == quiet and quiet.lower is not None and quiet.upper is not None
+
+
+class _CpuCutAfter:
+    """The warm solver, its re-optimisations after the first `n` ending as Ipopt does at max_cpu_time."""
+
+    def __init__(self, solver, n: int):
+        self.solver, self.n, self.compiled = solver, n, solver.compiled
+
+    def solve(self, w0, lbw=None, ubw=None):
+        out = self.solver.solve(w0, lbw=lbw, ubw=ubw)
+        self.n -= 1
+        return out if self.n >= 0 else dataclasses.replace(out, status="Maximum_CpuTime_Exceeded", success=False)
+
+
+@pytest.mark.parametrize("cut", ["ipopt", "profiles"])
+def test_a_profile_cut_by_the_cpu_limit_is_not_computed_and_says_so(monkeypatch, cut):
+    """max_cpu_time is a safety net: a re-optimisation stopped by Ipopt's CPU limit, or the profiles'
+    own CPU time running out, leaves no interval (not an end that a quiet machine would find)."""
+    from greyfit.solvers.inference import profile as profile_mod
+    from greyfit.solvers.methods.shooting import hybrid
+    y = np.exp(-1.5 * T) + 0.1 * np.random.default_rng(3).standard_normal(T.size)
+    if cut == "ipopt":
+        warm = hybrid.make_warm_solver
+        monkeypatch.setattr(hybrid, "make_warm_solver", lambda *a: _CpuCutAfter(warm(*a), 3))
+    else:
+        ticks = iter(range(0, 10 ** 9, 1000))   # each look at the profiles' clock: 1000 CPU seconds later
+        monkeypatch.setattr(profile_mod, "time", types.SimpleNamespace(process_time=lambda: float(next(ticks))))
+    r = fit_model(FitRequest.model_validate(decay_body(y)))
+    prof = r.profile["k"]
+    assert prof.lower is None and prof.upper is None and prof.values == [] and prof.costs == []
+    assert prof.note.startswith("not computed: the CPU limit of the profiles"), prof.note
+    assert r.success and r.parameters["k"].ci95 is not None      # the fit itself is unaffected

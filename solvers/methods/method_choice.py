@@ -31,6 +31,9 @@ FALLBACK_CODES = ("simulation_failed", "non_finite_cost", "not_converged", "fit_
                   "extreme_state")
 COST_MARGIN = 1e-6              # relative: multiple shooting's answer replaces single shooting's
                                 # only when its cost is lower by more than this
+# the CPU limit's statuses (Ipopt's; a multistart's, solvers/methods/multistart.py): a safety net,
+# whose answer a quiet machine would not give
+CPU_STATUSES = ("Maximum_CpuTime_Exceeded", "Multistart_CpuTime_Exceeded")
 
 
 def choose_shooting(oem: OutputErrorModel) -> MethodChoice:
@@ -176,8 +179,17 @@ def keep_better(single: FitResult, multiple: FitResult, why: str) -> FitResult:
     FitResult
         `multiple` when `single` failed and `multiple` did not, or when its cost (both are the cost
         of one simulation from the initial state) is lower by more than `COST_MARGIN`; else `single`.
+        A `multiple` cut off by the CPU limit is never kept (its answer depends on machine load),
+        and the reason says that the CPU limit ended it.
     """
     s_cost, m_cost = _cost(single), _cost(multiple)
+    status = multiple.solver.return_status
+    if status in CPU_STATUSES:
+        single.solver.method_choice = MethodChoice(
+            requested=FitMethod.auto, ran=single.solver.method, fallback=True,
+            reason=f"{why}; multiple shooting ran after it with the CPU time left (options.max_cpu_time) and "
+                   f"was cut off by that limit ({status}): single shooting's answer is kept")
+        return single
     if single.quality == "failed" and multiple.quality != "failed":
         better = True
     elif multiple.quality == "failed" and single.quality != "failed":

@@ -186,3 +186,36 @@ def test_discovery_under_auto_finds_the_missing_effect_as_multiple_shooting_does
     auto, multiple = found["auto"].fit, found["multiple_shooting"].fit
     assert auto.solver.method_choice is not None and auto.solver.method == auto.solver.method_choice.ran
     _assert_same_optimum(auto, multiple)
+
+
+def test_a_fallback_cut_off_by_the_cpu_limit_is_not_kept_and_the_reason_says_so():
+    """The fallback runs with the CPU time single shooting left; when that limit ends it, its answer
+    (load-dependent) is not taken even where its cost is lower, and method_choice.reason says why."""
+    from greyfit.solvers.methods.method_choice import fallback_reason, keep_better
+    body = _msd_request(0.4, 60.0, max_iter=6)
+    single = _fit({**body, "method": "single_shooting"})
+    multiple = _fit({**body, "method": "multiple_shooting"})
+    assert single.quality == "failed" and multiple.metrics.cost < single.metrics.cost
+    cut = multiple.model_copy(update={"success": False, "quality": "failed", "solver": multiple.solver.model_copy(
+        update={"return_status": "Maximum_CpuTime_Exceeded"})})
+    kept = keep_better(single, cut, fallback_reason(single))
+    assert kept is single and kept.solver.method == FitMethod.single_shooting and kept.solver.method_choice.fallback
+    reason = kept.solver.method_choice.reason
+    assert "single shooting failed (Maximum_Iterations_Exceeded" in reason
+    assert "cut off by that limit (Maximum_CpuTime_Exceeded)" in reason and "options.max_cpu_time" in reason
+
+
+def test_no_cpu_time_left_for_the_fallback_is_the_reason_given(monkeypatch):
+    """Where single shooting used up max_cpu_time, multiple shooting does not run and the reason says so."""
+    import time
+    import types
+
+    from greyfit.solvers import fit as fit_mod
+    clock = iter([0.0] + [1e6] * 100)    # the fit's first look at its CPU clock, then 1e6 s later
+    monkeypatch.setattr(fit_mod, "time", types.SimpleNamespace(process_time=lambda: next(clock),
+                                                               perf_counter=time.perf_counter))
+    auto = _fit(_msd_request(0.4, 60.0, max_iter=6))
+    choice = auto.solver.method_choice
+    assert auto.solver.method == FitMethod.single_shooting and not choice.fallback
+    assert "single shooting failed (Maximum_Iterations_Exceeded" in choice.reason
+    assert choice.reason.endswith("no CPU time is left (options.max_cpu_time) to try multiple shooting"), choice.reason

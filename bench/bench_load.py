@@ -10,6 +10,15 @@ probe it delays). The peer in the same run: the same server parsing large bodies
 web process (GREYFIT_BODY_PARSER_PROCESSES=0, what it did before) instead of a parser process.
 
     python bench/bench_load.py [--seconds 15] [--clients 20 50] [--parser-processes 1 0]
+    python bench/bench_load.py --bodies [--rounds 3] [--parser-processes 1 0]
+
+`--bodies` measures instead what tests/service/test_real_server_bodies.py only checks for
+correctness: with no other load, three 20 MB fit bodies arrive at once (each parsed in full, then
+refused by the server's sample limit), /healthz probed in open loop meanwhile; it prints the probes'
+p50/p95/max and, for scale, one parse and validation of such a body in this process (parsed in the
+web process the burst stalled the probes for about four parses: p95 934 ms with one parse 214 ms;
+in a parser process the probes waited only for their share of the CPU: p95 ~30 ms quiet, 337 ms at
+load 3.6 with one parse at 334 ms).
 
 Bounded: loopback only, a fixed duration per row, every client stops by itself.
 """
@@ -31,7 +40,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from greyfit.schemas import FitRequest  # noqa: E402
+from greyfit.service.json_parsing import parse_and_validate  # noqa: E402
 from tests.servers import free_port, large_fit_request, msd_request, probe_healthz, start_server, stop_server  # noqa: E402
+
+BODIES_MEGABYTES = 20
 
 
 def tree_rss_mb(pid: int) -> float:
@@ -110,13 +123,75 @@ def run_row(base: str, pid: int, clients: int, seconds: float, burst: bytes | No
             "healthz_max_ms": max(health) * 1e3 if health else float("nan")}
 
 
+def parse_seconds(body: bytes) -> float:
+    """Wall time of one parse and validation of `body` in this process, as a parser process does it."""
+    started = time.perf_counter()
+    outcome, _ = parse_and_validate(FitRequest, body)
+    assert outcome == "ok", outcome
+    return time.perf_counter() - started
+
+
+def run_bodies_row(base: str, body: bytes) -> dict:
+    """/healthz probed in open loop while three copies of `body` are posted at once."""
+    stop = threading.Event()
+    health: list[float] = []
+    statuses: collections.Counter = collections.Counter()
+    prober = threading.Thread(target=lambda: health.extend(probe_healthz(base, stop)))
+    prober.start()
+
+    def post(_: int) -> None:
+        resp = httpx.post(f"{base}/v1/fits", content=body, timeout=120, headers={"content-type": "application/json"})
+        statuses[resp.status_code] += 1
+
+    posts = [threading.Thread(target=post, args=(i,)) for i in range(3)]
+    time.sleep(0.2)
+    for t in posts:
+        t.start()
+    for t in posts:
+        t.join()
+    stop.set()
+    prober.join()
+    return {"p50": np.percentile(health, 50) * 1e3, "p95": np.percentile(health, 95) * 1e3,
+            "max": max(health) * 1e3, "probes": len(health), "statuses": dict(statuses)}
+
+
+def bodies_main(args: argparse.Namespace) -> None:
+    """The --bodies rows: three 20 MB bodies at once, per parser setting, `args.rounds` fresh servers."""
+    fit = large_fit_request(BODIES_MEGABYTES)
+    n = len(fit["experiments"][0]["time"])
+    body = json.dumps(fit).encode()
+    print(f"{'parser':>6s} {'round':>5s} {'healthz p50':>11s} {'p95 ms':>7s} {'max ms':>7s} {'probes':>6s} "
+          f"{'one parse ms':>12s} {'load avg':>8s}  answers")
+    for processes in args.parser_processes:
+        for k in range(args.rounds):
+            port = free_port()
+            with tempfile.TemporaryDirectory() as tmp:
+                server = start_server(Path(tmp), port, workers=1, GREYFIT_MAX_SAMPLES_PER_EXPERIMENT=str(n - 1),
+                                      GREYFIT_BODY_PARSER_PROCESSES=str(processes))
+                try:
+                    one = parse_seconds(body)
+                    row = run_bodies_row(f"http://127.0.0.1:{port}", body)
+                    one = (one + parse_seconds(body)) / 2
+                finally:
+                    stop_server(server)
+            where = f"{processes} proc" if processes else "thread"
+            print(f"{where:>6s} {k:5d} {row['p50']:11.0f} {row['p95']:7.0f} {row['max']:7.0f} {row['probes']:6d} "
+                  f"{one * 1e3:12.0f} {os.getloadavg()[0]:8.1f}  {row['statuses']}")
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seconds", type=float, default=15.0)
     parser.add_argument("--clients", type=int, nargs="+", default=[20, 50])
     parser.add_argument("--parser-processes", type=int, nargs="+", default=[1, 0],
                         help="GREYFIT_BODY_PARSER_PROCESSES of each server (0: parse in a thread)")
+    parser.add_argument("--bodies", action="store_true",
+                        help="three 20 MB bodies at once and nothing else (the test_real_server_bodies scenario)")
+    parser.add_argument("--rounds", type=int, default=3, help="--bodies: fresh servers per parser setting")
     args = parser.parse_args()
+    if args.bodies:
+        bodies_main(args)
+        return
     burst = large_body(40)
     rows = []
     for processes in args.parser_processes:

@@ -94,14 +94,18 @@ def large_fit_request(megabytes: float) -> dict:
     return body
 
 
-def probe_healthz(base: str, stop: threading.Event, every: float = 0.025) -> list[float]:
-    """Latencies of /healthz probes sent on a fixed schedule until `stop` is set."""
+def probe_healthz(base: str, stop: threading.Event, every: float = 0.025,
+                  answers: list[tuple[float, int]] | None = None) -> list[float]:
+    """Latencies of /healthz probes sent on a fixed schedule until `stop` is set; `answers`, when
+    given, receives (time.perf_counter() when answered, status code) of each probe."""
     async def run() -> list[float]:
         latencies: list[float] = []
         async with httpx.AsyncClient(base_url=base, timeout=60) as http:
             async def one(due: float) -> None:
-                await http.get("/healthz")
+                response = await http.get("/healthz")
                 latencies.append(time.perf_counter() - due)
+                if answers is not None:
+                    answers.append((time.perf_counter(), response.status_code))
 
             tasks, due = [], time.perf_counter()
             while not stop.is_set():

@@ -2,15 +2,12 @@
 
 Parsing a 30 MB JSON body takes about a second of CPU with the interpreter lock held, so it cannot
 run in the web process (not even in a thread: the lock stalls the event loop just the same).
-/healthz is probed in open loop (one probe every 25 ms, each timed from when it was due), so a
-stall shows up in every probe it delays, not only in the one that was waiting.
+/healthz is probed in open loop (one probe every 25 ms) while three 20 MB bodies arrive at once.
 
-The bound scales with the machine: two parses of one body in this process, measured around the
-burst, and at least 0.5 s. Parsed in the web process (`GREYFIT_BODY_PARSER_PROCESSES=0`) the three
-bodies stalled the probes for about four such parses (p95 934 ms, one parse 214 ms); in parser
-processes the probes wait only for their share of the CPU (p95 ~30 ms on a quiet machine, 337 ms
-with one parse at 334 ms at load 3.6). A fixed 0.5 s measured the load instead: it failed at
-load 3.5, where everything, the probes included, ran several times slower.
+What is asserted is not timing (issue 22: no test asserts a wall-clock bound): every probe is
+answered 200, probes are answered while the bodies are still being parsed, and every body gets its
+right answer. How long the probes wait (p95 ~30 ms on a quiet machine with parser processes, about
+four parses when parsing in the web process) is measured by `bench/bench_load.py --bodies`.
 """
 import copy
 import json
@@ -18,11 +15,8 @@ import threading
 import time
 
 import httpx
-import numpy as np
 import pytest
 
-from greyfit.schemas import FitRequest
-from greyfit.service.json_parsing import parse_and_validate
 from tests.servers import (  # noqa: F401  (re-exported for the tests that import them from here)
     free_port,
     large_fit_request,
@@ -34,15 +28,6 @@ from tests.servers import (  # noqa: F401  (re-exported for the tests that impor
 )
 
 BODY_MEGABYTES = 20
-HEALTHZ_P95_FLOOR_S = 0.5
-
-
-def parse_seconds(body: bytes) -> float:
-    """Wall time of one parse and validation of `body` in this process, as a parser process does it."""
-    started = time.perf_counter()
-    outcome, _ = parse_and_validate(FitRequest, body)
-    assert outcome == "ok", outcome
-    return time.perf_counter() - started
 
 
 def split_in_two(request: dict) -> dict:
@@ -71,10 +56,10 @@ def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
     server = start_server(tmp_path, port, workers=1, GREYFIT_MAX_SAMPLES_PER_EXPERIMENT=str(n - 1))
     try:
         answers: dict[str, httpx.Response] = {}
+        answered_at: dict[str, float] = {}
         stop = threading.Event()
-        latencies: list[float] = []
-        one_parse = parse_seconds(bodies["/v1/fits"])
-        prober = threading.Thread(target=lambda: latencies.extend(probe_healthz(base, stop)))
+        probes: list[tuple[float, int]] = []
+        prober = threading.Thread(target=lambda: probe_healthz(base, stop, answers=probes))
         prober.start()
 
         def post(path: str, content: bytes) -> None:
@@ -83,20 +68,22 @@ def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
                                            headers={"content-type": "application/json"})
             except httpx.HTTPError as exc:
                 answers[path] = exc
+            answered_at[path] = time.perf_counter()
 
         posts = [threading.Thread(target=post, args=item) for item in bodies.items()]
         time.sleep(0.2)
+        sent = time.perf_counter()
         for t in posts:
             t.start()
         for t in posts:
             t.join()
         stop.set()
         prober.join()
-        one_parse = (one_parse + parse_seconds(bodies["/v1/fits"])) / 2
-        p95, worst = float(np.percentile(latencies, 95)), max(latencies)
-        print(f"/healthz during the burst: p50 {np.median(latencies) * 1e3:.0f} ms, p95 {p95 * 1e3:.0f} ms, "
-              f"max {worst * 1e3:.0f} ms over {len(latencies)} probes; one parse here {one_parse * 1e3:.0f} ms")
 
+        # /healthz answered throughout: every probe 200, and some answered while the bodies were parsed
+        assert probes and all(status == 200 for _, status in probes), sorted({s for _, s in probes})
+        assert any(sent < at < min(answered_at.values()) for at, _ in probes), \
+            "no /healthz answer came while the large bodies were being parsed"
         statuses = {path: getattr(a, "status_code", repr(a)) for path, a in answers.items()}
         assert statuses == {"/v1/fits": 422, "/v1/jobs": 422, "/v1/jobs ": 202}, \
             {p: getattr(a, "text", "")[:300] for p, a in answers.items()}
@@ -104,8 +91,6 @@ def test_healthz_answers_during_a_burst_of_large_bodies(tmp_path):
         assert [e["loc"] for e in answers["/v1/fits"].json()["errors"]] == ["experiments[0].time"]
         assert [e["loc"] for e in answers["/v1/jobs"].json()["errors"]] == \
             [f"requests[0].experiments[0].outputs.x[{n - 1}]"]
-        bound = max(HEALTHZ_P95_FLOOR_S, 2 * one_parse)
-        assert p95 < bound, f"/healthz p95 {p95:.2f} s, max {worst:.2f} s; one parse here {one_parse:.2f} s"
 
         job = wait_until_finished(base, answers["/v1/jobs "].json()["id"], timeout=60)
         assert job["status"] == "failed"

@@ -134,7 +134,7 @@ def bound_warnings(result: FitResult) -> list[FitWarning]:
 def assess_frequency_fit(result: FitResult, *, sets: list[FrequencySet], layout: ParameterLayout,
                          theta_s: np.ndarray, converged: bool, status: str, nlp_cost: float,
                          covariance: CovarianceEstimate, jac: np.ndarray, keep: np.ndarray,
-                         stability_enforced: bool) -> FitResult:
+                         stability_enforced: bool, before: list[FitWarning] | None = None) -> FitResult:
     """The quality verdict of a frequency fit: `assess_fit`'s checks plus the frequency ones.
 
     Parameters
@@ -161,6 +161,8 @@ def assess_frequency_fit(result: FitResult, *, sets: list[FrequencySet], layout:
         (nθ,) booleans: the columns not at a bound.
     stability_enforced : bool
         Whether an unstable fitted loop is a failure of the fit (routh, penalty).
+    before : list of FitWarning, optional
+        Warnings found before the checks (the multistart's `multiple_optima`).
 
     Returns
     -------
@@ -169,7 +171,7 @@ def assess_frequency_fit(result: FitResult, *, sets: list[FrequencySet], layout:
         `parameter_at_bound` warning is dropped where `estimate_at_bound` already names the parameter.
     """
     fr = result.frequency_response
-    before = bound_warnings(result) + ([] if fr is None else fit_level_warnings(result, fr, sets))
+    before = list(before or []) + bound_warnings(result) + ([] if fr is None else fit_level_warnings(result, fr, sets))
     if fr is not None and stability_enforced and not fr.stable:
         bad = [lp.setting for lp in fr.loops if not lp.stable]
         before.append(FitWarning(code=UNSTABLE, message=f"the fitted closed loop is unstable for {bad}",

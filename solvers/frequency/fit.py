@@ -35,7 +35,14 @@ from greyfit.solvers.frequency.response import numeric_response
 from greyfit.solvers.frequency.stability import poles, routh_first_column
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.statistics import information_criteria
-from greyfit.solvers.methods.multistart import MULTISTART_CPU_STATUS, draw_starts
+from greyfit.solvers.methods.multistart import (
+    CPU_STATUSES,
+    MULTISTART_CPU_STATUS,
+    MultistartRun,
+    draw_starts,
+    multistart_agreement,
+    multistart_warnings,
+)
 from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.model.parameters import build_layout
 from greyfit.solvers.nlp.solver import SUCCESS_STATUSES, LeastSquaresSolver, NlpOutcome
@@ -64,23 +71,32 @@ def _interior(theta: np.ndarray, layout) -> np.ndarray:
     return np.clip(theta, lo + 1e-3 * width, hi - 1e-3 * width)
 
 
-def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: FitOptions):
+def _solve_multistart(fp: FrequencyProblem, starts: list[np.ndarray], options: FitOptions) -> MultistartRun:
+    """Every start to its own end (iteration limits only); the best: converged and feasible first,
+    then feasible, then the lower cost. In the run's `outcomes` (read by `multistart_agreement`
+    only) `success` also asks feasibility, so only feasible converged starts count as optima.
+    `max_cpu_time` is a safety net: when it cuts the multistart off, or ends one start's solve,
+    the best is not converged, with status MULTISTART_CPU_STATUS."""
     solver = LeastSquaresSolver(fp.problem, options)
     best: NlpOutcome | None = None
     best_key: tuple[bool, bool, float] | None = None   # set together with best
+    outcomes: list[NlpOutcome] = []
     cpu0 = time.process_time()
-    used = 0
     for theta0 in starts:
         if best is not None and time.process_time() - cpu0 > options.max_cpu_time:
-            # the safety net cuts the multistart off, and says so: not the answer of all starts
-            best = dataclasses.replace(best, status=MULTISTART_CPU_STATUS, success=False)
             break
         out = solver.solve(fp.problem.initial_guess(theta0))
-        used += 1
-        key = (out.success and _feasible(fp, out.w), _feasible(fp, out.w), -out.cost)
+        feasible = _feasible(fp, out.w)
+        outcomes.append(dataclasses.replace(out, success=out.success and feasible))
+        key = (out.success and feasible, feasible, -out.cost)
         if best_key is None or key > best_key:
             best, best_key = out, key
-    return best, used
+    if best is None:
+        raise ValueError("no start to solve from")   # starts always hold the user's guess
+    if len(outcomes) > 1 and (len(outcomes) < len(starts) or any(o.status in CPU_STATUSES for o in outcomes)):
+        # the safety net cut the multistart off, and says so: not the answer of all starts
+        best = dataclasses.replace(best, status=MULTISTART_CPU_STATUS, success=False)
+    return MultistartRun(best, outcomes, len(starts))
 
 
 def _loop_report(loop: ClosedLoop, p: np.ndarray) -> LoopStability:
@@ -179,7 +195,8 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         if np.all(np.isfinite(levy.theta)) and levy.status in SUCCESS_STATUSES:   # else it is just the start
             levy_theta = levy.theta
             starts.insert(0, _interior(levy.theta, layout))
-    outcome, n_starts = _solve_multistart(fp, starts, engine_opts)
+    run = _solve_multistart(fp, starts, engine_opts)
+    outcome, n_starts = run.best, run.used
     if not np.all(np.isfinite(np.array(fp.data_residual(outcome.w), dtype=float))):
         # e.g. a linearised model whose equilibrium does not exist there: report the start instead
         outcome.w, outcome.success = fp.problem.initial_guess(layout.initial), False
@@ -244,9 +261,15 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
                           wall_time_s=time.perf_counter() - started, return_status=outcome.status,
                           starts=n_starts),
         frequency_response=response), request.model)
+    # as in the time domain: how many starts reached the best cost, and the distinct optima as good
+    agree = multistart_agreement(run, layout, ndata, nvarys, opts.confidence_level)
+    if agree is not None:
+        result.solver.starts_at_best = agree.starts_at_best
+        result.alternative_optima = agree.optima or None
     return assess_frequency_fit(result, sets=sets, layout=layout, theta_s=theta_s, converged=outcome.success,
                                 status=outcome.status, nlp_cost=outcome.cost, covariance=cov, jac=jac, keep=keep,
-                                stability_enforced=opts.stability in ("routh", "penalty"))
+                                stability_enforced=opts.stability in ("routh", "penalty"),
+                                before=multistart_warnings(run, agree))
 
 
 def _active_stability(fp: FrequencyProblem, w: np.ndarray, margin: float) -> list[str]:

@@ -101,3 +101,61 @@ def test_the_course_notes_own_log_cost_on_the_example_is_not_good():
     else:
         assert not res.success and res.warnings
     assert max(errors) > 1 and res.quality == "failed" and any(w.code == "not_converged" for w in res.warnings)
+
+
+SWAP_OMEGA = np.logspace(-2, 3, 40)
+
+
+def two_lags_request(multistart: int, levy_start: bool = True) -> dict:
+    """K/((s + a)(s + b)) as K/(s² + (a + b) s + a b): (a, b) and (b, a) give the same response, two
+    optima of one cost. Truth a = 1, b = 10, K = 10; 1 % relative complex noise."""
+    s = 1j * SWAP_OMEGA
+    g = noisy(10.0 / ((s + 1.0) * (s + 10.0)), 0.01, seed=0)
+    bounds = {"lower": 0.1, "upper": 100.0}
+    model = {"kind": "transfer_function", "numerator": ["K"], "denominator": ["1", "a + b", "a*b"],
+             "parameters": [{"name": "a", "value": 0.5, **bounds}, {"name": "b", "value": 20.0, **bounds},
+                            {"name": "K", "value": 5.0, "lower": 0.1, "upper": 1000.0}]}
+    return {"model": model, "data": [{"omega": SWAP_OMEGA.tolist(), "real": g.real.tolist(), "imag": g.imag.tolist()}],
+            "options": {"multistart": multistart, "levy_start": levy_start}}
+
+
+@pytest.mark.parametrize("levy_start", [True, False])
+def test_a_frequency_multistart_lists_both_orderings_of_two_swappable_lags(levy_start):
+    """As the time-domain multistart does: the starts that reached the best cost are counted and the
+    distinct optima of indistinguishable cost listed; two are `multiple_optima`, not `good`."""
+    r = fit_frequency_response(FrequencyFitRequest.model_validate(two_lags_request(8, levy_start)))
+    assert r.solver.starts == 8 + levy_start and r.solver.starts_at_best == r.solver.starts
+    optima = r.alternative_optima
+    assert optima is not None and len(optima) == 2 and sum(o.starts for o in optima) == r.solver.starts
+    pairs = sorted((round(o.parameters["a"], 2), round(o.parameters["b"], 2)) for o in optima)
+    assert pairs == [(1.0, 10.0), (10.0, 1.0)]
+    assert all(o.parameters["K"] == pytest.approx(10.0, rel=0.01) for o in optima)
+    assert "multiple_optima" in [w.code for w in r.warnings] and r.quality == "suspect" and not r.success
+
+
+def test_frequency_starts_that_agree_are_counted_and_the_fit_stays_good():
+    """One optimum (a ≤ b by bounds): every start reaches it, one optimum listed, no warning."""
+    body = two_lags_request(6)
+    body["model"]["parameters"][0]["upper"] = 3.0
+    body["model"]["parameters"][1]["lower"] = 3.0
+    r = fit_frequency_response(FrequencyFitRequest.model_validate(body))
+    assert r.solver.starts == 7 and r.solver.starts_at_best == 7
+    assert len(r.alternative_optima) == 1 and r.alternative_optima[0].starts == 7
+    assert r.quality == "good", [w.code for w in r.warnings]
+
+
+def test_a_start_ended_by_the_cpu_limit_fails_the_frequency_multistart(monkeypatch):
+    """The last start stopped by Ipopt's max_cpu_time: the others' best is not the multistart's answer."""
+    import dataclasses
+
+    from greyfit.solvers.frequency import fit as frequency_fit
+    real, calls = frequency_fit.LeastSquaresSolver.solve, []
+
+    def last_cut(self, w0, *args, **kwargs):
+        out = real(self, w0, *args, **kwargs)
+        calls.append(out)
+        return dataclasses.replace(out, status="Maximum_CpuTime_Exceeded", success=False) if len(calls) == 3 else out
+
+    monkeypatch.setattr(frequency_fit.LeastSquaresSolver, "solve", last_cut)
+    r = fit_frequency_response(FrequencyFitRequest.model_validate(two_lags_request(3, levy_start=False)))
+    assert len(calls) == 3 and r.solver.return_status == "Multistart_CpuTime_Exceeded" and r.quality == "failed"

@@ -186,7 +186,7 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     fp = build_frequency_problem(tf, loops, stability_loops, sets, layout, opts)
 
     starts = draw_starts(layout, opts.multistart, opts.seed)
-    levy_theta = None
+    levy_theta, levy_status = None, None
     if opts.levy_start:
         # unconstrained: a constrained Levy step lands on a bound far from the truth and SK cannot
         # leave it (seen on the frequency-data course notes' structure); bounds and constraints act in the fit proper
@@ -195,7 +195,11 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
         if np.all(np.isfinite(levy.theta)) and levy.status in SUCCESS_STATUSES:   # else it is just the start
             levy_theta = levy.theta
             starts.insert(0, _interior(levy.theta, layout))
+        levy_status = levy.status
     run = _solve_multistart(fp, starts, engine_opts)
+    if levy_status in CPU_STATUSES:
+        # the safety net stopped the Levy fit: the start a quiet machine has is missing, so no answer
+        run.best = dataclasses.replace(run.best, status=levy_status, success=False)
     outcome, n_starts = run.best, run.used
     if not np.all(np.isfinite(np.array(fp.data_residual(outcome.w), dtype=float))):
         # e.g. a linearised model whose equilibrium does not exist there: report the start instead

@@ -22,6 +22,8 @@ from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.nlp.problem import LeastSquaresProblem
 from greyfit.solvers.nlp.solver import LeastSquaresSolver, solve_linear_least_squares
 
+CPU_LIMIT_STATUS = "Maximum_CpuTime_Exceeded"   # Ipopt's, at options.max_cpu_time
+
 
 @dataclass
 class LevyOutcome:
@@ -88,7 +90,7 @@ def levy_fit(loops: list[ClosedLoop], sets: list[FrequencySet], layout: Paramete
     -------
     LevyOutcome
         The physical estimate (layout order), the number of SK reweightings done and the last
-        solver status.
+        solver status, or CPU_LIMIT_STATUS where the CPU limit stopped any of the solves.
     """
     options = options or FitOptions(max_iter=500, tol=1e-10)
     theta = ca.MX.sym("theta", layout.size)
@@ -106,6 +108,7 @@ def levy_fit(loops: list[ClosedLoop], sets: list[FrequencySet], layout: Paramete
     weights = [np.full(s.omega.size, common) for s in sets]
     w_s, status = _solve(theta, _levy_residual(theta, loops, sets, layout, weights), layout, constrained,
                          g, lbg, ubg, options)
+    cut = status if status == CPU_LIMIT_STATUS else None
     done = 0
     for _ in range(iterations):
         weights = []
@@ -115,9 +118,10 @@ def levy_fit(loops: list[ClosedLoop], sets: list[FrequencySet], layout: Paramete
             weights.append(dw / np.maximum(np.hypot(dr, di), 1e-300))
         new_w, status = _solve(theta, _levy_residual(theta, loops, sets, layout, weights), layout,
                                constrained, g, lbg, ubg, options)
+        cut = cut or (status if status == CPU_LIMIT_STATUS else None)
         done += 1
         step = np.max(np.abs(new_w - w_s) / np.maximum(np.abs(w_s), 1e-12))
         w_s = new_w
         if step < 1e-10:
             break
-    return LevyOutcome(layout.physical(w_s), done, status)
+    return LevyOutcome(layout.physical(w_s), done, cut or status)

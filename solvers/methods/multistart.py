@@ -218,7 +218,7 @@ def solve_from_starts(problem: LeastSquaresProblem, options: FitOptions, starts:
         Where no Gauss-Newton start converged, its best is polished with the exact Hessian
         (`polish_with_exact_hessian`). Its `best` is not converged, with status
         MULTISTART_CPU_STATUS, when max_cpu_time would run out before the next start ended
-        (judged by the mean CPU time of the starts so far).
+        (judged by the mean CPU time of the starts so far), or when it ended a start's own solve.
     """
     if linear:
         outcome = solve_linear_least_squares(problem, options)
@@ -241,6 +241,9 @@ def solve_from_starts(problem: LeastSquaresProblem, options: FitOptions, starts:
             best = out
     if best is None:
         raise ValueError("no start to solve from")   # starts always hold the user's guess
+    if len(outcomes) > 1 and any(o.status in CPU_STATUSES for o in outcomes):
+        # a start the safety net stopped (the last one: an earlier one's CPU ends the loop above)
+        best = replace(best, status=MULTISTART_CPU_STATUS, success=False)
     run = MultistartRun(best, outcomes, len(starts), solver.compiled)
     polish_with_exact_hessian(problem, options, run, exact)
     return run

@@ -159,3 +159,16 @@ def test_a_start_ended_by_the_cpu_limit_fails_the_frequency_multistart(monkeypat
     monkeypatch.setattr(frequency_fit.LeastSquaresSolver, "solve", last_cut)
     r = fit_frequency_response(FrequencyFitRequest.model_validate(two_lags_request(3, levy_start=False)))
     assert len(calls) == 3 and r.solver.return_status == "Multistart_CpuTime_Exceeded" and r.quality == "failed"
+
+
+def test_a_levy_fit_stopped_by_the_cpu_limit_fails_the_frequency_fit(monkeypatch):
+    """Without the Levy start a quiet machine has, the starts' best is no answer: failed, with the status."""
+    from greyfit.solvers.frequency import fit as frequency_fit
+    from greyfit.solvers.frequency.levy import LevyOutcome
+
+    def cut(loops, sets, layout, **kwargs):
+        return LevyOutcome(layout.initial.copy(), 0, "Maximum_CpuTime_Exceeded")
+
+    monkeypatch.setattr(frequency_fit, "levy_fit", cut)
+    r = fit_frequency_response(FrequencyFitRequest.model_validate(two_lags_request(1)))
+    assert r.solver.return_status == "Maximum_CpuTime_Exceeded" and r.quality == "failed" and not r.success

@@ -109,3 +109,27 @@ def test_cpu_limit_cuts_the_multistart_off_with_a_status():
     assert r.solver.starts < 60
     assert r.solver.return_status in (MULTISTART_CPU_STATUS, "Maximum_CpuTime_Exceeded")
     assert r.quality == "failed" and not r.success
+
+
+def test_a_last_start_stopped_by_the_cpu_limit_fails_the_multistart(monkeypatch):
+    """The safety net inside a start's own solve: when it stops the last start, the earlier starts'
+    best is not the multistart's answer (that start might have done better on a quiet machine)."""
+    import dataclasses
+
+    from greyfit.solvers.methods import multistart
+    real = multistart.make_solver
+
+    class LastCut:
+        def __init__(self, solver):
+            self.solver, self.compiled, self.calls = solver, solver.compiled, 0
+
+        def solve(self, w0, lbw=None, ubw=None):
+            out = self.solver.solve(w0, lbw, ubw)
+            self.calls += 1
+            return dataclasses.replace(out, status="Maximum_CpuTime_Exceeded", success=False) \
+                if self.calls == 4 else out
+
+    monkeypatch.setattr(multistart, "make_solver", lambda *a: LastCut(real(*a)))
+    r = fit_model(FitRequest.model_validate(kinetics_body(("A", "C"), multistart=4)))
+    assert r.solver.starts == 4 and r.solver.return_status == MULTISTART_CPU_STATUS
+    assert r.quality == "failed" and not r.success

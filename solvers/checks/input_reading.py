@@ -27,6 +27,7 @@ from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
 from greyfit.solvers.data.preprocess import held_inputs
 from greyfit.solvers.data.refine import (
     DEFAULT_FACTOR,
+    MAX_FACTOR,
     cubic_on_finer_grid,
     factor_for,
     linear_on_finer_grid,
@@ -80,6 +81,14 @@ def _finer(d: ExperimentData, factor: int) -> tuple[ExperimentData, ExperimentDa
     y[:, ::factor] = d.y
     return (ExperimentData(d.name, t, u_cubic, y, d.x0_known, {}),
             ExperimentData(d.name, t, linear_on_finer_grid(d.t, d.u, factor), y, d.x0_known, {}))
+
+
+def _factor_keeping_step(substeps: int, wanted: int) -> int | None:
+    """A refinement whose grid keeps the user's RK4 step exactly: a divisor of `substeps` between
+    `DEFAULT_FACTOR` and `MAX_FACTOR`, the least one at or above `wanted`, else the largest; None
+    when there is none."""
+    divisors = [d for d in range(DEFAULT_FACTOR, MAX_FACTOR + 1) if substeps % d == 0]
+    return min([d for d in divisors if d >= wanted], default=max(divisors, default=None))
 
 
 def linear_reading(request: FitRequest, result: FitResult) -> LinearReading | None:
@@ -155,8 +164,8 @@ def cubic_retry(request: FitRequest, result: FitResult, report: PreprocessingRep
         The preprocessing report: only a linear reading that `auto` chose (every input smooth) is
         revisited.
     substeps_given : bool
-        Whether the user set `options.substeps`: then the finer grid must keep their step (at least
-        as many substeps as the refinement factor), else the shift is reported instead of refitted.
+        Whether the user set `options.substeps`: then the finer grid must keep their step exactly
+        (a refinement that divides the substeps), else the shift is reported instead of refitted.
 
     Returns
     -------
@@ -174,23 +183,24 @@ def cubic_retry(request: FitRequest, result: FitResult, report: PreprocessingRep
     if reading is None or reading.shift < REFIT_SHIFT:
         return None, []
     substeps = request.options.substeps
-    if substeps_given and substeps < reading.factor:
+    factor = _factor_keeping_step(substeps, reading.factor) if substeps_given else reading.factor
+    if factor is None:
         inputs = list(request.model.inputs)
         return None, [FitWarning(
             code="input_faster_than_sampling",
             message=f"read as linear between samples, input(s) {inputs} bias the estimates: a cubic reading of "
                     f"the same samples moves {reading.worst} by {reading.shift:.2g} standard errors, and with "
-                    f"options.substeps = {substeps} the record cannot be refitted on a {reading.factor}x finer "
-                    f"grid at the same step; leave substeps to the fit (or set at least {reading.factor}), "
-                    "set input_interpolation to 'cubic', or give the inputs on a finer time grid",
+                    f"options.substeps = {substeps} the record cannot be refitted on a finer grid at the same "
+                    f"step (that needs substeps divisible by {DEFAULT_FACTOR}-{MAX_FACTOR}); leave substeps to the "
+                    "fit, set input_interpolation to 'cubic', or give the inputs on a finer time grid",
             detail={"inputs": inputs, "parameter": reading.worst, "shift_in_stderr": reading.shift,
                     "shifts": reading.shifts})]
-    refined = refine_request(request, reading.factor)
+    refined = refine_request(request, factor)
     model = refined.model.model_copy(update={"parameters": [at_estimate(p, result) for p in refined.model.parameters]})
     note = (f"{report.interpolation_note}; read as linear, they moved {reading.worst} by {reading.shift:.2g} "
             f"standard errors (a cubic reading of the same samples), so the fit was refitted with the inputs read "
-            f"as cubics between samples ({reading.factor} points per sample interval)")
+            f"as cubics between samples ({factor} points per sample interval)")
     per_input = {name: "cubic" for name in report.input_interpolation}
     new_report = report.model_copy(update={"input_interpolation": per_input, "interpolation_note": note,
-                                           "input_refinement": reading.factor})
+                                           "input_refinement": factor})
     return (refined.model_copy(update={"model": model}), new_report), []

@@ -50,10 +50,14 @@ class ExperimentPreprocessing(BaseModel):
 class PreprocessingReport(BaseModel):
     experiments: list[ExperimentPreprocessing] = Field(default_factory=list)
     hints: list[Hint] = Field(default_factory=list)
-    input_interpolation: dict[str, Literal["foh", "zoh"]] = Field(
-        default_factory=dict, description="per input, how it was taken between samples: held (zoh) or "
-        "linear (foh); chosen from the data when options.input_interpolation is 'auto'")
+    input_interpolation: dict[str, Literal["foh", "zoh", "cubic"]] = Field(
+        default_factory=dict, description="per input, how it was taken between samples: held (zoh), "
+        "linear (foh) or a cubic through the samples (cubic); chosen from the data when "
+        "options.input_interpolation is 'auto'")
     interpolation_note: Optional[str] = Field(default=None, description="why, when chosen automatically")
+    input_refinement: Optional[int] = Field(
+        default=None, description="points per sample interval of the finer grid the inputs were read on "
+        "(a cubic reading); the outputs, residuals and counts stay those of the original samples")
     substeps: Optional[int] = Field(
         default=None, description="RK4 steps per sample interval chosen from the model's fastest mode "
         "along the simulation at the initial guess (options.substeps not given)")

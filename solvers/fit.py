@@ -26,6 +26,7 @@ from greyfit.schemas.fit import (
     ParameterEstimate,
     SolverInfo,
 )
+from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.diagnostics import residual_analyses
 from greyfit.solvers.checks.fit_checks import (
     active_constraints,
@@ -34,11 +35,13 @@ from greyfit.solvers.checks.fit_checks import (
     row_keys,
     state_peaks,
 )
+from greyfit.solvers.checks.input_reading import cubic_retry
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
 from greyfit.solvers.checks.step_choice import choose_substeps, substeps_retry
 from greyfit.solvers.checks.verdict import review_fit
 from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.preprocess import prepare_request
+from greyfit.solvers.data.refine import DEFAULT_FACTOR, refine_request, thin_traces
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.profile import check_profile_names, run_profiles
@@ -55,7 +58,7 @@ from greyfit.solvers.methods.multistart import (
     multistart_warnings,
 )
 from greyfit.solvers.methods.node_initialisation import node_warnings
-from greyfit.solvers.methods.registry import batch_method, online_method
+from greyfit.solvers.methods.registry import batch_method, online_method, simulates_outputs
 from greyfit.solvers.model.carried import attach_model
 from greyfit.solvers.model.compiler import compile_model, guard_notes
 from greyfit.solvers.model.parameters import ParameterLayout, build_layout
@@ -106,20 +109,61 @@ def fit_model(request: FitRequest) -> FitResult:
     online = online_method(request.method)
     if online is not None:
         return attach_model(online.fit(request), request.model)
-    prepared, preprocessing = choose_substeps(*prepare_request(request))
+    prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
     result = _fit_chosen(prepared)
     # from here on the request names the method that ran: the checks after the fit ask it
     prepared = prepared.model_copy(update={"method": result.solver.method})
     retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
     if retry is not None:   # the chosen substeps proved coarse at the estimates: once more, finer
-        choice = result.solver.method_choice
-        (prepared, preprocessing), result = retry, _fit_prepared(retry[0])
-        result.solver.method_choice = choice
+        (prepared, preprocessing), result = retry, _refit(retry[0], result)
+    given = "substeps" in request.options.model_fields_set
+    retry, late = cubic_retry(prepared, result, preprocessing, given)
+    if retry is not None:   # smooth inputs read as ramps moved the estimates: once more, read as cubics
+        (prepared, preprocessing), result = retry, _refit(retry[0], result)
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
+    if preprocessing is not None and preprocessing.input_refinement:
+        thin_traces(result, preprocessing.input_refinement)
     # lack of fit and input handling in the verdict; units and the model travel with the result
-    return attach_model(review_fit(prepared, result), request.model)
+    return attach_model(review_fit(prepared, result, late), request.model)
+
+
+def _refit(request: FitRequest, first: FitResult) -> FitResult:
+    """`_fit_prepared` of a retry, keeping the first fit's method choice (the retry names the method)."""
+    choice = first.solver.method_choice
+    result = _fit_prepared(request)
+    result.solver.method_choice = choice
+    return result
+
+
+def read_cubic_inputs(request: FitRequest, report: PreprocessingReport | None):
+    """`input_interpolation: cubic` made concrete: an output-error fit runs on the records' finer grid
+    (`refine_request`); equation error reads the inputs through its derivative filter, as linear.
+
+    Parameters
+    ----------
+    request : FitRequest
+        The prepared request (substeps chosen).
+    report : PreprocessingReport or None
+        Its preprocessing report.
+
+    Returns
+    -------
+    request : FitRequest
+        The request to fit: refined, or with ``foh``; itself unless the interpolation is ``cubic``.
+    report : PreprocessingReport or None
+        The report, with `input_refinement` (or a note) added.
+    """
+    if request.options.input_interpolation != "cubic":
+        return request, report
+    report = report or PreprocessingReport()
+    if not simulates_outputs(request.method) or request.model.discrete is not None:
+        options = request.options.model_copy(update={"input_interpolation": "foh"})
+        note = "equation error and difference equations read the inputs at the samples: cubic is taken as linear"
+        return request.model_copy(update={"options": options}), report.model_copy(update={
+            "input_interpolation": {n: "foh" for n in report.input_interpolation}, "interpolation_note": note})
+    return refine_request(request, DEFAULT_FACTOR), report.model_copy(update={"input_refinement": DEFAULT_FACTOR})
 
 
 def _fit_chosen(request: FitRequest) -> FitResult:

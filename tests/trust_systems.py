@@ -5,7 +5,8 @@ fine grid, or scipy), each in the scenarios the verdict must tell apart:
 
 - a thermal RC node (temperature rise x above ambient, heater power P held between samples, a
   PRBS-like digital output): C dx/dt = P - x/R [- h x^2];
-- a pendulum measured by its angle only, driven by a smooth torque (a sum of sines) or by a held one:
+- a pendulum measured by its angle only, driven by a smooth torque (a sum of sines, sampled) or by a
+  held one:
   dθ/dt = ω, dω/dt = -a sin θ - b ω + u [- cd ω|ω|].
 
 The missing nonlinear term of the "slightly wrong" scenario is scaled so that its RMS is 5 % of the
@@ -159,17 +160,18 @@ def thermal_scenario(name: str, seed: int) -> dict:
 
 
 def pendulum_scenario(name: str, seed: int) -> dict:
-    """As `thermal_scenario`; the right model's torque is linear between its samples (what foh assumes),
-    `sampled_sines` the sum of sines itself (a real input sampled at ωΔt ≤ 0.2)."""
+    """As `thermal_scenario`. The torque is a real input: a sum of sines sampled at ω·Δt ≤ 0.2 (a
+    continuous signal, not the ramps between samples that foh assumes); `linear_torque` is the same
+    torque made of ramps, for the one scenario where reading it as linear is right."""
     model = pendulum_model()
     if name in ("aliased", "aliased_auto"):
-        exp = pendulum_record(seed, n=120, dt=0.25, w_max=1.2, linear=True)
+        exp = pendulum_record(seed, n=120, dt=0.25, w_max=1.2)
         return _request(model, exp, {"substeps": 1} if name == "aliased" else {})
     if name == "held_as_linear":
         return _request(model, pendulum_record(seed, held=True), {"input_interpolation": "foh"})
-    if name == "sampled_sines":   # the continuous sines behind the samples: foh is off by (ωΔt)²/12
-        return _request(model, pendulum_record(seed), {})
-    return _request(model, pendulum_record(seed, drag=name == "wrong_model", linear=True), {})
+    if name == "linear_torque":
+        return _request(model, pendulum_record(seed, linear=True), {"input_interpolation": "foh"})
+    return _request(model, pendulum_record(seed, drag=name == "wrong_model"), {})
 
 
 SCENARIOS = {"thermal": thermal_scenario, "pendulum": pendulum_scenario}

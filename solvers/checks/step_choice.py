@@ -157,7 +157,7 @@ def substeps_retry(request, result):
     need = int(min(max(coarse[0].detail.get("suggested_substeps", 1) * 2, report.substeps + 1), MAX_SUBSTEPS))
     if need <= report.substeps:
         return None
-    model = request.model.model_copy(update={"parameters": [_at_estimate(p, result) for p in request.model.parameters]})
+    model = request.model.model_copy(update={"parameters": [at_estimate(p, result) for p in request.model.parameters]})
     options = request.options.model_copy(update={"substeps": need})
     note = (report.substeps_note + f"; at the fitted parameters |λ| ≈ {coarse[0].detail.get('max_rate', 0):.3g} 1/s "
             f"made it coarse, so the fit was refitted from its estimates with {need} substeps")
@@ -165,7 +165,21 @@ def substeps_retry(request, result):
     return retry, report.model_copy(update={"substeps": need, "substeps_note": note})
 
 
-def _at_estimate(p, result):
+def at_estimate(p, result):
+    """The parameter `p` started from its estimate in `result` (clipped into its bounds).
+
+    Parameters
+    ----------
+    p : Parameter
+        A parameter of the fitted model.
+    result : FitResult
+        The fit's result.
+
+    Returns
+    -------
+    Parameter
+        `p` with `value` the estimate; `p` itself when fixed or not estimated.
+    """
     est = result.parameters.get(p.name)
     if p.fixed or est is None or not math.isfinite(est.value):
         return p

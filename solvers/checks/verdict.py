@@ -35,7 +35,7 @@ def held_input_warnings(report: PreprocessingReport | None) -> list[FitWarning]:
         detail=h.detail) for h in hints]
 
 
-def review_fit(request: FitRequest, result: FitResult) -> FitResult:
+def review_fit(request: FitRequest, result: FitResult, extra: list[FitWarning] | None = None) -> FitResult:
     """`result` with the lack-of-fit and input-handling warnings added and its verdict recomputed.
 
     `request` is the prepared one (preprocessed, interpolation and substeps resolved).
@@ -46,12 +46,14 @@ def review_fit(request: FitRequest, result: FitResult) -> FitResult:
         The prepared fit request.
     result : FitResult
         The result assessed by `assess_fit`.
+    extra : list of FitWarning, optional
+        Warnings found on the way that count too (an input reading that could not be refitted).
 
     Returns
     -------
     FitResult
         As `requalify` with the held-input, missing-effect and noise-level warnings.
     """
-    more = held_input_warnings(result.preprocessing)
+    more = held_input_warnings(result.preprocessing) + list(extra or [])
     more += missing_effect_warnings(request, result) + noise_level_warnings(request, result)
     return requalify(result, more)

@@ -94,12 +94,19 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
     clock = Clock(opts.time_budget_s)
     check_user_candidates(request)
     # detrend/decimate/window once, for the fits and the screens alike
+    asked = request.options.input_interpolation
     request, _ = prepare_request(request)
+    # the base fit resolves `auto` itself (it may read smooth inputs as cubics); the search then goes
+    # on with what it chose, so no refit chooses again
     fit_req = FitRequest(model=request.model, experiments=request.experiments, method=request.method,
-                         options=request.options)
+                         options=request.options.model_copy(update={"input_interpolation": asked}))
     tell("base_fit", "", 0)
     with clock.phase("base_fit"):   # always run: the budget bounds the search after it
         base = fit_model(fit_req)
+    reading = "cubic" if base.preprocessing is not None and base.preprocessing.input_refinement \
+        else request.options.input_interpolation
+    fit_req = fit_req.model_copy(update={"options": fit_req.options.model_copy(
+        update={"input_interpolation": reading})})
     fit_req, base, notes = solid_ground(fit_req, base, clock)
     request = request.model_copy(update={"options": fit_req.options})   # finer substeps, if raised, throughout
     with clock.phase("validation"):

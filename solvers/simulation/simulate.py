@@ -15,6 +15,7 @@ from greyfit.schemas.model import Model
 from greyfit.schemas.simulate import SimulatedExperiment, SimulateRequest, SimulateResult
 from greyfit.schemas.validation import ExperimentValidation, InitialStateSource, OutputMetrics, ValidationResult
 from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
+from greyfit.solvers.data.refine import DEFAULT_FACTOR, refine_experiment, refine_options, refine_request
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 from greyfit.solvers.model.compiler import CompiledModel, compile_model
@@ -501,6 +502,9 @@ def validation_metrics(model: Model, parameters: dict[str, float], experiments: 
     DataError
         As `simulate_arrays`.
     """
+    if options.input_interpolation == "cubic":   # as a fit reads them: on a finer grid, outputs unchanged
+        experiments = [refine_experiment(e, DEFAULT_FACTOR) for e in experiments]
+        options = refine_options(options, DEFAULT_FACTOR)
     cm = compile_model(model)
     sims = simulate_arrays(model, parameters, experiments, options, initial_states, estimate_window, cm=cm)
     return validation_from(cm, sims)
@@ -559,16 +563,31 @@ def simulate_request(request: SimulateRequest) -> SimulateResult:
     for name, values in request.initial_states.items():
         states.setdefault(name, {}).update(values)
     prepared, _ = prepare_request(request)   # resolves input_interpolation "auto" as the fits do
-    options = prepared.options
-    chosen = fit.preprocessing.substeps if fit is not None and fit.preprocessing is not None else None
+    report = fit.preprocessing if fit is not None else None
+    chosen = report.substeps if report is not None else None
     if chosen and "substeps" not in request.options.model_fields_set:   # simulate as the fit integrated
-        options = options.model_copy(update={"substeps": chosen})
+        prepared = prepared.model_copy(update={"options": prepared.options.model_copy(update={"substeps": chosen})})
+    # inputs read as the fit read them: cubics on a finer grid where it did (or where asked)
+    factor = report.input_refinement if report is not None and report.input_refinement else None
+    if "input_interpolation" in request.options.model_fields_set:
+        factor = DEFAULT_FACTOR if prepared.options.input_interpolation == "cubic" else None
+    if factor:
+        prepared = refine_request(prepared, factor)
     cm = compile_model(model)
-    sims = simulate_arrays(model, params, prepared.experiments, options, states,
+    sims = simulate_arrays(model, params, prepared.experiments, prepared.options, states,
                            request.estimate_window, request.horizon, cm=cm)
     measured = any(np.isfinite(s.data.y).any() for s in sims)
     used = {p.name: float(p.value) for p in model.parameters}
     used.update(params)
-    return SimulateResult(parameters=used, experiments=[to_public(cm, s) for s in sims],
+    public = [to_public(cm, s) for s in sims]
+    return SimulateResult(parameters=used, experiments=[_thinned(e, factor) for e in public] if factor else public,
                           validation=validation_from(cm, sims) if measured else None,
                           wall_time_s=time.perf_counter() - started)
+
+
+def _thinned(sim: SimulatedExperiment, factor: int) -> SimulatedExperiment:
+    """A simulation on a finer grid given back on the record's own samples."""
+    return sim.model_copy(update={
+        "time": sim.time[::factor], "states": {k: v[::factor] for k, v in sim.states.items()},
+        "outputs": {k: v[::factor] for k, v in sim.outputs.items()},
+        "predicted": None if sim.predicted is None else {k: v[::factor] for k, v in sim.predicted.items()}})

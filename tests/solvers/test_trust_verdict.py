@@ -67,9 +67,60 @@ def test_auto_interpolation_holds_a_prbs_and_says_so():
     assert abs(forced.parameters["C"].value - truth) > 3 * forced.parameters["C"].stderr
 
 
-def test_auto_interpolation_takes_a_smooth_input_as_linear():
-    r = fit(SCENARIOS["pendulum"]("correct", 2))
-    assert r.preprocessing.input_interpolation == {"u": "foh"} and r.quality == "good"
+@pytest.mark.parametrize("seed", [1, 3, 7])
+def test_a_smooth_input_sampled_coarsely_is_read_as_a_cubic_and_the_truth_is_in_the_interval(seed):
+    """A sum of sines sampled at ω·Δt ≤ 0.2: read as ramps, b moves by about 2 standard errors and the
+    fit looked good (coverage 32 % in the trust benchmark); auto measures that and refits on the cubic
+    reading. Reading it as linear by request gives the biased answer back."""
+    from tests.trust_systems import PENDULUM_TRUTH
+    body = SCENARIOS["pendulum"]("correct", seed)
+    r = fit(body)
+    assert r.preprocessing.input_interpolation == {"u": "cubic"} and r.preprocessing.input_refinement >= 4
+    assert "standard errors" in r.preprocessing.interpolation_note
+    assert r.quality == "good" and r.metrics.ndata == 300      # the residual is still on the 300 samples
+    for name, truth in PENDULUM_TRUTH.items():
+        assert abs(r.parameters[name].value - truth) < 2.5 * r.parameters[name].stderr, name
+    body["options"] = {"input_interpolation": "foh"}
+    linear = fit(body)
+    assert linear.preprocessing.input_interpolation == {"u": "foh"}
+    assert abs(linear.parameters["b"].value - r.parameters["b"].value) > 1.0 * r.parameters["b"].stderr
+
+
+def test_a_smooth_input_sampled_finely_stays_linear():
+    """At ω·Δt ≤ 0.05 the linear reading moves nothing that matters: no refit, foh reported."""
+    from tests.trust_systems import pendulum_model, pendulum_record
+    exp = pendulum_record(2, n=600, dt=0.0125, w_max=4.0)
+    r = fit({"model": pendulum_model(), "experiments": [exp]})
+    assert r.preprocessing.input_interpolation == {"u": "foh"} and r.preprocessing.input_refinement is None
+    assert r.quality == "good"
+
+
+def test_cubic_reading_by_request_matches_the_auto_refit_and_simulate_reads_it_too():
+    from greyfit.schemas.simulate import SimulateRequest
+    from greyfit.solvers.simulation.simulate import simulate_request
+    body = SCENARIOS["pendulum"]("correct", 4)
+    auto = fit(body)
+    body["options"] = {"input_interpolation": "cubic", "return_traces": True}
+    asked = fit(body)
+    assert asked.preprocessing.input_interpolation == {"u": "cubic"} and asked.preprocessing.input_refinement == 4
+    b_auto = auto.parameters["b"]
+    assert asked.parameters["b"].value == pytest.approx(b_auto.value, abs=0.2 * b_auto.stderr)
+    (trace,) = asked.traces
+    assert len(trace.time) == 300 and trace.time == body["experiments"][0]["time"]   # back on the record's samples
+    sim = simulate_request(SimulateRequest.model_validate(
+        {"experiments": body["experiments"], "fit_result": asked.model_dump()}))
+    (e,) = sim.experiments
+    assert e.time == body["experiments"][0]["time"]
+    assert np.allclose(e.outputs["theta"], trace.simulated["theta"], atol=1e-6)
+
+
+def test_a_linear_reading_that_cannot_be_refined_at_the_users_step_is_suspect():
+    body = SCENARIOS["pendulum"]("correct", 3)
+    body["options"] = {"substeps": 1}
+    r = fit(body)
+    assert "input_faster_than_sampling" in codes(r) and r.quality == "suspect"
+    (w,) = [w for w in r.warnings if w.code == "input_faster_than_sampling"]
+    assert w.detail["shift_in_stderr"] >= 0.3 and "substeps" in w.message
 
 
 def test_a_controller_output_held_for_several_samples_is_recognised():

@@ -52,11 +52,15 @@ except ImportError:   # not POSIX: no cross-process lock, at worst a library is 
 # library built for another CPU of a fleet sharing the cache is never loaded (`GREYFIT_NATIVE=0`:
 # the compiler's default target). -ffp-contract=off: no fused multiply-adds, so the compiled
 # numbers stay those of CasADi's interpreter bit for bit, on every CPU (the same speed here).
-CFLAGS = ["-O3", "-ffp-contract=off", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
+# (-O3, or -O1 for a large source: `optimisation_flags`)
+CFLAGS = ["-ffp-contract=off", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
 # interpreted SX costs ~10 ns per instruction here; gcc ~1 s for a few thousand: compile in the
 # foreground when a fit would spend more than about a second interpreting
 FOREGROUND_WORK = 1e8          # instructions × expected evaluations
 COMPILE_TIMEOUT_S = 120
+# generated sources above this compile at -O1, above the next not at all (`optimisation_flags`)
+LARGE_SOURCE_BYTES = 1_000_000
+MAX_SOURCE_BYTES = 8_000_000
 # a background compile that failed (disk full, killed, out of memory) is tried again after this,
 # doubled after each failure: a compiler that always fails costs one attempt per hour at most
 RETRY_AFTER_S = 60.0
@@ -256,7 +260,7 @@ def function_key(fn: ca.Function) -> str:
     if known is not None and known[0] is fn:
         return known[1]
     flags, isa = target()
-    text = fn.serialize() + ca.__version__ + " ".join((*CFLAGS, *flags)) + isa + COLUMNS_DRIVER
+    text = fn.serialize() + ca.__version__ + " ".join((*CFLAGS, *flags, "-O3/-O1")) + isa + COLUMNS_DRIVER
     key = hashlib.sha256(text.encode()).hexdigest()[:24]
     _keys[id(fn)] = (fn, key)   # holding fn keeps its id from being reused
     while len(_keys) > 256:
@@ -478,21 +482,114 @@ def _build(fn: ca.Function, library: Path) -> bool:
             if library.exists():   # another process built it while this one waited
                 return True
             with tempfile.TemporaryDirectory(dir=library.parent) as tmp:
-                source = f"{fn.name()}.c"
-                gen = ca.CodeGenerator(source, {"with_header": False})
+                source = Path(tmp) / f"{fn.name()}.c"
+                gen = ca.CodeGenerator(source.name, {"with_header": False})
                 gen.add(fn)
                 gen.generate(tmp + os.sep)
-                with open(Path(tmp) / source, "a") as c_file:   # columns.py's loop over samples
+                with open(source, "a") as c_file:   # columns.py's loop over samples
                     c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
+                flags = optimisation_flags(source.stat().st_size)
+                if flags is None:
+                    return False
                 lib = Path(tmp) / "lib.so"
-                subprocess.run([_compiler_path(), *CFLAGS, *target()[0], str(Path(tmp) / source), "-o", str(lib),
-                                "-lm"],
-                               check=True, capture_output=True, timeout=COMPILE_TIMEOUT_S)
+                with _compile_slot(library.parent):
+                    if not _run_compiler([_compiler_path(), *flags, *CFLAGS, *target()[0], str(source),
+                                          "-o", str(lib), "-lm"]):
+                        return False
                 os.replace(lib, library)   # atomic: other processes see all of it or nothing
         prune_disk_cache(library.parent, keep=library)
         return True
     except (OSError, subprocess.SubprocessError, RuntimeError):
         return False
+
+
+def optimisation_flags(source_bytes: int) -> list[str] | None:
+    """The optimisation level for a generated source of this size; None: too large to compile.
+
+    gcc's time and memory at -O3 grow faster than linearly on CasADi's straight-line code: a 3 MB
+    source (a sensitivity kernel of a discovery candidate) ran past the 120 s limit at -O3 with 3 GB
+    of memory, a 12 MB one never ended. -O1 compiles those in a fraction, and the numbers do not
+    depend on the level (no fused or reassociated arithmetic at any level: -ffp-contract=off).
+
+    Parameters
+    ----------
+    source_bytes : int
+        Size of the generated C source.
+
+    Returns
+    -------
+    list of str or None
+        ``["-O3"]``, ``["-O1"]`` above `LARGE_SOURCE_BYTES`, None above `MAX_SOURCE_BYTES`.
+    """
+    if source_bytes > MAX_SOURCE_BYTES:
+        return None
+    return ["-O1"] if source_bytes > LARGE_SOURCE_BYTES else ["-O3"]
+
+
+def _run_compiler(command: list[str]) -> bool:
+    """Run gcc with a time limit that ends all of it.
+
+    gcc's driver runs `cc1` and `as` as children of its own: killing only the driver on a timeout
+    (what `subprocess.run(timeout=...)` does) left `cc1` running, orphaned, for as long as it took
+    (seen: a dozen of them, 3 GB each, for half an hour). So the compiler runs in a session of its
+    own under coreutils' `timeout`, which signals the whole group even if this process dies, and a
+    timeout here kills the group too.
+    """
+    guard = shutil.which("timeout")
+    if guard is not None:
+        command = [guard, "-s", "KILL", str(COMPILE_TIMEOUT_S), *command]
+    proc = subprocess.Popen(command, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
+    try:
+        return proc.wait(timeout=COMPILE_TIMEOUT_S + 5) == 0
+    except subprocess.TimeoutExpired:
+        with contextlib.suppress(OSError):
+            os.killpg(proc.pid, 9)
+        proc.wait()
+        return False
+
+
+def compile_slots() -> int:
+    """How many compilers may run at once on this machine, across processes (`GREYFIT_COMPILE_SLOTS`).
+
+    Returns
+    -------
+    int
+        The setting, else half the CPUs (at least one): compiles are background work beside fits.
+    """
+    value = os.environ.get("GREYFIT_COMPILE_SLOTS", "")
+    if value.isdigit() and int(value) > 0:
+        return int(value)
+    return max(1, (os.cpu_count() or 2) // 2)
+
+
+@contextlib.contextmanager
+def _compile_slot(folder: Path):
+    """One of `compile_slots()` lock files in `folder`, held while gcc runs: worker processes that meet
+    many new model structures at once (a discovery's refits, a batch of new models) queue for the
+    compiler instead of starting one each. After a compile's timeout without a free slot, go on."""
+    if fcntl is None:
+        yield
+        return
+    handles = [open(folder / f".compile-slot-{i}", "a") for i in range(compile_slots())]
+    held = None
+    try:
+        deadline = time.monotonic() + COMPILE_TIMEOUT_S + 10
+        while held is None and time.monotonic() < deadline:
+            for handle in handles:
+                try:
+                    fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
+                    held = handle
+                    break
+                except BlockingIOError:
+                    continue
+            else:
+                time.sleep(0.05)
+        yield
+    finally:
+        if held is not None:
+            fcntl.flock(held, fcntl.LOCK_UN)
+        for handle in handles:
+            handle.close()
 
 
 @contextlib.contextmanager

@@ -6,9 +6,10 @@ s_t = J_tᵀ r_t (summed over the outputs measured at sample t). Its long-run co
 
     Ω = Γ_0 + Σ_{l=1..L} w_l (Γ_l + Γ_lᵀ),   Γ_l = Σ_t s_t s_{t-l}ᵀ,   w_l = 1 - l/(L+1) (Bartlett)
 
-gives cov(θ̂) = (JᵀJ)⁻¹ Ω (JᵀJ)⁻¹ (Newey & West 1987). The bandwidth L follows Andrews (1991):
-an AR(1) fitted to each score component, L = 1.1447 (α T)^(1/3). Experiments are independent:
-lags never cross from one experiment into the next.
+gives cov(θ̂) = (JᵀJ)⁻¹ Ω (JᵀJ)⁻¹ (Newey & West 1987). The score is prewhitened by a VAR(1) first
+and recoloured after (Andrews & Monahan 1992, `prewhiten`); the bandwidth L follows Andrews (1991):
+an AR(1) fitted to each (prewhitened) score component, L = 1.1447 (α T)^(1/3). Experiments are
+independent: lags never cross from one experiment into the next.
 """
 from __future__ import annotations
 
@@ -119,10 +120,52 @@ def hac_meat(jac: np.ndarray, residual: np.ndarray, sample_keys: np.ndarray,
         exp_of_key = np.zeros(keys.size, dtype=int)
         exp_of_key[np.searchsorted(keys, sample_keys)] = experiment_keys
         blocks = [scores[exp_of_key == e] for e in np.unique(exp_of_key)]
-    bandwidth = andrews_bandwidth(blocks)
+    whitened, recolour = prewhiten(blocks)
+    bandwidth = andrews_bandwidth(whitened)
     lags = int(np.floor(bandwidth))
-    meat = np.sum([bartlett_sum(b, lags) for b in blocks], axis=0)
-    return meat, bandwidth
+    meat = np.sum([bartlett_sum(b, lags) for b in whitened], axis=0)
+    return recolour @ meat @ recolour.T, bandwidth
+
+
+def prewhiten(blocks: list[np.ndarray]) -> tuple[list[np.ndarray], np.ndarray]:
+    """Andrews & Monahan's prewhitening: a VAR(1) s_t = A s_{t−1} + e_t fitted to the score, the kernel
+    estimator run on e_t, and Ω = (I − A)⁻¹ Ω_e (I − A)⁻ᵀ.
+
+    A Bartlett sum on a strongly autocorrelated score is biased low on a few hundred samples (its
+    weights shrink exactly the lags that carry the correlation): 95 % intervals of the thermal node
+    and the pendulum under AR(1) noise of 0.8 held the truth in 75-85 % of the fits; on the
+    prewhitened score the kernel only mops up what the VAR(1) leaves (bench/bench_profile_coverage.py).
+    The singular values of A are capped at `MAX_RHO`, as Andrews & Monahan (1992) do, so that
+    (I − A)⁻¹ stays bounded; with fewer than ten samples per score component the score is used as it is.
+
+    Parameters
+    ----------
+    blocks : list of numpy.ndarray
+        The score per experiment, each of shape (T_e, columns).
+
+    Returns
+    -------
+    whitened : list of numpy.ndarray
+        e_t per experiment (its first sample dropped), or the blocks themselves.
+    recolour : numpy.ndarray
+        (I − A)⁻¹, or the identity.
+    """
+    k = blocks[0].shape[1] if blocks else 0
+    used = [b for b in blocks if b.shape[0] >= 3]
+    if not used or sum(b.shape[0] - 1 for b in used) < 10 * max(k, 1):
+        return blocks, np.eye(k)
+    xy = sum(b[1:].T @ b[:-1] for b in used)
+    xx = sum(b[:-1].T @ b[:-1] for b in used)
+    try:
+        a = np.linalg.lstsq(xx, xy.T, rcond=None)[0].T
+        u, sv, vt = np.linalg.svd(a)
+        a = (u * np.minimum(sv, MAX_RHO)) @ vt
+        recolour = np.linalg.inv(np.eye(k) - a)
+    except np.linalg.LinAlgError:
+        return blocks, np.eye(k)
+    if not np.all(np.isfinite(recolour)):
+        return blocks, np.eye(k)
+    return [b[1:] - b[:-1] @ a.T for b in used], recolour
 
 
 def bartlett_sum(b: np.ndarray, lags: int) -> np.ndarray:

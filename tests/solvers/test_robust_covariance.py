@@ -62,3 +62,23 @@ def test_bartlett_sum_equals_the_lag_by_lag_definition(n, lags, cols):
         gamma = b[lag:].T @ b[:-lag]
         expected = expected + (1 - lag / (lags + 1)) * (gamma + gamma.T)
     assert np.abs(bartlett_sum(b, lags) - expected).max() <= 1e-12 * np.abs(expected).max()
+
+
+def test_prewhitening_recovers_the_long_run_variance_of_an_ar1_score_that_the_kernel_alone_misses():
+    """AR(1) scores with ρ = 0.8 on 300 samples: long-run variance σ²/(1 − ρ)² = 25 per sample. The
+    Bartlett sum alone is biased low (its weights shrink the correlated lags); prewhitened and
+    recoloured it is within 10 % on average over 300 draws."""
+    from greyfit.solvers.inference.robust_covariance import andrews_bandwidth, bartlett_sum, hac_meat
+    rng = np.random.default_rng(0)
+    n, rho, truth = 300, 0.8, 1 / (1 - 0.8) ** 2
+    plain, white = [], []
+    for _ in range(300):
+        s = lfilter([1.0], [1, -rho], rng.standard_normal(n + 200))[200:]
+        jac, residual = s[:, None], np.ones(n)
+        keys = np.arange(n)
+        meat, _ = hac_meat(jac, residual, keys, np.zeros(n, dtype=int))
+        white.append(meat[0, 0] / n)
+        lags = int(np.floor(andrews_bandwidth([s[:, None]])))
+        plain.append(bartlett_sum(s[:, None], lags)[0, 0] / n)
+    assert np.mean(plain) < 0.85 * truth
+    assert abs(np.mean(white) / truth - 1) < 0.10, np.mean(white) / truth

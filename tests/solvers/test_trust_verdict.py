@@ -64,7 +64,9 @@ def test_auto_interpolation_holds_a_prbs_and_says_so():
     forced = fit(body)
     assert "input_held_fitted_linear" in codes(forced) and forced.quality == "suspect"
     assert forced.preprocessing.input_interpolation == {"P": "foh"}
-    assert abs(forced.parameters["C"].value - truth) > 3 * forced.parameters["C"].stderr
+    # biased by several of the right fit's standard errors (its own HAC interval, widened by the
+    # misfit's coloured residual, is honest enough to be ~2 of its standard errors off)
+    assert abs(forced.parameters["C"].value - truth) > 3 * r.parameters["C"].stderr
 
 
 @pytest.mark.parametrize("seed", [1, 3, 7])

@@ -102,7 +102,8 @@ def main() -> None:
     ap.add_argument("--seeds", type=int, default=100)
     ap.add_argument("--rho", type=float, default=0.8)
     args = ap.parse_args()
-    print(f"{args.seeds} records per row; coverage of the 95 % intervals over every parameter (its Wilson 95 % interval)")
+    print(f"{args.seeds} records per row; coverage of the 95 % intervals over every parameter "
+          "(its Wilson 95 % interval)")
     print(f"{'system':9s} {'noise':10s} {'classical Wald':>24s} {'reported (HAC if coloured)':>28s} "
           f"{'profile likelihood':>24s}")
     for system in ("thermal", "pendulum"):

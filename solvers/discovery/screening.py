@@ -77,7 +77,7 @@ def fitted_values(request: FitRequest, fit: FitResult):
 
 
 def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude: set[str],
-           output_scorer: OutputScorer | None = None) -> Screening:
+           output_scorer: OutputScorer | None = None, equations: bool = True) -> Screening:
     """Score every candidate whose family is not in `exclude`; see the module docstring.
 
     Parameters
@@ -92,6 +92,9 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         Candidate families not to score (already added or rejected).
     output_scorer : OutputScorer or None
         One already built at this fit (its sensitivities are most of a screen's cost).
+    equations : bool
+        Also score the equation residuals where states are measured (the loop's fast screen); the
+        fit's lack-of-fit check reads the output scores only, and the tries counted are those scored.
 
     Returns
     -------
@@ -122,8 +125,9 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         return c.family not in exclude and (bool(c.equations) or bool(c.outputs))
 
     # equation residuals where states are measured: the fast screen
-    eq_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=True)
-    if eq_trace.traced:
+    eq_trace = build_trace(cm, data, params, simulated, free, request.options, use_measurements=True) \
+        if equations else None
+    if eq_trace is not None and eq_trace.traced:
         scorers: dict[tuple, EquationScorer] = {}
 
         def scorer_for(equations) -> EquationScorer:

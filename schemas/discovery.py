@@ -54,7 +54,8 @@ class DiscoveryOptions(BaseModel):
     time_budget_s: float = Field(
         default=300.0, gt=0, le=86_400,
         description="wall-time budget of the search (the base fit always runs): no screen or refit starts "
-                    "after it is spent, and a refit gets at most what is left as its max_cpu_time; "
+                    "after it is spent, and a refit gets at most what is left as its max_cpu_time (and at most "
+                    "a multiple of the base fit's CPU time, a contender a multiple of its leader's iterations); "
                     "the result says when the budget ended the search (`budget_exhausted`)")
     validation_tolerance: float = Field(
         default=0.01, ge=0, le=1,
@@ -178,8 +179,9 @@ class RejectedCandidate(BaseModel):
     reason: Literal["evidence", "validation", "cpu_limit", "solver_failed", "refit_error", "superseded",
                     "parsimony"] = Field(
         description="evidence: the refit did not confirm it (BIC, t-value); validation: it made the "
-                    "validation records worse; cpu_limit: the refit ran out of time (no verdict); "
-                    "solver_failed / refit_error: the refit did not converge or could not be built; "
+                    "validation records worse; cpu_limit: the refit ran out of its CPU time (no verdict); "
+                    "solver_failed / refit_error: the refit did not converge (within its iterations: a contender "
+                    "gets a multiple of its leader's) or could not be built (no verdict); "
                     "superseded: kept at first, then explained by an effect added later and dropped; "
                     "parsimony: a catch-all (switch, step, drift, delay) that a named law explains as well, "
                     "that does not improve the validation records, that would pile a small coefficient onto an "

@@ -3,11 +3,12 @@
 The linearised screen ranks candidates, but near-equivalent laws (a sensor offset and a source
 offset; T⁴ − Ta⁴ and (T − Ta)|T − Ta| over a narrow range) score within a few per cent of each other
 and the first is not always right. So every significant candidate of another family whose screening
-evidence is within `MARGIN` of the leader's is refitted beside it (at most `MAX_CONTENDERS`), and the
-refits are compared by BIC on output residuals whitened by one AR noise model (coloured noise is not
-evidence) and on the validation records. Two that the estimation data do not tell apart (whitened
-ΔBIC < `AMBIGUOUS_BIC`) and the validation records do not either are reported `ambiguous`, with both
-named and what would separate them.
+evidence is within `MARGIN` of the leader's is refitted beside it (at most `MAX_CONTENDERS`), each
+within a multiple of the leader's refit iterations (`budget.contender_limits`: one cut there is not
+decided, and reported so), and the refits are compared by BIC on output residuals whitened by one
+AR noise model (coloured noise is not evidence) and on the validation records. Two that the
+estimation data do not tell apart (whitened ΔBIC < `AMBIGUOUS_BIC`) and the validation records do
+not either are reported `ambiguous`, with both named and what would separate them.
 
 Parsimony. A catch-all (a switching coefficient, a step or drift in time, an input delay) joins only a
 round no named law leads; it is kept only if it improves the validation records (when there are
@@ -25,8 +26,16 @@ from typing import Literal
 import numpy as np
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, RunnerUp, ValidationSummary
+from greyfit.solvers.discovery.budget import contender_limits
 from greyfit.solvers.discovery.candidate import Candidate
-from greyfit.solvers.discovery.confirm import LoopState, Refitted, bic, refit_candidate, timed_validation
+from greyfit.solvers.discovery.confirm import (
+    REFIT_MAX_ITER,
+    LoopState,
+    Refitted,
+    bic,
+    refit_candidate,
+    timed_validation,
+)
 from greyfit.solvers.discovery.refit_test import AR_MAX_ORDER, ar_coefficients, residual_series, whiten
 from greyfit.solvers.discovery.revise import accept
 from greyfit.solvers.discovery.screening import Scored, Screening
@@ -68,20 +77,26 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     before_val = _validation_now(request, state)
     kept: list[Refitted] = []
     failed: list[tuple[Candidate, str]] = []
-    for group in groups:
-        if state.refits_left <= 0 or not state.clock.allows():
-            break
-        r = refit_candidate(request, state, group, screening)
-        if not isinstance(r, RejectedCandidate):
-            objection = catch_all_objection(request, state, r, before_val, screening) or \
-                _validation_objection(request, r, before_val, screening)
-            if objection:
-                r = objection
-        if isinstance(r, RejectedCandidate):
-            state.rejected.append(r)
-            failed.append((group[0].candidate, f"rejected ({r.reason})"))
-        else:
-            kept.append(r)
+    try:
+        for k, group in enumerate(groups):
+            if state.refits_left <= 0 or not state.clock.allows():
+                break
+            mark = len(state.refit_costs)
+            r = refit_candidate(request, state, group, screening)
+            if k == 0:   # the contenders' bounds, from what the leader's refits took (`budget`)
+                state.limits = contender_limits(state.refit_costs[mark:], REFIT_MAX_ITER)
+            if not isinstance(r, RejectedCandidate):
+                objection = catch_all_objection(request, state, r, before_val, screening) or \
+                    _validation_objection(request, r, before_val, screening)
+                if objection:
+                    r = objection
+            if isinstance(r, RejectedCandidate):
+                state.rejected.append(r)
+                failed.append((group[0].candidate, f"rejected ({r.reason})"))
+            else:
+                kept.append(r)
+    finally:
+        state.limits = None
     if not kept:
         return False
     winner, runners, verdict, separate = choose(request, state, kept, screening)

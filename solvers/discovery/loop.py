@@ -28,10 +28,12 @@ The steps, in the order they run:
    and the augmented model. When nothing is added, the conclusion says why.
 
 No screen or refit starts once `time_budget_s` is spent (`budget.Clock`, which also times each
-phase for `DiscoveryResult.timings`).
+phase for `DiscoveryResult.timings`). A contender's refit is bounded by iterations relative to its
+leader's, and every refit's CPU time by a multiple of the base fit's (`budget.RefitLimits`).
 """
 from __future__ import annotations
 
+import time
 from typing import Callable, Optional
 
 import numpy as np
@@ -98,15 +100,17 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
     fit_req = FitRequest(model=request.model, experiments=request.experiments, method=request.method,
                          options=request.options)
     tell("base_fit", "", 0)
+    cpu0 = time.process_time()
     with clock.phase("base_fit"):   # always run: the budget bounds the search after it
         base = fit_model(fit_req)
+    base_cpu = time.process_time() - cpu0
     fit_req, base, notes = solid_ground(fit_req, base, clock)
     request = request.model_copy(update={"options": fit_req.options})   # finer substeps, if raised, throughout
     with clock.phase("validation"):
         base_validation = validate(request, fit_req.model, base, request.validation)
     shape, shape_note = shape_at(fit_req, base, clock)
     notes += [shape_note] if shape_note else []
-    state = LoopState(request.model, fit_req, base, base_validation, opts.max_refits, clock=clock)
+    state = LoopState(request.model, fit_req, base, base_validation, opts.max_refits, clock=clock, base_cpu_s=base_cpu)
     before = summarize(base, state.validation)
     screened_first: list[CandidateScore] = []
     why_not = ""

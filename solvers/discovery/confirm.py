@@ -33,6 +33,7 @@ from greyfit.solvers.discovery.effects import Candidate
 from greyfit.solvers.discovery.refit_test import refit_likelihood_ratio
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
 from greyfit.solvers.discovery.screening import Scored, Screening, screen
+from greyfit.solvers.discovery.shape import ShapeResult
 from greyfit.solvers.discovery.summary import equation_names, validate
 from greyfit.solvers.discovery.warm_start import gauss_newton_start, start_is_sound
 from greyfit.solvers.dynamics.integration import integrator_of
@@ -59,6 +60,8 @@ class LoopState:
     base_cpu_s: float = 0.0    # CPU seconds of the declared model's fit (the refits' CPU safety net)
     limits: RefitLimits | None = None   # while contenders are refitted: their bounds (`discriminate`)
     refit_costs: list[RefitCost] = field(default_factory=list)   # what each refit took, in order
+    shape: ShapeResult | None = None          # the missing term's shape learned at `shape_fit` (`shape_test`)
+    shape_fit: FitResult | None = None
 
 
 def screen_state(state: LoopState, opts: DiscoveryOptions, exclude: set[str]) -> Screening:
@@ -276,7 +279,7 @@ def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, f
 
 @dataclass
 class Refitted:
-    """A candidate refitted and past the evidence gates (BIC, whitened likelihood ratio, t-value)."""
+    """A candidate refitted: past the evidence gates (BIC, whitened likelihood ratio, t-value), or not (`rejection`)."""
 
     sc: Scored
     fit: FitResult
@@ -288,6 +291,7 @@ class Refitted:
     order: int | None
     lr_p: float | None
     validation: ValidationSummary | None = None
+    rejection: RejectedCandidate | None = None   # set when the refit converged but failed an evidence gate
 
 
 def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
@@ -310,8 +314,9 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     Returns
     -------
     Refitted or RejectedCandidate
-        The refit with its evidence and validation; or why it was rejected ("refit_error", "cpu_limit",
-        "solver_failed", "evidence").
+        The refit with its evidence and validation; the refit with its `rejection` set when it converged
+        but an evidence gate ("evidence") failed; or why it was rejected without a usable refit
+        ("refit_error", "cpu_limit", "solver_failed").
     """
     opts = request.discovery
     errors: list[str] = []
@@ -348,9 +353,11 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
         lr_text = "" if lr_p is None else \
             f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
-        return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
-                                 detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
-                                        f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")
+        # the refit is kept beside its rejection: as a runner-up it is compared by BIC too
+        return Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p, rejection=(
+            RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
+                              detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
+                                     f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")))
     out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p)
     out.validation = validate_refit(request, state, out)
     return out

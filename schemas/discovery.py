@@ -54,7 +54,8 @@ class DiscoveryOptions(BaseModel):
     time_budget_s: float = Field(
         default=300.0, gt=0, le=86_400,
         description="wall-time budget of the search (the base fit always runs): no screen or refit starts "
-                    "after it is spent, and a refit gets at most what is left as its max_cpu_time; "
+                    "after it is spent, and a refit gets at most what is left as its max_cpu_time (and at most "
+                    "a multiple of the base fit's CPU time, a contender a multiple of its leader's iterations); "
                     "the result says when the budget ended the search (`budget_exhausted`)")
     validation_tolerance: float = Field(
         default=0.01, ge=0, le=1,
@@ -143,7 +144,8 @@ class RunnerUp(BaseModel):
     term: str
     delta_bic: Optional[float] = Field(
         description="its BIC minus the chosen one's, both output residuals whitened by one AR noise model "
-                    "(coloured noise is not evidence); null when its refit did not pass the evidence gates")
+                    "(coloured noise is not evidence), also when a gate rejected it after its refit converged; "
+                    "null when it has no converged refit (it did not converge, or could not be built)")
     validation_nrmse: Optional[float] = Field(
         default=None, description="mean NRMSE over the outputs of the validation records; null without them")
     outcome: str = Field(description="why it was not chosen")
@@ -163,8 +165,11 @@ class DiscoveryStep(BaseModel):
         default="identified",
         description="identified: better than every contender by refit (whitened BIC and validation); "
                     "ambiguous: a contender of another family explains these data as well (`runners_up`), "
-                    "`separate_by` says what data would tell them apart; approximates: it moved the declared "
-                    "parameters far outside their intervals before it, a stand-in (approximates; not identified)")
+                    "`separate_by` says what data would tell them apart; approximates (approximates; not "
+                    "identified, the description says why): it moved the declared parameters far outside their "
+                    "intervals before it, a stand-in; or it is a member of a series (a power, a smooth p(x)) that "
+                    "won over a named law of the same variables; or its law explains much less of the learned "
+                    "disturbance than a free smooth function of one variable")
     runners_up: list[RunnerUp] = Field(default_factory=list,
                                        description="the contenders refitted against it, best first")
     separate_by: Optional[str] = Field(default=None, description="for an ambiguous step: what would separate it "
@@ -176,14 +181,18 @@ class RejectedCandidate(BaseModel):
     equation: str
     term: str
     reason: Literal["evidence", "validation", "cpu_limit", "solver_failed", "refit_error", "superseded",
-                    "parsimony"] = Field(
+                    "parsimony", "shape"] = Field(
         description="evidence: the refit did not confirm it (BIC, t-value); validation: it made the "
-                    "validation records worse; cpu_limit: the refit ran out of time (no verdict); "
-                    "solver_failed / refit_error: the refit did not converge or could not be built; "
+                    "validation records worse; cpu_limit: the refit ran out of its CPU time (no verdict); "
+                    "solver_failed / refit_error: the refit did not converge (within its iterations: a contender "
+                    "gets a multiple of its leader's) or could not be built (no verdict); "
                     "superseded: kept at first, then explained by an effect added later and dropped; "
                     "parsimony: a catch-all (switch, step, drift, delay) that a named law explains as well, "
                     "that does not improve the validation records, that would pile a small coefficient onto an "
-                    "accepted effect, or that moves the declared parameters far outside their intervals")
+                    "accepted effect, or that moves the declared parameters far outside their intervals; "
+                    "shape: the learned disturbance depends on more than the present value of any one variable "
+                    "(e.g. a hysteresis) and the law removes too little of the residual's excess over the noise "
+                    "to be more than a stand-in")
     detail: str
 
 

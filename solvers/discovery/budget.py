@@ -1,8 +1,23 @@
-"""Wall time of a discovery request: where it goes (per phase) and when it is spent (the budget)."""
+"""Wall time of a discovery request: where it goes (per phase) and when it is spent (the budget);
+and the bounds of one refit (`RefitLimits`): iterations relative to the leader's refit, which decide,
+and CPU seconds, a safety net.
+
+A refit starts next to its answer (one Gauss-Newton step from the fit it extends), so a candidate
+that is right converges in a few iterations: the audited cases took 4-14, 58 at most with the
+exact-Hessian polish of a sharp tanh. A contender refitted beside a leader gets at most
+`CONTENDER_ITER_FACTOR` times the leader's iterations (at least `CONTENDER_MIN_ITER`): one that does
+not converge within them is not decided (reported as such, never as an answer), and since the bound
+counts iterations, not seconds, the same data give the same answer on a quiet and on a loaded
+machine. CPU seconds bound every refit only as a safety net against a pathological solve (a
+diverging iterate whose linear algebra explodes): at most `REFIT_CPU_FACTOR` times the base fit's
+CPU time (at least `REFIT_CPU_FLOOR_S`), a contender also `CONTENDER_CPU_FACTOR` times the leader's;
+a refit cut there is `cpu_limit`, no verdict.
+"""
 from __future__ import annotations
 
 import time
 from contextlib import contextmanager
+from dataclasses import dataclass
 
 PHASES = ("base_fit", "screening", "refits", "validation")
 
@@ -79,3 +94,75 @@ class Clock:
         out = {k: round(v, 4) for k, v in self.phases.items()}
         out["other"] = round(max(total - sum(self.phases.values()), 0.0), 4)
         return out
+
+
+CONTENDER_ITER_FACTOR = 3      # a contender's iterations: at most this many times the leader's ...
+CONTENDER_MIN_ITER = 20        # ... and never fewer than this
+CONTENDER_CPU_FACTOR = 10.0    # a contender's CPU seconds: at most this many times the leader's ...
+CONTENDER_MIN_CPU_S = 5.0      # ... and never fewer than this
+REFIT_CPU_FACTOR = 20.0        # any refit's CPU seconds: at most this many times the base fit's ...
+REFIT_CPU_FLOOR_S = 10.0       # ... and never fewer than this
+
+
+@dataclass
+class RefitLimits:
+    """Bounds of the refits of one contender: Ipopt iterations (decide) and CPU seconds (safety net)."""
+
+    max_iter: int
+    max_cpu_time: float
+    reason: str   # how the bounds were set, for a rejection's detail
+
+
+@dataclass
+class RefitCost:
+    """What one refit took: Ipopt iterations (polish included), CPU seconds, and whether it converged."""
+
+    iterations: int
+    cpu_s: float
+    converged: bool
+
+
+def refit_cpu_cap(base_cpu_s: float) -> float:
+    """The CPU seconds any refit may take: the safety net relative to the base fit.
+
+    Parameters
+    ----------
+    base_cpu_s : float
+        CPU seconds of the declared model's fit (0 when not measured).
+
+    Returns
+    -------
+    float
+        max(`REFIT_CPU_FLOOR_S`, `REFIT_CPU_FACTOR` × base_cpu_s).
+    """
+    return max(REFIT_CPU_FLOOR_S, REFIT_CPU_FACTOR * base_cpu_s)
+
+
+def contender_limits(leader: list[RefitCost], max_iter: int) -> RefitLimits | None:
+    """The bounds of the contenders refitted beside a leader, from what the leader's refits took.
+
+    Parameters
+    ----------
+    leader : list of RefitCost
+        The leader's refits (one, or one per variant).
+    max_iter : int
+        The refits' own iteration cap (`confirm.REFIT_MAX_ITER`): the bound never exceeds it.
+
+    Returns
+    -------
+    RefitLimits or None
+        At most `CONTENDER_ITER_FACTOR` × the most iterations a converged refit of the leader took (at
+        least `CONTENDER_MIN_ITER`, at most `max_iter`) and `CONTENDER_CPU_FACTOR` × its CPU seconds (at
+        least `CONTENDER_MIN_CPU_S`); None when no refit of the leader converged (no reference: the
+        contenders get the refits' own caps).
+    """
+    done = [c for c in leader if c.converged]
+    if not done:
+        return None
+    iterations = max(c.iterations for c in done)
+    cpu = sum(c.cpu_s for c in done)
+    n = int(min(max(CONTENDER_ITER_FACTOR * iterations, CONTENDER_MIN_ITER), max_iter))
+    return RefitLimits(max_iter=n, max_cpu_time=max(CONTENDER_MIN_CPU_S, CONTENDER_CPU_FACTOR * cpu),
+                       reason=f"a contender gets at most {CONTENDER_ITER_FACTOR}x the iterations of the leader's "
+                              f"refit ({iterations}), at least {CONTENDER_MIN_ITER}, and {CONTENDER_CPU_FACTOR:g}x its "
+                              f"CPU time ({cpu:.2g} s), at least {CONTENDER_MIN_CPU_S:g} s")

@@ -3,7 +3,9 @@ method. It is kept if the refit converges, its BIC falls by `min_bic_drop`, the 
 |value|/stderr ≥ `min_t_value`, and the validation records do not get worse.
 
 Refits start one Gauss-Newton step away from the old fit (`warm_start`), are capped at
-`REFIT_MAX_ITER` Ipopt iterations and at what is left of the request's time budget. A smoothed
+`REFIT_MAX_ITER` Ipopt iterations, a contender's at a multiple of its leader's (`budget.RefitLimits`),
+and in CPU time at what is left of the request's time budget and a multiple of the base fit's
+(`budget.refit_cpu_cap`, a safety net). A smoothed
 switch (Coulomb friction's tanh(v/ε)) is refitted at its widest significant width first, the
 cheapest and most robust refit, and its width then refined by a score test at the refitted model,
 where the linearisation is accurate (`revise.refine_width`). A delay's refits walk along the lag
@@ -12,6 +14,7 @@ validation records simulated by `timed_validation`; a kept refit becomes a step 
 """
 from __future__ import annotations
 
+import time
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -25,16 +28,18 @@ from greyfit.schemas.discovery import (
 )
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.budget import Clock
+from greyfit.solvers.discovery.budget import Clock, RefitCost, RefitLimits, refit_cpu_cap
 from greyfit.solvers.discovery.effects import Candidate
 from greyfit.solvers.discovery.refit_test import refit_likelihood_ratio
 from greyfit.solvers.discovery.scoring_outputs import OutputScorer
 from greyfit.solvers.discovery.screening import Scored, Screening, screen
+from greyfit.solvers.discovery.shape import ShapeResult
 from greyfit.solvers.discovery.summary import equation_names, validate
-from greyfit.solvers.discovery.warm_start import gauss_newton_start
+from greyfit.solvers.discovery.warm_start import gauss_newton_start, start_is_sound
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.methods.multistart import CPU_STATUSES
 from greyfit.solvers.methods.registry import simulates_outputs
 
 
@@ -52,6 +57,11 @@ class LoopState:
     clock: Clock = field(default_factory=lambda: Clock(float("inf")))
     record_params: set[str] = field(default_factory=set)   # parameters of record-specific steps (off on validation)
     scorer_at: tuple[FitResult, OutputScorer] | None = None   # the output scorer built at a fit, for reuse
+    base_cpu_s: float = 0.0    # CPU seconds of the declared model's fit (the refits' CPU safety net)
+    limits: RefitLimits | None = None   # while contenders are refitted: their bounds (`discriminate`)
+    refit_costs: list[RefitCost] = field(default_factory=list)   # what each refit took, in order
+    shape: ShapeResult | None = None          # the missing term's shape learned at `shape_fit` (`shape_test`)
+    shape_fit: FitResult | None = None
 
 
 def screen_state(state: LoopState, opts: DiscoveryOptions, exclude: set[str]) -> Screening:
@@ -92,17 +102,20 @@ POLISH_MAX_ITER = 20
 
 
 def run_refit(state: LoopState, req: FitRequest) -> FitResult:
-    """fit_model within what is left of the budget, timed as a refit.
+    """fit_model within the refit's bounds (`_within_budget`), timed as a refit, its cost recorded.
 
     A Gauss-Newton refit that runs out of iterations is polished with the exact Hessian from where
     it stopped: with a sharp tanh, Gauss-Newton reaches the answer and then crawls without meeting
     the tolerance (measured: 50 iterations and more, parameters already within 0.1 %), where Newton
-    converges in 5-8.
+    converges in 5-8. Only next to an answer, though: when the refit already lowered the BIC of the
+    fit it extends; an iterate that did not has wandered off, and Newton from there is a long solve
+    of nothing.
 
     Parameters
     ----------
     state : LoopState
-        The search so far (its clock caps `max_cpu_time` and times the refit).
+        The search so far (its clock, limits and base fit's CPU time cap the refit, and it is timed;
+        its `refit_costs` get the refit's iterations, CPU seconds and convergence).
     req : FitRequest
         The refit's request.
 
@@ -116,23 +129,33 @@ def run_refit(state: LoopState, req: FitRequest) -> FitResult:
     FitError
         When the request's model or data do not compile or prepare (from `fit_model`).
     """
+    cpu0 = time.process_time()
     with state.clock.phase("refits"):
         fit = fit_model(_within_budget(state, req))
+        iterations = fit.solver.iterations
         if (fit.solver.return_status == "Maximum_Iterations_Exceeded" and req.options.hessian == "gauss_newton"
-                and state.clock.left() > 0):
+                and state.clock.left() > 0 and bic(fit) < bic(state.fit)):
             polish = req.model_copy(update={
                 "model": with_estimates(req.model, fit),
                 "options": req.options.model_copy(update={"hessian": "exact", "max_iter": POLISH_MAX_ITER})})
             polished = fit_model(_within_budget(state, polish))
+            iterations += polished.solver.iterations
             if polished.quality != "failed" or bic(polished) < bic(fit):
                 fit = polished
-        return fit
+    state.refit_costs.append(RefitCost(iterations, time.process_time() - cpu0, fit.quality != "failed"))
+    return fit
 
 
 def _within_budget(state: LoopState, req: FitRequest) -> FitRequest:
-    left = state.clock.left()
-    if left < req.options.max_cpu_time:
-        req = req.model_copy(update={"options": req.options.model_copy(update={"max_cpu_time": max(left, 1.0)})})
+    """The request with its CPU time capped by what is left of the budget and the base fit's multiple,
+    and a contender's iterations and CPU time by its `state.limits`."""
+    opts = req.options
+    cpu = min(opts.max_cpu_time, max(state.clock.left(), 1.0), refit_cpu_cap(state.base_cpu_s))
+    max_iter = opts.max_iter
+    if state.limits is not None:
+        cpu, max_iter = min(cpu, state.limits.max_cpu_time), min(max_iter, state.limits.max_iter)
+    if cpu < opts.max_cpu_time or max_iter < opts.max_iter:
+        req = req.model_copy(update={"options": opts.model_copy(update={"max_cpu_time": cpu, "max_iter": max_iter})})
     return req
 
 
@@ -155,7 +178,8 @@ def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored,
     -------
     tuple of (Model, list of str, FitRequest)
         The model with the candidate, started at the current estimates (or the declared values, or the
-        sibling's) and one Gauss-Newton step on where the step can be formed; the new parameters' names;
+        sibling's) and one Gauss-Newton step on where the step can be formed and simulates
+        (`warm_start.start_is_sound`); the new parameters' names;
         the refit request with the candidate's data and capped options (`refit_options`).
     """
     c = sc.candidate
@@ -165,7 +189,9 @@ def build_refit(request: DiscoverRequest, state: LoopState, sc: Scored,
     if start is not None:
         new_model = with_estimates(new_model, start)
     elif new_params and not c.fresh_start and not c.transform_experiments and sc.scorer is not None:
-        new_model = gauss_newton_start(sc.scorer, c, state.fit, new_model, new_params)
+        stepped = gauss_newton_start(sc.scorer, c, state.fit, new_model, new_params)
+        # a step that cannot be simulated is no start (a destabilising term blows up): the neutral one
+        new_model = stepped if start_is_sound(state.request, state.fit, stepped) else new_model
     return new_model, new_params, refit_request(state, new_model, c, sc.score.beta)
 
 
@@ -253,7 +279,7 @@ def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, f
 
 @dataclass
 class Refitted:
-    """A candidate refitted and past the evidence gates (BIC, whitened likelihood ratio, t-value)."""
+    """A candidate refitted: past the evidence gates (BIC, whitened likelihood ratio, t-value), or not (`rejection`)."""
 
     sc: Scored
     fit: FitResult
@@ -265,6 +291,7 @@ class Refitted:
     order: int | None
     lr_p: float | None
     validation: ValidationSummary | None = None
+    rejection: RejectedCandidate | None = None   # set when the refit converged but failed an evidence gate
 
 
 def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
@@ -287,8 +314,9 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     Returns
     -------
     Refitted or RejectedCandidate
-        The refit with its evidence and validation; or why it was rejected ("refit_error", "cpu_limit",
-        "solver_failed", "evidence").
+        The refit with its evidence and validation; the refit with its `rejection` set when it converged
+        but an evidence gate ("evidence") failed; or why it was rejected without a usable refit
+        ("refit_error", "cpu_limit", "solver_failed").
     """
     opts = request.discovery
     errors: list[str] = []
@@ -306,15 +334,16 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     sc, new_fit, new_model, new_params, new_req = best
     c = sc.candidate
     status = new_fit.solver.return_status
-    if status == "Maximum_CpuTime_Exceeded":
+    if status in CPU_STATUSES:
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="cpu_limit",
-                                 detail=f"the refit stopped at max_cpu_time ({new_req.options.max_cpu_time:.3g} s, "
-                                        "capped by what was left of discovery.time_budget_s) before converging: "
-                                        "no verdict on the evidence; raise options.max_cpu_time or the budget")
+                                 detail="not decided: the refit stopped at its CPU time limit before converging "
+                                        f"({_cpu_cap_text(state)}): no verdict on the evidence")
     if new_fit.quality == "failed":   # "suspect" is fine here: what is left may be the next effect
+        cut = (f"; {state.limits.reason}" if state.limits is not None and status == "Maximum_Iterations_Exceeded"
+               else "")
         return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="solver_failed",
-                                 detail=f"the refit did not converge ({status}, {new_fit.solver.iterations} "
-                                        "iterations): no verdict on the evidence")
+                                 detail=f"not decided: the refit did not converge ({status}, "
+                                        f"{new_fit.solver.iterations} iterations{cut}): no verdict on the evidence")
     t_value = t_value_of(new_fit, new_params)
     bic_drop = bic(state.fit) - bic(new_fit)
     order, lr_p = refit_likelihood_ratio(state.request, state.fit, new_req, new_fit)
@@ -324,12 +353,22 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
         lr_text = "" if lr_p is None else \
             f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
-        return RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
-                                 detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
-                                        f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")
+        # the refit is kept beside its rejection: as a runner-up it is compared by BIC too
+        return Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p, rejection=(
+            RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
+                              detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
+                                     f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")))
     out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p)
     out.validation = validate_refit(request, state, out)
     return out
+
+
+def _cpu_cap_text(state: LoopState) -> str:
+    parts = [f"at most {refit_cpu_cap(state.base_cpu_s):.3g} s, a multiple of the base fit's, and what was left of "
+             "discovery.time_budget_s"]
+    if state.limits is not None:
+        parts.append(state.limits.reason)
+    return "; ".join(parts)
 
 
 VariantRefit = tuple[Scored, FitResult, Model, list[str], FitRequest]

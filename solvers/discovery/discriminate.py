@@ -3,11 +3,12 @@
 The linearised screen ranks candidates, but near-equivalent laws (a sensor offset and a source
 offset; T⁴ − Ta⁴ and (T − Ta)|T − Ta| over a narrow range) score within a few per cent of each other
 and the first is not always right. So every significant candidate of another family whose screening
-evidence is within `MARGIN` of the leader's is refitted beside it (at most `MAX_CONTENDERS`), and the
-refits are compared by BIC on output residuals whitened by one AR noise model (coloured noise is not
-evidence) and on the validation records. Two that the estimation data do not tell apart (whitened
-ΔBIC < `AMBIGUOUS_BIC`) and the validation records do not either are reported `ambiguous`, with both
-named and what would separate them.
+evidence is within `MARGIN` of the leader's is refitted beside it (at most `MAX_CONTENDERS`), each
+within a multiple of the leader's refit iterations (`budget.contender_limits`: one cut there is not
+decided, and reported so), and the refits are compared by BIC on output residuals whitened by one
+AR noise model (coloured noise is not evidence) and on the validation records. Two that the
+estimation data do not tell apart (whitened ΔBIC < `AMBIGUOUS_BIC`) and the validation records do
+not either are reported `ambiguous`, with both named and what would separate them.
 
 Parsimony. A catch-all (a switching coefficient, a step or drift in time, an input delay) joins only a
 round no named law leads; it is kept only if it improves the validation records (when there are
@@ -20,27 +21,34 @@ A named law that does so after the first step is kept but labelled `approximates
 from __future__ import annotations
 
 import math
-from typing import Literal
+from dataclasses import dataclass
 
 import numpy as np
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, RunnerUp, ValidationSummary
+from greyfit.solvers.discovery.budget import contender_limits
 from greyfit.solvers.discovery.candidate import Candidate
-from greyfit.solvers.discovery.confirm import LoopState, Refitted, bic, refit_candidate, timed_validation
+from greyfit.solvers.discovery.confirm import (
+    REFIT_MAX_ITER,
+    LoopState,
+    Refitted,
+    bic,
+    refit_candidate,
+    timed_validation,
+)
+from greyfit.solvers.discovery.parsimony import catch_all_objection, stand_in_verdict, validation_objection
 from greyfit.solvers.discovery.refit_test import AR_MAX_ORDER, ar_coefficients, residual_series, whiten
 from greyfit.solvers.discovery.revise import accept
 from greyfit.solvers.discovery.screening import Scored, Screening
-from greyfit.solvers.discovery.summary import equation_names, validation_worse
+from greyfit.solvers.discovery.shape_test import memory_objection, shape_note
+from greyfit.solvers.discovery.summary import equation_names, mean_nrmse
 from greyfit.solvers.errors import FitError
 
 MARGIN = 0.2                 # contenders explain at least (1 − MARGIN) of what the leader explains
-MAX_CONTENDERS = 3           # refits per round, the leader included
+MAX_CONTENDERS = 3           # refits per round, the leader included ...
+MAX_NAMED_BESIDE_SERIES = 2  # ... and beyond them the named laws of an approximating candidate's variables
 SAME_ON_THESE_DATA = 0.9999  # projected columns this correlated are one hypothesis on these data
 AMBIGUOUS_BIC = 10.0         # whitened ΔBIC below which the estimation data do not tell two refits apart
-PILE_MIN_RELATIVE = 0.1
-STAND_IN_SIGMAS = 5.0
-STAND_IN_RELATIVE = 0.1
-BACKED_BY_VALIDATION = 0.2   # a move is backed when the validation error falls by this share
 
 
 def discriminate(request: DiscoverRequest, state: LoopState, screening: Screening, lead: Scored) -> bool:
@@ -67,35 +75,143 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     state.tried.update(g[0].candidate.family for g in groups)
     before_val = _validation_now(request, state)
     kept: list[Refitted] = []
-    failed: list[tuple[Candidate, str]] = []
-    for group in groups:
-        if state.refits_left <= 0 or not state.clock.allows():
-            break
-        r = refit_candidate(request, state, group, screening)
-        if not isinstance(r, RejectedCandidate):
-            objection = catch_all_objection(request, state, r, before_val, screening) or \
-                _validation_objection(request, r, before_val, screening)
-            if objection:
-                r = objection
-        if isinstance(r, RejectedCandidate):
-            state.rejected.append(r)
-            failed.append((group[0].candidate, f"rejected ({r.reason})"))
-        else:
-            kept.append(r)
+    failed: list[Failed] = []
+    refitted: list[Candidate] = []
+    try:
+        for k, group in enumerate(groups):
+            if state.refits_left <= 0 or not state.clock.allows():
+                break
+            mark = len(state.refit_costs)
+            r = refit_candidate(request, state, group, screening)
+            refitted.append(group[0].candidate)
+            if k == 0:   # the contenders' bounds, from what the leader's refits took (`budget`)
+                state.limits = contender_limits(state.refit_costs[mark:], REFIT_MAX_ITER)
+            _judge(request, state, r, group[0].candidate, before_val, screening, kept, failed)
+    finally:
+        state.limits = None
     if not kept:
         return False
     winner, runners, verdict, separate = choose(request, state, kept, screening)
-    runners += [RunnerUp(effect=c.effect, equation=equation_names(screening, c), term=c.term, delta_bic=None,
-                         outcome=why) for c, why in failed if c is not winner.sc.candidate]
+    runners += failed_runners(winner, kept, failed, screening)
     verdict, note = stand_in_verdict(request, state, winner, verdict, before_val)
+    if verdict != "approximates":
+        verdict, note = approximation_verdict(state, winner, verdict, refitted, screening)
     accept(request, state, winner, screening, note=note, verdict=verdict, runners_up=runners, separate_by=separate)
     return True
+
+
+@dataclass
+class Failed:
+    """A contender not kept: its candidate, why, and its refit when one converged (for its ΔBIC)."""
+
+    candidate: Candidate
+    why: str
+    refit: Refitted | None = None
+
+
+def _judge(request: DiscoverRequest, state: LoopState, r: Refitted | RejectedCandidate, head: Candidate,
+           before_val: ValidationSummary | None, screening: Screening, kept: list[Refitted],
+           failed: list[Failed]) -> None:
+    """Apply the shape, parsimony and validation objections to a refit: into `kept`, or `failed` and rejected."""
+    if isinstance(r, RejectedCandidate):
+        rejection, refit = r, None
+    elif r.rejection is not None:
+        rejection, refit = r.rejection, r
+    else:
+        objection = memory_objection(state, r, screening) or catch_all_objection(
+            request, state, r, before_val, screening) or validation_objection(request, r, before_val, screening)
+        if objection is None:
+            kept.append(r)
+            return
+        rejection, refit = objection, r
+    state.rejected.append(rejection)
+    failed.append(Failed(head, f"rejected ({rejection.reason})", refit))
+
+
+def failed_runners(winner: Refitted, kept: list[Refitted], failed: list[Failed],
+                   screening: Screening) -> list[RunnerUp]:
+    """The contenders not kept as runners-up: with their whitened ΔBIC to the winner where their refit
+    converged (under the noise model of the kept refits, as `choose` compares those), else none.
+
+    Parameters
+    ----------
+    winner : Refitted
+        The chosen refit.
+    kept : list of Refitted
+        The refits that passed the gates (they fix the noise model of the comparison).
+    failed : list of Failed
+        The contenders rejected, with their refits where they converged.
+    screening : Screening
+        The screen they came from.
+
+    Returns
+    -------
+    list of RunnerUp
+        One per rejected contender (other than the winner's candidate), outcome "rejected (reason)".
+    """
+    others = [f for f in failed if f.candidate is not winner.sc.candidate]
+    with_refit = [f.refit for f in others if f.refit is not None]
+    bics = whitened_bics(kept, with_refit)
+    best = bics[next(i for i, r in enumerate(kept) if r is winner)]
+    gaps = dict(zip((id(r) for r in with_refit), bics[len(kept):]))
+    out = []
+    for f in others:
+        c = f.candidate
+        gap = gaps.get(id(f.refit)) if f.refit is not None else None
+        out.append(RunnerUp(effect=c.effect, equation=equation_names(screening, c), term=c.term,
+                            delta_bic=None if gap is None or not math.isfinite(gap - best) else float(gap - best),
+                            validation_nrmse=mean_nrmse(f.refit.validation) if f.refit is not None else None,
+                            outcome=f.why))
+    return out
+
+
+def approximation_verdict(state: LoopState, winner: Refitted, verdict: str, refitted: list[Candidate],
+                          screening: Screening) -> tuple[str, str]:
+    """An approximating winner, or a law without the learned shape, approximates: (verdict, note).
+
+    A member of a series (a power, a smooth p(x): `Candidate.approximating`) that won over a named law
+    of the same variables refitted beside it describes these data better than that law, but names no
+    mechanism (it may stand in for a law the library lacks); and a law that explains much less of the
+    learned disturbance than a free smooth function does not have its shape (`shape_test.shape_note`).
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far (its shape, when learned at its fit).
+    winner : Refitted
+        The chosen refit.
+    verdict : str
+        The verdict so far ("identified" or "ambiguous").
+    refitted : list of Candidate
+        The candidates refitted this round (the winner's included).
+    screening : Screening
+        The screen they came from.
+
+    Returns
+    -------
+    tuple of (str, str)
+        ("approximates", why) for an identified winner as above; an ambiguous one keeps its verdict with
+        the note; else (verdict, "").
+    """
+    c = winner.sc.candidate
+    named = [o for o in refitted if o is not c and not o.approximating and not o.catch_all
+             and o.variables and set(o.variables) == set(c.variables)]
+    note = ""
+    if c.approximating and named:
+        laws = ", ".join(dict.fromkeys(o.effect for o in named))
+        note = (f"approximates; not identified: a member of a series that describes these data better than the "
+                f"named law(s) of {', '.join(c.variables)} refitted beside it ({laws}), and names no mechanism")
+    shape = state.shape if state.shape_fit is state.fit else None
+    note = note or shape_note(shape, c, screening.states, screening.outputs)
+    if not note:
+        return verdict, ""
+    return ("approximates" if verdict == "identified" else verdict), note
 
 
 def variants_of(screening: Screening, sc: Scored) -> list[Scored]:
     """What is refitted for a candidate: a smoothed switch once at its widest significant width (the
     width is refined after, `revise.refine_width`); a family with variants (input delays) its two
-    best; anything else itself.
+    best; anything else itself (also a candidate refitted though not significant, `named_beside_series`).
 
     Parameters
     ----------
@@ -111,7 +227,7 @@ def variants_of(screening: Screening, sc: Scored) -> list[Scored]:
     """
     fam = sc.candidate.family
     siblings = [s for s in screening.scored if s.significant and s.candidate.family == fam
-                and s.scored_on == sc.scored_on]
+                and s.scored_on == sc.scored_on] or [sc]   # a named law refitted beside a series unscreened
     if sc.candidate.width > 0:
         return [max(siblings, key=lambda s: s.candidate.width)]
     if sc.candidate.refit_variants:
@@ -161,7 +277,49 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
         if not (sc.candidate.approximating and any(_same_hypothesis(sc, other) for other in chosen)):
             chosen.append(sc)
         turn = not turn
+    chosen += named_beside_series(screening, chosen, state)
     return [variants_of(screening, sc) for sc in chosen]
+
+
+def named_beside_series(screening: Screening, chosen: list[Scored], state: LoopState) -> list[Scored]:
+    """The named laws of the same variables as an approximating candidate already chosen, in the same
+    equation or output: always refitted beside it, significant at the screen or not, within the margin
+    or not (the linearised screen understates a nonlinear law, and a series member that fits as well
+    must not win by their absence). At most `MAX_NAMED_BESIDE_SERIES`.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen, ranked.
+    chosen : list of Scored
+        The candidates chosen so far (the leader first).
+    state : LoopState
+        The search so far (families already tried are left out).
+
+    Returns
+    -------
+    list of Scored
+        The named laws to add, the significant first, then by the share explained, one per family.
+    """
+    series = [sc.candidate for sc in chosen if sc.candidate.approximating and sc.candidate.variables]
+    seen = {sc.candidate.family for sc in chosen}
+    out: list[Scored] = []
+    # significant first, then by the share explained: the BIC drop's effective sample size penalises a
+    # law that leaves a slightly more correlated residual (T⁴ on a radiation record: the most explained,
+    # 44 against the series' 1880)
+    for sc in sorted(screening.scored, key=lambda x: (x.significant, x.score.explained), reverse=True):
+        c = sc.candidate
+        if c.approximating or c.catch_all or c.refit_only or c.family in seen or c.family in state.tried \
+                or not c.variables:
+            continue
+        if any(set(c.variables) == set(s.variables) and _same_place(c, s) for s in series):
+            seen.add(c.family)
+            out.append(sc)
+    return out[:MAX_NAMED_BESIDE_SERIES]
+
+
+def _same_place(a: Candidate, b: Candidate) -> bool:
+    return bool(set(a.equations) & set(b.equations)) or bool(set(a.outputs or {}) & set(b.outputs or {}))
 
 
 def _same_hypothesis(a: Scored, b: Scored) -> bool:
@@ -204,7 +362,7 @@ def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
     bics = whitened_bics(kept)
     # an exact tie (equivalent laws) keeps the screening order: the leader first
     order = sorted(range(len(kept)), key=lambda i: (round(bics[i], 3), i))
-    vals = [_mean_nrmse(r.validation) for r in kept]
+    vals = [mean_nrmse(r.validation) for r in kept]
     best, second, verdict, separate = order[0], None, "identified", None
     if len(order) > 1:
         second = order[1]
@@ -241,32 +399,35 @@ def _validation_tells(a: float | None, b: float | None, tol: float) -> str | Non
     return None
 
 
-def whitened_bics(kept: list[Refitted]) -> list[float]:
-    """BIC of each refit on its output residuals whitened by the AR model of the plainly best one's
+def whitened_bics(kept: list[Refitted], others: list[Refitted] | tuple = ()) -> list[float]:
+    """BIC of each refit on its output residuals whitened by the AR model of the plainly best kept one's
     residual (per experiment and output), so every refit is judged under the same noise model.
 
     Parameters
     ----------
     kept : list of Refitted
-        The refits to compare.
+        The refits to compare (the reference is the one of them with the least plain BIC).
+    others : list of Refitted
+        Further refits judged under the same noise model (rejected contenders, for their ΔBIC).
 
     Returns
     -------
     list of float
-        One BIC per refit (inf where its residual cannot be simulated; the plain BICs when the
-        reference's cannot).
+        One BIC per refit, `kept` then `others` (inf where its residual cannot be simulated; the plain
+        BICs when the reference's cannot).
     """
+    every = [*kept, *others]
     ref = min(kept, key=lambda r: bic(r.fit))
     try:
         ref_series = residual_series(ref.request, ref.fit)
     except (FitError, RuntimeError, ValueError):
-        return [bic(r.fit) for r in kept]
+        return [bic(r.fit) for r in every]
     phis = []
     for series_ref in ref_series:
         ok = series_ref[np.isfinite(series_ref)]
         phis.append(ar_coefficients(ok, min(AR_MAX_ORDER, ok.size // 10)) if ok.size >= 20 else np.zeros(0))
     out = []
-    for r in kept:
+    for r in every:
         try:
             series = residual_series(r.request, r.fit)
         except (FitError, RuntimeError, ValueError):
@@ -282,138 +443,10 @@ def whitened_bics(kept: list[Refitted]) -> list[float]:
     return out
 
 
-def _mean_nrmse(v: ValidationSummary | None) -> float | None:
-    vals = [x for x in (v.nrmse.values() if v is not None else []) if x is not None and np.isfinite(x)]
-    return float(np.mean(vals)) if vals else None
-
-
 def _validation_now(request: DiscoverRequest, state: LoopState) -> ValidationSummary | None:
     if not request.validation:
         return None
     return timed_validation(request, state, state.model, state.fit)
-
-
-def _validation_objection(request: DiscoverRequest, r: Refitted, before: ValidationSummary | None,
-                          screening: Screening) -> RejectedCandidate | None:
-    worse = validation_worse(before, r.validation, request.discovery.validation_tolerance)
-    if not worse:
-        return None
-    return _rejected(r, screening, "validation", f"better on the estimation data (BIC -{r.bic_drop:.0f}) but worse "
-                                                 f"on the validation records: {worse}")
-
-
-def catch_all_objection(request: DiscoverRequest, state: LoopState, r: Refitted,
-                        before_val: ValidationSummary | None, screening: Screening) -> RejectedCandidate | None:
-    """Why a refitted catch-all is not kept (see the module docstring), or None.
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, validation experiments).
-    state : LoopState
-        The search so far (model, fit, steps, refits left, budget).
-    r : Refitted
-        The refitted candidate.
-    before_val : ValidationSummary or None
-        Validation of the model before the candidate.
-    screening : Screening
-        The screen the candidate came from.
-
-    Returns
-    -------
-    RejectedCandidate or None
-        A "parsimony" rejection when the candidate is a catch-all that piles a small coefficient onto an
-        accepted effect, does not improve the validation records, or is a stand-in; None otherwise.
-    """
-    c = r.sc.candidate
-    if not c.catch_all:
-        return None
-    if state.steps and c.modifies in r.fit.parameters and r.params:
-        size = abs(r.fit.parameters[c.modifies].value) or 1.0
-        rel = max(abs(r.fit.parameters[n].value) for n in r.params) / size
-        if rel < PILE_MIN_RELATIVE:
-            return _rejected(r, screening, "parsimony", f"a catch-all coefficient of {100 * rel:.2g} % of {c.modifies} "
-                                                   "would be piled onto the effect already accepted")
-    if before_val is not None:
-        a, b = _mean_nrmse(before_val), _mean_nrmse(r.validation)
-        tol = request.discovery.validation_tolerance
-        if a is not None and (b is None or b > a * (1 - tol)):
-            shown = "n/a" if b is None else f"{b:.4g}"
-            return _rejected(r, screening, "parsimony", f"a catch-all kept only if it improves the validation records; "
-                                                   f"mean NRMSE {a:.4g} -> {shown}")
-    moved = moved_parameters(request, state, r, before_val)
-    if state.steps and moved:
-        return _rejected(r, screening, "parsimony", "a catch-all that moves the declared parameters far outside their "
-                                               f"intervals is a stand-in: {moved}")
-    return None
-
-
-def stand_in_verdict(request: DiscoverRequest, state: LoopState, r: Refitted, verdict: str,
-                     before_val: ValidationSummary | None) -> tuple[str, str]:
-    """A named law added after the first step that moves the declared parameters far outside their
-    intervals approximates something else, unless the validation records back the move (their error
-    falls by `BACKED_BY_VALIDATION`): (verdict, note for the description).
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, validation experiments).
-    state : LoopState
-        The search so far (model, fit, steps, refits left, budget).
-    r : Refitted
-        The refitted candidate.
-    verdict : str
-        The verdict so far ("identified" or "ambiguous").
-    before_val : ValidationSummary or None
-        Validation of the model before the candidate.
-
-    Returns
-    -------
-    tuple of (str, str)
-        ("approximates", a note naming the moves) for such a law; else the verdict unchanged and "".
-    """
-    if not state.steps or r.sc.candidate.catch_all:
-        return verdict, ""
-    moved = moved_parameters(request, state, r, before_val)
-    if not moved:
-        return verdict, ""
-    return "approximates", f"approximates; not identified: it moves {moved}"
-
-
-def moved_parameters(request: DiscoverRequest, state: LoopState, r: Refitted,
-                     before_val: ValidationSummary | None) -> str:
-    """The declared parameters the refit moved by more than STAND_IN_SIGMAS standard errors of the fit
-    before and STAND_IN_RELATIVE of their value, as text ('' when none, or when the validation records
-    back the move: a second effect may well correct what the first left biased).
-
-    Parameters
-    ----------
-    request : DiscoverRequest
-        The discovery request (options, validation experiments).
-    state : LoopState
-        The search so far (model, fit, steps, refits left, budget).
-    r : Refitted
-        The refitted candidate.
-    before_val : ValidationSummary or None
-        Validation of the model before the candidate.
-
-    Returns
-    -------
-    str
-        "p old -> new (±stderr before)" for each such parameter, joined by ", "; or "".
-    """
-    a, b = _mean_nrmse(before_val), _mean_nrmse(r.validation)
-    if a is not None and b is not None and b < (1 - BACKED_BY_VALIDATION) * a:
-        return ""
-    out = []
-    for p in request.model.parameters:
-        old, new = state.fit.parameters.get(p.name), r.fit.parameters.get(p.name)
-        if p.fixed or p.per_experiment or old is None or new is None or not old.stderr:
-            continue
-        move = abs(new.value - old.value)
-        if move > STAND_IN_SIGMAS * old.stderr and move > STAND_IN_RELATIVE * abs(old.value):
-            out.append(f"{p.name} {old.value:.4g} -> {new.value:.4g} (±{old.stderr:.2g} before)")
-    return ", ".join(out)
 
 
 def separation_hint(a: Candidate, others: list[Candidate]) -> str:
@@ -446,10 +479,3 @@ def separation_hint(a: Candidate, others: list[Candidate]) -> str:
         return (f"a record that takes {', '.join(variables)} over a wider range than here (e.g. a larger or "
                 f"differently shaped input): {a.term} and {b.term} agree over the range seen and differ beyond it")
     return "a second record with a different input (level, amplitude or spectrum)"
-
-
-def _rejected(r: Refitted, screening: Screening, reason: Literal["validation", "parsimony"],
-              detail: str) -> RejectedCandidate:
-    c = r.sc.candidate
-    return RejectedCandidate(effect=c.effect, equation=equation_names(screening, c), term=c.term, reason=reason,
-                             detail=detail)

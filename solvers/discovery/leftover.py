@@ -83,9 +83,9 @@ def _where(equation: str) -> str:
     return f"the {equation} path" if equation.startswith("output ") else f"the equation of {equation}"
 
 
-def leftover_at(request, fit: FitResult, base: FitResult, base_shape: ShapeResult | None,
+def leftover_at(request, fit: FitResult, shape_fit: FitResult | None, shape: ShapeResult | None,
                 clock) -> tuple[Unexplained | None, str]:
-    """`what_is_left` at the final fit: the base fit's shape reused when nothing was added.
+    """`what_is_left` at the final fit, with the shape already learned at it when there is one.
 
     Parameters
     ----------
@@ -93,10 +93,10 @@ def leftover_at(request, fit: FitResult, base: FitResult, base_shape: ShapeResul
         The final fit's request.
     fit : FitResult
         The final fit.
-    base : FitResult
-        The base fit (when `fit` is it, `base_shape` is reused).
-    base_shape : ShapeResult or None
-        The shape learned at the base fit.
+    shape_fit : FitResult or None
+        The fit `shape` was learned at (when `fit` is it, `shape` is reused).
+    shape : ShapeResult or None
+        The shape learned at `shape_fit`.
     clock : Clock
         The request's budget (the shape step is timed and skipped when it is spent).
 
@@ -106,9 +106,8 @@ def leftover_at(request, fit: FitResult, base: FitResult, base_shape: ShapeResul
         As `what_is_left`; (None, why) when no shape could be estimated.
     """
     from greyfit.solvers.discovery.shape import shape_at
-    shape = base_shape if fit is base else None
     note = ""
-    if shape is None:
+    if shape is None or fit is not shape_fit:
         shape, note = shape_at(request, fit, clock)
     if shape is None:
         return None, note

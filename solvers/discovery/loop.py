@@ -28,10 +28,12 @@ The steps, in the order they run:
    and the augmented model. When nothing is added, the conclusion says why.
 
 No screen or refit starts once `time_budget_s` is spent (`budget.Clock`, which also times each
-phase for `DiscoveryResult.timings`).
+phase for `DiscoveryResult.timings`). A contender's refit is bounded by iterations relative to its
+leader's, and every refit's CPU time by a multiple of the base fit's (`budget.RefitLimits`).
 """
 from __future__ import annotations
 
+import time
 from typing import Callable, Optional
 
 import numpy as np
@@ -101,8 +103,10 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
     fit_req = FitRequest(model=request.model, experiments=request.experiments, method=request.method,
                          options=request.options.model_copy(update={"input_interpolation": asked}))
     tell("base_fit", "", 0)
+    cpu0 = time.process_time()
     with clock.phase("base_fit"):   # always run: the budget bounds the search after it
         base = fit_model(fit_req)
+    base_cpu = time.process_time() - cpu0
     reading = "cubic" if base.preprocessing is not None and base.preprocessing.input_refinement \
         else request.options.input_interpolation
     fit_req = fit_req.model_copy(update={"options": fit_req.options.model_copy(
@@ -113,7 +117,8 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         base_validation = validate(request, fit_req.model, base, request.validation)
     shape, shape_note = shape_at(fit_req, base, clock)
     notes += [shape_note] if shape_note else []
-    state = LoopState(request.model, fit_req, base, base_validation, opts.max_refits, clock=clock)
+    state = LoopState(request.model, fit_req, base, base_validation, opts.max_refits, clock=clock, base_cpu_s=base_cpu,
+                      shape=shape, shape_fit=base)
     before = summarize(base, state.validation)
     screened_first: list[CandidateScore] = []
     why_not = ""
@@ -133,6 +138,10 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         if not accepted:
             why_not = no_confirmation(state, screening)
             break
+        # what is left after the step: for the next round's shape tests and, at the end, `unexplained`
+        state.shape, shape_note = shape_at(state.request, state.fit, clock)
+        state.shape_fit = state.fit
+        notes += [shape_note] if shape_note and shape_note not in notes else []
 
     if clock.exhausted:
         notes.append(f"the time budget (discovery.time_budget_s = {opts.time_budget_s:g} s) ended the search "
@@ -140,8 +149,8 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         why_not = why_not or (f"search stopped by the time budget ({opts.time_budget_s:g} s) before an effect "
                               "was confirmed")
     conclusion = steps_conclusion(state.steps) if state.steps else why_not or "no significant missing effect"
-    unexplained, left_note = leftover_at(state.request, state.fit, base, shape, clock)
-    notes += [left_note] if left_note else []
+    unexplained, left_note = leftover_at(state.request, state.fit, state.shape_fit, state.shape, clock)
+    notes += [left_note] if left_note and left_note not in notes else []
     conclusion += f"; {unexplained.message}" if unexplained else ""
     tell("done", conclusion, opts.max_refits - state.refits_left)
     return DiscoveryResult(unexplained=unexplained, discrepancy=shape.public if shape else None,

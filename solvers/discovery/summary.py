@@ -1,6 +1,8 @@
 """Reporting pieces of the loop: validation metrics, before/after summaries, the public screen."""
 from __future__ import annotations
 
+import numpy as np
+
 from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, FitSummary, ValidationSummary
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
@@ -181,3 +183,20 @@ def steps_conclusion(steps) -> str:
                      f"(ΔBIC {other.delta_bic:.1f}); {s.separate_by}" if other.delta_bic is not None else "")
         parts.append(text)
     return "added " + "; ".join(parts)
+
+
+def mean_nrmse(v: ValidationSummary | None) -> float | None:
+    """Mean NRMSE over the outputs of a validation summary.
+
+    Parameters
+    ----------
+    v : ValidationSummary or None
+        The validation metrics.
+
+    Returns
+    -------
+    float or None
+        The mean of the finite NRMSEs; None without any.
+    """
+    vals = [x for x in (v.nrmse.values() if v is not None else []) if x is not None and np.isfinite(x)]
+    return float(np.mean(vals)) if vals else None

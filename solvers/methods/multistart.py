@@ -34,6 +34,12 @@ SAME_COST = 1e-6           # relative cost difference of starts that "reached th
 DISTINCT_RELATIVE = 1e-2   # optima differing by more than this in some parameter are distinct
 MAX_ALTERNATIVES = 10      # optima listed at most (the best first)
 POLISH_MAX_RESIDUALS = 20_000   # beyond, no exact-Hessian polish of an unconverged fit
+# nor from an iterate whose constraints are violated by more than this (multiple shooting: a gap of a
+# state's whole scale): its trajectory broke apart, it is no flat valley next to an answer. Measured:
+# a cubic damping refit (discovery's power-law contender) diverged to gaps of 4e10 in 20 Gauss-Newton
+# iterations (1 s), and the exact-Hessian polish from there spent 130 s of CPU in MUMPS' factorisations
+# (fill-in reallocated up to 320x, regularisation 1e19) without a step forward
+POLISH_MAX_INFEASIBILITY = 1.0
 
 
 @dataclass
@@ -137,8 +143,9 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
     still not converged; the exact Hessian from the same start in 11). Bounded by max_iter like
     every other solve; kept only if it converges, and then `run.polished` says so. Not tried
     with an integrator whose step is not symbolic (CVODES: its exact Hessian takes second-order
-    sensitivities) nor beyond POLISH_MAX_RESIDUALS residuals (the exact Hessian of a long graph
-    takes long to build).
+    sensitivities), beyond POLISH_MAX_RESIDUALS residuals (the exact Hessian of a long graph
+    takes long to build), nor from an iterate that diverged (constraint violation above
+    POLISH_MAX_INFEASIBILITY).
     `exact`: () -> the problem in a form with a graph (`exact_form`); else `problem.graph()`.
 
     Parameters
@@ -161,7 +168,8 @@ def polish_with_exact_hessian(problem, options: FitOptions, run: MultistartRun, 
     """
     best = run.best
     if best.success or options.hessian != "gauss_newton" or not integrator_of(options).symbolic \
-            or best.status in CPU_STATUSES or not np.all(np.isfinite(best.w)):
+            or best.status in CPU_STATUSES or not np.all(np.isfinite(best.w)) \
+            or not best.infeasibility <= POLISH_MAX_INFEASIBILITY:
         return
     graph = exact() if exact is not None else problem.graph()
     if graph is None or graph.residual.numel() > POLISH_MAX_RESIDUALS:

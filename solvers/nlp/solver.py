@@ -21,6 +21,9 @@ class NlpOutcome:
     success: bool
     iterations: int
     wall_time_s: float
+    # Ipopt's constraint violation at the returned iterate (multiple shooting: the largest gap in units
+    # of the state's scale); 0 without constraints or where it is not reported
+    infeasibility: float = 0.0
 
 
 class LeastSquaresSolver:
@@ -102,9 +105,9 @@ def run_ipopt(solver: ca.Function, w0: np.ndarray, problem: LeastSquaresProblem,
     -------
     NlpOutcome
         Solution `w`, cost ½‖r‖², Ipopt's return status, success (status in `SUCCESS_STATUSES`),
-        iteration count and wall time in seconds. When the solver raises a RuntimeError (e.g. CVODES
-        fails at the start), `w` is the clipped start, the cost NaN and the status
-        ``Evaluation_Failed: <reason>``.
+        iteration count, wall time in seconds and the constraint violation at the iterate. When the
+        solver raises a RuntimeError (e.g. CVODES fails at the start), `w` is the clipped start, the
+        cost NaN and the status ``Evaluation_Failed: <reason>``.
     """
     lbw = problem.lbw if lbw is None else lbw
     ubw = problem.ubw if ubw is None else ubw
@@ -122,8 +125,9 @@ def run_ipopt(solver: ca.Function, w0: np.ndarray, problem: LeastSquaresProblem,
     stats = solver.stats()
     w = np.array(sol["x"]).ravel()
     status = str(stats.get("return_status", "unknown"))
+    violations = (stats.get("iterations") or {}).get("inf_pr") or [0.0]
     return NlpOutcome(w, float(sol["f"]), status, status in SUCCESS_STATUSES,
-                      int(stats.get("iter_count", 0)), time.perf_counter() - start)
+                      int(stats.get("iter_count", 0)), time.perf_counter() - start, float(violations[-1]))
 
 
 def solve_linear_least_squares(problem: LeastSquaresProblem, options: FitOptions) -> NlpOutcome | None:

@@ -1,7 +1,8 @@
 """The wider library, discrimination by refit and parsimony, against known truth: systems simulated
 with scipy (tests/discovery_systems.py), measured in their outputs only, 1 % noise (AR(1) where said),
 inputs held between samples (declared `input_interpolation: zoh`), a second record for validation.
-EMPS (Coulomb friction and nothing else) is in test_discovery_outputs.py."""
+Each must-show case runs over three seeds (the rates over ten are bench/bench_discovery.py --library,
+in docs/discovery.md). EMPS (Coulomb friction and nothing else) is in test_discovery_outputs.py."""
 import numpy as np
 import pytest
 
@@ -23,11 +24,15 @@ def value(res, name: str) -> float:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [1, 3])
+@pytest.mark.parametrize("seed", [1, 3, 7])
 def test_radiative_loss_is_found_as_t4_not_as_a_sensor_gain_or_drag(seed):
+    # seed 7: the power law (T − Ta)|T − Ta| of the approximating series screens first, and T⁴ ranked
+    # too low to be among the contenders; it won as "identified" until the named law of the same
+    # variable was always refitted beside it
     res = run(ds.block_model(), ds.block_record(seed), ds.block_record(seed + 1, name="val"))
     effects = [s.effect for s in res.steps]
     assert effects == ["radiation"], (res.conclusion, res.rejected)
+    assert res.steps[0].verdict == "identified"
     assert not {"output_gain", "quadratic_drag", "parameter_step"} & set(effects)
     b = ds.BLOCK
     assert value(res, "C") == pytest.approx(b["C"], rel=0.10)
@@ -38,9 +43,10 @@ def test_radiative_loss_is_found_as_t4_not_as_a_sensor_gain_or_drag(seed):
 
 
 @pytest.mark.slow
-def test_amplitude_dependent_damping_is_found_as_x2v_with_mu_within_5_percent():
-    res = run(ds.amplitude_damping_model(), ds.amplitude_damping_record(1, rho=0.5),
-              ds.amplitude_damping_record(2, name="val"))
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_amplitude_dependent_damping_is_found_as_x2v_with_mu_within_5_percent(seed):
+    res = run(ds.amplitude_damping_model(), ds.amplitude_damping_record(seed, rho=0.5),
+              ds.amplitude_damping_record(seed + 1, name="val"))
     assert [s.effect for s in res.steps] == ["power_law"], (res.conclusion, res.rejected)
     step = res.steps[0]
     assert "y^2*yd" in step.term
@@ -48,13 +54,16 @@ def test_amplitude_dependent_damping_is_found_as_x2v_with_mu_within_5_percent():
     assert -step.parameters[0].value == pytest.approx(ds.VDP["mu"], rel=0.05)
     assert value(res, "c") == pytest.approx(ds.VDP["c"], rel=0.05)
     assert value(res, "k") == pytest.approx(ds.VDP["k"], rel=0.05)
-    # |y|·ẏ screened first; the refit against y²·ẏ decided
+    # |y|·ẏ screened first; the refit against y²·ẏ decided. No named law of (y, ẏ) was refitted beside
+    # the series: the power law is the law found, not a stand-in
     assert step.runners_up and "abs(y)*yd" in step.runners_up[0].term
+    assert step.runners_up[0].delta_bic > 10 and step.verdict == "identified"
 
 
 @pytest.mark.slow
-def test_arrhenius_rate_is_found_with_its_activation_temperature():
-    res = run(ds.reactor_model(), ds.reactor_record(1), ds.reactor_record(2, name="val"))
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_arrhenius_rate_is_found_with_its_activation_temperature(seed):
+    res = run(ds.reactor_model(), ds.reactor_record(seed), ds.reactor_record(seed + 1, name="val"))
     assert [s.effect for s in res.steps] == ["arrhenius"], (res.conclusion, res.rejected)
     r = ds.REACTOR
     ref = float(res.steps[0].description.split("E/R = E_k_T*")[1])
@@ -65,8 +74,11 @@ def test_arrhenius_rate_is_found_with_its_activation_temperature():
 
 
 @pytest.mark.slow
-def test_sensor_offset_and_source_offset_are_told_apart_by_refit():
-    res = run(ds.rlc_model(), ds.rlc_record(1), ds.rlc_record(2, name="val"))
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_sensor_offset_and_source_offset_are_told_apart_by_refit(seed):
+    # seeds 2 and 3: the source offset's refit converged but the validation gate rejected it; its ΔBIC
+    # was not reported (None) until a rejected contender's converged refit was compared too
+    res = run(ds.rlc_model(), ds.rlc_record(seed), ds.rlc_record(seed + 1, name="val"))
     step = res.steps[0]
     names = {step.effect} | {r.effect for r in step.runners_up}
     assert {"output_offset", "offset"} <= names, (res.conclusion, step.runners_up)
@@ -101,14 +113,15 @@ def test_complete_models_under_ar1_noise_and_held_inputs_get_nothing_over_ten_se
 
 
 @pytest.mark.slow
-def test_offsets_that_are_equivalent_on_these_data_are_reported_ambiguous_with_what_separates_them():
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_offsets_that_are_equivalent_on_these_data_are_reported_ambiguous_with_what_separates_them(seed):
     """Measured on vc alone, a sensor offset on vc and a source offset in di/dt (or dvc/dt) give the
     same outputs once the initial states are free: the step says `ambiguous`, names them, and asks for
     the data that would tell them apart (another output)."""
     def vc_only(record):
         return {**record, "outputs": {"vc": record["outputs"]["vc"]}}
     model = {**ds.rlc_model(), "outputs": {"vc": "vc"}}
-    res = run(model, vc_only(ds.rlc_record(1)), vc_only(ds.rlc_record(2, name="val")))
+    res = run(model, vc_only(ds.rlc_record(seed)), vc_only(ds.rlc_record(seed + 1, name="val")))
     assert len(res.steps) == 1 and res.ambiguous, res.conclusion
     step = res.steps[0]
     assert step.verdict == "ambiguous" and "another output" in step.separate_by
@@ -116,5 +129,25 @@ def test_offsets_that_are_equivalent_on_these_data_are_reported_ambiguous_with_w
     assert {step.effect} | {r.effect for r in tied} == {"output_offset", "offset"}
     assert all(abs(r.delta_bic) < 10 for r in tied)
     assert "ambiguous" in res.conclusion
-    for name in ("L", "R", "C"):
-        assert value(res, name) == pytest.approx(ds.RLC[name], rel=0.03)
+    # from vc alone u -> vc is 1/(LC s² + (RC + L/Rl) s + 1 + R/Rl): R, LC and RC + L/Rl are what the
+    # data fix; L and C are the two roots of a quadratic (seed 3 ends at the other one, L = 4, C = 0.0125)
+    t, L, R, C = ds.RLC, value(res, "L"), value(res, "R"), value(res, "C")
+    assert R == pytest.approx(t["R"], rel=0.03)
+    assert L * C == pytest.approx(t["L"] * t["C"], rel=0.03)
+    assert R * C + L / t["Rl"] == pytest.approx(t["R"] * t["C"] + t["L"] / t["Rl"], rel=0.03)
+
+
+@pytest.mark.slow
+def test_a_series_member_that_beats_the_named_laws_of_its_variable_approximates():
+    """The radiative block with the radiation law left out of the library (`effects`): a member of the
+    approximating series (a power or a smooth h(T)) describes the loss better than the named laws of T
+    refitted beside it, and is labelled `approximates`, not `identified`: it names no mechanism."""
+    from greyfit.schemas.discovery import ALL_EFFECTS
+    effects = [e for e in ALL_EFFECTS if e != "radiation"]
+    res = run(ds.block_model(), ds.block_record(1, n=1000), ds.block_record(2, n=1000, name="val"), effects=effects)
+    step = res.steps[0]
+    assert step.effect in ("power_law", "parameter_law"), res.conclusion
+    assert step.verdict == "approximates" and "approximates; not identified" in step.description
+    assert "approximates; not identified" in res.conclusion
+    named = [r for r in step.runners_up if r.effect == "arrhenius"]
+    assert named and named[0].delta_bic > 10

@@ -91,6 +91,8 @@ def test_sign_blind_speed_sensor_is_proposed_as_abs_output():
             "experiments": [ps.speed_record(1, name="est")], "validation": [ps.speed_record(51, name="val")]}
     res = discover(DiscoverRequest.model_validate(body))
     assert res.steps and res.steps[0].effect == "output_abs", (res.conclusion, res.rejected)
+    # and nothing piled on after it (a parameter step, a switching damping with ~0.5 % coefficients)
+    assert [s.effect for s in res.steps] == ["output_abs"], res.conclusion
     assert res.model.outputs["y"] == "abs((w))"
     assert res.fit.parameters["b"].value == pytest.approx(ps.SPEED_TRUTH["b"], rel=0.02)
     assert abs(res.fit.parameters["K"].value) == pytest.approx(ps.SPEED_TRUTH["K"], rel=0.02)

@@ -49,6 +49,28 @@ def test_shape_of_a_missing_cubic_spring_is_cubic_in_the_position(seed):
     assert shape_agreement(best, [np.tanh(yd / 0.01)]) < best.share_explained - 0.3
 
 
+def test_a_law_without_the_learned_shape_is_labelled_approximates():
+    """Scoring laws against the shape (`shape_test.shape_note`): on the Duffing record the cubic spring
+    has the shape of what is missing in the equation of ẏ; a switching force explains much less of
+    it than a free smooth function of y and is labelled "approximates; not identified". A constant
+    has no shape to judge."""
+    from greyfit.solvers.discovery.candidate import Candidate
+    from greyfit.solvers.discovery.shape_test import agreement_with_shape, shape_note
+    record = cr.duffing_record(2000, 1, kind="white", level=0.01)
+    req, fit = _fit(ps.duffing_model(), [record])
+    shape = estimate_shape(req, fit)
+    best = shape.estimates[0]
+    y, yd = best.variables["y"][0], best.variables["yd"][0]
+    states = ["y", "yd"]
+
+    def law(g):
+        return Candidate("custom", {1: [g]}, "g", "a law", apply=lambda m: (m, []))
+    assert shape_note(shape, law(y ** 3), states, ["y"]) == ""
+    note = shape_note(shape, law(np.tanh(yd / (0.01 * np.std(yd)))), states, ["y"])
+    assert note.startswith("approximates; not identified") and "dyd/dt" in note
+    assert agreement_with_shape(shape, law(np.ones_like(y)), states, ["y"]) is None
+
+
 def test_shape_of_coulomb_friction_steps_with_the_sign_of_the_speed():
     record = cr.msd_record(2000, 3, extra_force=lambda x, v: 0.5 * np.tanh(v / 1e-3))
     req, fit = _fit(cr.msd_position_model(), [record])
@@ -95,9 +117,13 @@ def test_before_validation_is_the_validation_records_and_absent_without_them():
 
 
 @pytest.mark.slow
-def test_hysteresis_is_reported_unexplained_with_its_shape_and_nothing_named():
+@pytest.mark.parametrize("seed", [1, 5, 8])
+def test_hysteresis_is_reported_unexplained_with_its_shape_and_nothing_named(seed):
+    # seed 5 named a constant offset, seed 8 a power law v³ (after 546 s of CPU), though `unexplained`
+    # was set: a law of the present variables removes a quarter of the residual's excess over the
+    # noise of a disturbance no function of one variable explains; the shape test refuses it
     body = {"model": ss.bouc_wen_model(), "method": "multiple_shooting",
-            "experiments": [ss.bouc_wen_record(1)], "validation": [ss.bouc_wen_record(2, name="val")]}
+            "experiments": [ss.bouc_wen_record(seed)], "validation": [ss.bouc_wen_record(seed + 1, name="val")]}
     res = discover(DiscoverRequest.model_validate(body))
     assert res.steps == [], res.conclusion
     left = res.unexplained
@@ -109,17 +135,21 @@ def test_hysteresis_is_reported_unexplained_with_its_shape_and_nothing_named():
     assert left.share_explained < 0.8
     shape = res.discrepancy.equations[0]
     assert shape.equation == "v" and len(shape.samples["est"]) == len(shape.time["est"]) == 1000
+    # what was refused for it, refused by the shape test or on the evidence, never by the time
+    assert not [r for r in res.rejected if r.reason == "cpu_limit"], res.rejected
 
 
 @pytest.mark.slow
-def test_delay_on_a_coarsely_sampled_two_lag_process():
+@pytest.mark.parametrize("seed", [1, 2, 3])
+def test_delay_on_a_coarsely_sampled_two_lag_process(seed):
     # the screen ranks 1 and 2 samples first (its linearisation is taken where the lags have stretched
     # to mimic the delay); the refits walk along the lag to where the refit cost is least
-    # (`confirm.walk_lags`). One seed here; bench/bench_discovery_delay.py runs ten.
+    # (`confirm.walk_lags`). Three seeds of 1 000 samples here; bench/bench_discovery_delay.py runs ten of 2 000.
     model = ss.delay_model()
     model["parameters"][2]["value"] = 1.0   # collapsed the second lag at one RK4 step before main's fit changes
     body = {"model": model, "method": "multiple_shooting", "options": {"input_interpolation": "zoh"},
-            "experiments": [ss.delay_record(1)], "validation": [ss.delay_record(2, name="val")]}
+            "experiments": [ss.delay_record(seed, n=1000)],
+            "validation": [ss.delay_record(seed + 1, n=1000, name="val")]}
     res = discover(DiscoverRequest.model_validate(body))
     assert res.steps and all(s.effect == "input_delay" for s in res.steps), res.conclusion
     # the input the final model reads is u shifted by the whole delay (found in one step or two)

@@ -133,3 +133,23 @@ def test_a_last_start_stopped_by_the_cpu_limit_fails_the_multistart(monkeypatch)
     r = fit_model(FitRequest.model_validate(kinetics_body(("A", "C"), multistart=4)))
     assert r.solver.starts == 4 and r.solver.return_status == MULTISTART_CPU_STATUS
     assert r.quality == "failed" and not r.success
+
+
+def test_the_exact_hessian_polish_starts_only_from_an_iterate_next_to_an_answer():
+    """A Gauss-Newton solve that diverged (a cubic damping refit in discovery: multiple-shooting gaps
+    of 4e10 after 20 iterations) is not polished: the polish from there spent 130 s of CPU in MUMPS'
+    factorisations without a step forward. An unconverged iterate whose gaps are closed is."""
+    from greyfit.schemas.fit import FitOptions
+    from greyfit.solvers.methods.multistart import MultistartRun, polish_with_exact_hessian
+    from greyfit.solvers.nlp.solver import NlpOutcome
+
+    def polish_built(infeasibility: float) -> bool:
+        built = []
+        best = NlpOutcome(np.zeros(3), 771.0, "Maximum_Iterations_Exceeded", False, 20, 1.0, infeasibility)
+        run = MultistartRun(best, [best])
+        polish_with_exact_hessian(None, FitOptions(), run, exact=lambda: built.append(1))   # None: nothing to solve
+        assert run.best is best and not run.polished
+        return bool(built)
+    assert not polish_built(4.3e10)
+    assert not polish_built(float("nan"))
+    assert polish_built(1e-6)

@@ -53,7 +53,8 @@ class DiscoveryOptions(BaseModel):
                                         "refitted against each other count too")
     time_budget_s: float = Field(
         default=300.0, gt=0, le=86_400,
-        description="wall-time budget of the search (the base fit always runs): no screen or refit starts "
+        description="CPU-time budget of the search, in seconds of the process that runs it (the same work on a "
+                    "quiet and on a loaded machine; the base fit always runs): no screen or refit starts "
                     "after it is spent, and a refit gets at most what is left as its max_cpu_time (and at most "
                     "a multiple of the base fit's CPU time, a contender a multiple of its leader's iterations); "
                     "the result says when the budget ended the search (`budget_exhausted`)")

@@ -1,4 +1,6 @@
-"""Wall time of a discovery request: where it goes (per phase) and when it is spent (the budget);
+"""Time of a discovery request: where it goes (wall time per phase) and when it is spent (the budget,
+in CPU seconds of this process: the search ends after the same work on a quiet and on a loaded
+machine, where a wall-clock budget ended it earlier the busier the machine was);
 and the bounds of one refit (`RefitLimits`): iterations relative to the leader's refit, which decide,
 and CPU seconds, a safety net.
 
@@ -25,6 +27,7 @@ PHASES = ("base_fit", "screening", "refits", "validation")
 class Clock:
     def __init__(self, budget_s: float):
         self.started = time.perf_counter()
+        self.cpu_started = time.process_time()
         self.budget_s = budget_s
         self.phases = {p: 0.0 for p in PHASES}
         self.exhausted = False
@@ -39,15 +42,25 @@ class Clock:
         """
         return time.perf_counter() - self.started
 
+    def cpu(self) -> float:
+        """CPU time of this process since the clock was made (what the budget counts).
+
+        Returns
+        -------
+        float
+            Seconds.
+        """
+        return time.process_time() - self.cpu_started
+
     def left(self) -> float:
-        """What is left of the budget.
+        """What is left of the budget, in CPU seconds.
 
         Returns
         -------
         float
             Seconds; negative once the budget is spent.
         """
-        return self.budget_s - self.elapsed()
+        return self.budget_s - self.cpu()
 
     def allows(self) -> bool:
         """May another screen or refit start? Records that the budget ended the search if not.

@@ -145,7 +145,7 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
 
     if clock.exhausted:
         notes.append(f"the time budget (discovery.time_budget_s = {opts.time_budget_s:g} s) ended the search "
-                     f"after {clock.elapsed():.1f} s; what was found until then is reported")
+                     f"after {clock.cpu():.1f} s of CPU; what was found until then is reported")
         why_not = why_not or (f"search stopped by the time budget ({opts.time_budget_s:g} s) before an effect "
                               "was confirmed")
     conclusion = steps_conclusion(state.steps) if state.steps else why_not or "no significant missing effect"

@@ -68,3 +68,17 @@ def test_a_diverging_contender_does_not_spend_the_time_budget():
     assert [s.effect for s in res.steps] == ["coulomb"], res.conclusion
     assert not [r for r in res.rejected if r.reason == "cpu_limit"], res.rejected
     assert res.steps[0].parameters[0].value == pytest.approx(fc, rel=0.01)
+
+
+def test_the_search_budget_counts_cpu_not_wall_time():
+    """A search waiting for the machine (here: sleeping) has spent none of its budget; working, it has."""
+    import time
+
+    from greyfit.solvers.discovery.budget import Clock
+    clock = Clock(0.2)
+    time.sleep(0.3)
+    assert clock.allows() and clock.left() > 0.15
+    t0 = time.process_time()
+    while time.process_time() - t0 < 0.25:
+        pass
+    assert not clock.allows() and clock.exhausted

@@ -93,6 +93,47 @@ def effective_n(resid: np.ndarray, max_lag: int = 100) -> float:
     return n / (1 + 2 * total)
 
 
+def effective_n_many(resid: np.ndarray, max_lag: int = 100) -> np.ndarray:
+    """`effective_n` of every column of `resid` (n, k), the autocorrelations by one FFT.
+
+    Parameters
+    ----------
+    resid : numpy.ndarray
+        (n, k) residual series, one per column.
+    max_lag : int
+        Most lags looked at (also at most n // 4).
+
+    Returns
+    -------
+    numpy.ndarray
+        (k,) effective sample sizes, as `effective_n` gives them column by column.
+    """
+    r = resid - resid.mean(axis=0)
+    n, k = r.shape
+    denom = np.einsum("ij,ij->j", r, r)
+    if n < 8:
+        return np.full(k, float(n))
+    lags = min(max_lag, n // 4)
+    spec = np.fft.rfft(r, 2 * n, axis=0)
+    acf = np.fft.irfft(spec * np.conj(spec), axis=0)[1:lags]
+    out = np.full(k, float(n))
+    for j in range(k):
+        if denom[j] == 0:
+            continue
+        a = acf[:, j] / denom[j]
+        below = np.flatnonzero(a < 0.05)
+        if not below.size:
+            out[j] = n / (1 + 2 * float(a.sum()))
+            continue
+        cut = int(below[0])
+        total = float(a[:cut].sum())
+        if cut >= 2 and 0 < a[cut - 1] < a[cut - 2]:
+            decay = float(a[cut - 1] / a[cut - 2])
+            total += float(a[cut - 1]) * decay / (1 - decay)
+        out[j] = n / (1 + 2 * total)
+    return out
+
+
 class RegressionScorer:
     """Scores many candidate columns against one residual with one factorisation of J.
 
@@ -223,6 +264,57 @@ class RegressionScorer:
         corr_before = float(np.corrcoef(self.r0, fitted)[0, 1]) if np.std(fitted) > 0 else 0.0
         return Score(self.rss0, rss1, self.r.size, n_eff, explained, f_stat, p_value, bic_drop,
                      float(coef[0]), corr_before)
+
+    def score_many(self, columns: list[np.ndarray | None]) -> list[Score | None]:
+        """`score` of each entry, the single columns of one length in one vectorised pass.
+
+        The pass projects, regresses and measures the effective size of every single column at once
+        (one FFT over all of them): the lack-of-fit check scores a dozen candidates on every fit.
+        The numbers are those `score` gives, to rounding.
+
+        Parameters
+        ----------
+        columns : list of numpy.ndarray or None
+            Stacked candidate column(s), as `score` takes them.
+
+        Returns
+        -------
+        list of Score or None
+            One entry per column, as `score` returns.
+        """
+        out: list[Score | None] = [None] * len(columns)
+        single = [i for i, g in enumerate(columns) if g is not None and (g.ndim == 1 or g.shape[1] == 1)
+                  and g.shape[0] == self.r.size and np.all(np.isfinite(g))]
+        vectorised = set(single)
+        for i, g in enumerate(columns):
+            if i not in vectorised:
+                out[i] = self.score(g)
+        if not single or self.rss0 <= 0:
+            return out
+        g = np.column_stack([np.asarray(columns[i]).reshape(-1) for i in single])
+        g0 = self.project(g)
+        norm0, norm = np.linalg.norm(g0, axis=0), np.linalg.norm(g, axis=0)
+        live = norm0 > 1e-6 * np.maximum(norm, 1e-300)
+        if not live.any():
+            return out
+        g0 = g0[:, live]
+        coef = (g0.T @ self.r0) / np.einsum("ij,ij->j", g0, g0)
+        fitted = g0 * coef
+        resid1 = self.r0[:, None] - fitted
+        rss1 = np.einsum("ij,ij->j", resid1, resid1)
+        n_eff = np.maximum(effective_n_many(resid1), self.n_base + 10.0)
+        dof = np.maximum(n_eff - self.n_base - 1, 1.0)
+        f_stat = (self.rss0 - rss1) / np.maximum(rss1 / dof, 1e-300)
+        bic_drop = n_eff * np.log(self.rss0 / np.maximum(rss1, 1e-300)) - np.log(n_eff)
+        centred_r = self.r0 - self.r0.mean()
+        centred_f = fitted - fitted.mean(axis=0)
+        spread = np.sqrt(np.einsum("ij,ij->j", centred_f, centred_f) * float(centred_r @ centred_r))
+        corr = np.divide(centred_r @ centred_f, spread, out=np.zeros_like(spread), where=spread > 0)
+        for k, i in enumerate(np.asarray(single)[live]):
+            out[i] = Score(self.rss0, float(rss1[k]), self.r.size, float(n_eff[k]),
+                           float((self.rss0 - rss1[k]) / self.rss0), float(f_stat[k]), chi2_sf(float(f_stat[k]), 1),
+                           float(bic_drop[k]), float(coef[k]), float(corr[k]))
+        return out
 
     def forward_select(self, columns: np.ndarray, max_columns: int, alpha: float, min_gain: float) -> list[int]:
         """Greedy forward selection among `columns` (rows × k), e.g. switch times of a parameter.

@@ -157,14 +157,14 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         out.notes += [n for n in notes if n not in out.notes]
         cands = [c for c in cands if keep(c)]
         columns = scorer.stack_many([(c.equations, c.outputs) for c in cands])
-        for c, g in zip(cands, columns):
+        scores = scorer.score_many([None if c.refit_only else g for c, g in zip(cands, columns)])
+        for c, s in zip(cands, scores):
             out.tries += c.tries
             if c.refit_only:
                 # no linear evidence at this fit: tried by refit when the residual is not white
                 out.scored.append(Scored(c, Score(scorer.rss0, scorer.rss0, scorer.r.size, scorer.n_eff, 0.0, 0.0,
                                                   1.0, 0.0, 0.0, 0.0), "refit", significant=not out.white))
                 continue
-            s = scorer.score(g) if g is not None else None
             if s is not None:
                 out.scored.append(Scored(c, s, "outputs", scorer=scorer))
         out.outputs_scored = list(cm.outputs)

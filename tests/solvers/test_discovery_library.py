@@ -151,3 +151,23 @@ def test_a_series_member_that_beats_the_named_laws_of_its_variable_approximates(
     assert "approximates; not identified" in res.conclusion
     named = [r for r in step.runners_up if r.effect == "arrhenius"]
     assert named and named[0].delta_bic > 10
+
+
+def test_vectorised_scores_equal_the_one_by_one_scores():
+    """The lack-of-fit check scores a dozen columns on every fit in one pass: the same numbers."""
+    from greyfit.solvers.discovery.scoring import RegressionScorer
+    rng = np.random.default_rng(3)
+    n = 400
+    jac = rng.standard_normal((n, 3))
+    r = np.cumsum(rng.standard_normal(n)) * 0.1 + rng.standard_normal(n)   # coloured
+    sc = RegressionScorer(r, jac)
+    cols = [rng.standard_normal(n), np.sin(np.arange(n) / 7.0), jac[:, 0] * 2.0, None,
+            rng.standard_normal((n, 2)), np.full(n, np.nan), rng.standard_normal((n, 1))]
+    many = sc.score_many(cols)
+    for g, s in zip(cols, many):
+        one = sc.score(g) if g is not None else None
+        if one is None:
+            assert s is None
+            continue
+        for field in ("rss1", "n_eff", "explained", "f_stat", "p_value", "bic_drop", "beta", "corr_before"):
+            assert getattr(s, field) == pytest.approx(getattr(one, field), rel=1e-9, abs=1e-12), field

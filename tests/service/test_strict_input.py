@@ -12,7 +12,7 @@ from fastapi.testclient import TestClient
 
 from greyfit.service.app import create_app
 from greyfit.service.json_body import LARGE_BODY_BYTES
-from greyfit.service.openapi_examples import EXAMPLES
+from greyfit.service.openapi_examples import examples as openapi_examples
 from greyfit.service.task_kinds import KINDS
 from tests.service.conftest import EXAMPLE, assert_problem, make_settings
 
@@ -67,8 +67,10 @@ def test_a_seed_is_an_integer_on_every_route_that_takes_options(client, seed):
     routes = _routes_taking_a_seed(client.get("/openapi.json").json())
     jobs = {k.jobs_path: k.sync_path for k in KINDS.values() if k.jobs_path}
     assert routes == {"/v1/fits", "/v1/discover", "/v1/frequency-fits", "/v1/simulate", "/v1/report", *jobs}
+    known = openapi_examples()
+
     def example(path: str) -> dict:   # a copy: build() may hand out the example itself
-        return copy.deepcopy(EXAMPLES[path].build())
+        return copy.deepcopy(known[path].build())
 
     fit = example("/v1/fits")
     fitted = client.post("/v1/fits", json=fit)

@@ -121,7 +121,9 @@ class Client:
         data = None
         headers = {"accept": "application/json", **(extra_headers or {})}
         if body is not None:
-            data = (body.model_dump_json() if isinstance(body, BaseModel) else json.dumps(body)).encode()
+            # what was set only: a fit chooses what the request leaves to it (substeps, interpolation)
+            data = (body.model_dump_json(exclude_unset=True) if isinstance(body, BaseModel)
+                    else json.dumps(body)).encode()
             headers["content-type"] = "application/json"
         if self.api_key:
             headers["authorization"] = f"Bearer {self.api_key}"
@@ -172,7 +174,8 @@ class Client:
         if kind not in JOB_KINDS:
             raise ValueError(f"kind must be one of {list(JOB_KINDS)}")
         schema, path = KINDS[kind].request_schema(), KINDS[kind].jobs_path
-        body: dict[str, Any] = {"requests": [self._as(schema, r).model_dump(mode="json") for r in requests]}
+        body: dict[str, Any] = {"requests": [self._as(schema, r).model_dump(mode="json", exclude_unset=True)
+                                             for r in requests]}
         if label is not None:
             body["label"] = label
         key = idempotency_key or uuid.uuid4().hex
@@ -221,7 +224,8 @@ class Client:
         """The HTML report page of a result (POST /v1/report)."""
         body = {"result": result.model_dump(mode="json") if isinstance(result, BaseModel) else result}
         if request is not None:
-            body["request"] = request.model_dump(mode="json") if isinstance(request, BaseModel) else request
+            body["request"] = request.model_dump(mode="json", exclude_unset=True) if isinstance(request, BaseModel) \
+                else request
         return self._request("POST", "/v1/report", body)[1].decode()
 
     def job_report(self, job_id: str, index: int = 0) -> str:

@@ -166,7 +166,8 @@ def validated_text(request: Request, instance: BaseModel) -> str | dict:
             return validated[1].decode("utf-8")
         except UnicodeDecodeError:   # pydantic read it, so it is UTF-8; never guess if not
             pass
-    return instance.model_dump(mode="json")
+    # only what was sent: the fits read which options the user set (substeps left to the fit are chosen)
+    return instance.model_dump(mode="json", exclude_unset=True)
 
 
 def request_texts(request: Request, requests: list[BaseModel]) -> list[str]:
@@ -175,7 +176,7 @@ def request_texts(request: Request, requests: list[BaseModel]) -> list[str]:
     texts = getattr(request.state, "request_texts", None)
     if texts is not None and len(texts) == len(requests):
         return texts
-    return [r.model_dump_json() for r in requests]
+    return [r.model_dump_json(exclude_unset=True) for r in requests]
 
 
 def body_model(route) -> Optional[type[BaseModel]]:

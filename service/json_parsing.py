@@ -131,7 +131,7 @@ def parse_and_validate(model: Optional[type[BaseModel]], body: bytes) -> tuple[s
 
 def _request_texts(instance: BaseModel) -> Optional[list[str]]:
     requests = getattr(instance, "requests", None)
-    return [r.model_dump_json() for r in requests] if isinstance(requests, list) and \
+    return [r.model_dump_json(exclude_unset=True) for r in requests] if isinstance(requests, list) and \
         all(isinstance(r, BaseModel) for r in requests) else None
 
 

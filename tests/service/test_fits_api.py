@@ -110,3 +110,27 @@ def test_healthy_after_all_the_bad_input(client):
     assert 'greyfit_http_requests_total{method="POST",route="/v1/fits",status="422"}' in metrics
     assert 'greyfit_fits_total{kind="fit",status="succeeded"}' in metrics
     assert "greyfit_queue_depth 0" in metrics
+
+
+def test_options_the_request_leaves_out_are_chosen_by_the_fit_as_in_the_library(client):
+    """Defect: requests were passed on with every default written out, so a service fit took
+    `substeps: 1` as the user's choice and never chose its substeps or refitted a smooth input
+    read as ramps (the library did). A request model is sent as what was set in it."""
+    from greyfit.schemas.fit import FitRequest
+    from greyfit.solvers.fit import fit_model
+    from tests.servers import msd_request
+    from tests.service.conftest import wait_for_job
+
+    body = msd_request(4)
+    body.get("options", {}).pop("substeps", None)
+    library = fit_model(FitRequest.model_validate(body))
+    assert library.preprocessing.substeps is not None and library.preprocessing.input_refinement
+    sent = json.loads(FitRequest.model_validate(body).model_dump_json(exclude_unset=True))
+    assert "substeps" not in sent.get("options", {})
+    over_http = client.post("/v1/fits", json=body).json()
+    job = wait_for_job(client, client.post("/v1/jobs", json={"requests": [body]}).json()["id"])
+    result = client.get(f"/v1/jobs/{job['id']}/results").json()["results"][0]["result"]
+    for got in (over_http, result):
+        assert got["preprocessing"]["substeps"] == library.preprocessing.substeps
+        assert got["preprocessing"]["input_refinement"] == library.preprocessing.input_refinement
+        assert got["parameters"]["k"]["value"] == pytest.approx(library.parameters["k"].value, rel=1e-9)

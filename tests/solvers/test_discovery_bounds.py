@@ -75,10 +75,10 @@ def test_the_search_budget_counts_cpu_not_wall_time():
     import time
 
     from greyfit.solvers.discovery.budget import Clock
-    clock = Clock(0.2)
-    time.sleep(0.3)
-    assert clock.allows() and clock.left() > 0.15
+    clock = Clock(1.0)
+    time.sleep(1.5)              # wall time passes; this process (background threads aside) works little
+    assert clock.allows() and clock.left() > 0.5
     t0 = time.process_time()
-    while time.process_time() - t0 < 0.25:
+    while time.process_time() - t0 < 1.1:
         pass
     assert not clock.allows() and clock.exhausted

@@ -419,7 +419,7 @@ def wait_for_builds(timeout: float) -> bool:
 
 
 def _build_in_background(fn: ca.Function, path: Path, key: str) -> None:
-    ok = _build(fn, path)
+    ok = _build(fn, path, queue=True)
     with _lock:
         _pending.discard(key)
         if ok:
@@ -475,7 +475,10 @@ def prune_disk_cache(folder: Path, keep: Path | None = None) -> int:
     return deleted
 
 
-def _build(fn: ca.Function, library: Path) -> bool:
+def _build(fn: ca.Function, library: Path, queue: bool = False) -> bool:
+    """Build `library` from `fn`; `queue`: wait for one of the compile slots first (a background
+    build: the fit goes on interpreted meanwhile). A foreground build never waits for a slot: a fit
+    is waiting for it, and the number of fits running bounds the number of such builds."""
     try:
         library.parent.mkdir(parents=True, exist_ok=True)
         with _build_lock(library):
@@ -492,7 +495,7 @@ def _build(fn: ca.Function, library: Path) -> bool:
                 if flags is None:
                     return False
                 lib = Path(tmp) / "lib.so"
-                with _compile_slot(library.parent):
+                with _compile_slot(library.parent) if queue else contextlib.nullcontext():
                     if not _run_compiler([_compiler_path(), *flags, *CFLAGS, *target()[0], str(source),
                                           "-o", str(lib), "-lm"]):
                         return False

@@ -173,7 +173,7 @@ def test_a_failed_background_compile_is_tried_again_later(cache, monkeypatch):
     calls = []
     outcome = {"ok": False}
 
-    def build(f, path):
+    def build(f, path, queue=False):
         calls.append(path)
         return outcome["ok"]
     monkeypatch.setattr(compiled_mod, "_build", build)

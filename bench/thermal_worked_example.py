@@ -5,7 +5,11 @@ Prints the shape the discovery finds (the disturbance on dT/dt against T, thinne
 law fitted to it), how well candidate laws agree with that shape, and before/after on the
 estimation and validation records for the loop as it is and with T⁴ − Ta⁴ given as a candidate.
 
-    OPENBLAS_NUM_THREADS=1 python bench/thermal_worked_example.py [--points 12]
+    OPENBLAS_NUM_THREADS=1 python bench/thermal_worked_example.py [--points 12] [--figures DIR]
+
+`--figures DIR` also writes the discovery's report (PNG figures and report.html, `pip install -e
+.[report]`) to DIR: `discrepancy.png` is the shape figure of docs/discovery.md (docs/thermal_shape.png),
+`discovery_overlay.png` the final model with and without the added term (docs/thermal_overlay.png).
 """
 from __future__ import annotations
 
@@ -56,8 +60,15 @@ def show_shape(points: int) -> None:
         print(f"  {name:14s} {shape_agreement(best, [g]):.4f}")
 
 
-def show_loop(candidates, label: str) -> None:
-    res = discover(DiscoverRequest.model_validate(body(candidates)))
+def show_loop(candidates, label: str, figures: Path | None = None) -> None:
+    req = DiscoverRequest.model_validate(body(candidates))
+    res = discover(req)
+    if figures is not None:
+        from greyfit.schemas.report import ReportRequest
+        from greyfit.service.report import write_report
+        title = "Heated block with radiative loss, declared with convection only"
+        paths = write_report(ReportRequest(result=res, request=req, title=title), figures, ("png",))
+        print("report written: " + ", ".join(str(p) for p in paths))
     p = res.fit.parameters
     print(f"\n{label}: {res.conclusion}")
     print(f"  C = {p['C'].value:.1f} (truth {ss.THERMAL['C']}), h = {p['h'].value:.4f} (truth {ss.THERMAL['h']})"
@@ -70,9 +81,10 @@ def show_loop(candidates, label: str) -> None:
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--points", type=int, default=12)
+    ap.add_argument("--figures", type=Path, default=None, help="write the discovery's report (PNG) here")
     args = ap.parse_args()
     show_shape(args.points)
-    show_loop([], "the loop with its library")
+    show_loop([], "the loop with its library", args.figures)
     # the loop adds a term inside the numerator of (…)/C, so s keeps its units (W/K⁴)
     rad = {"equation": "T", "term": "-(T^4 - Ta^4)", "parameter": "s", "value": 0.0}
     show_loop([rad], "with T^4 - Ta^4 as a candidate")

@@ -100,9 +100,18 @@ def discrepancy_figure(plt, result: DiscoveryResult, svg: bool, notes: list[str]
     for ax, eq in zip(axes[0], equations):
         x, d = _pooled(eq.variable_samples), _pooled(eq.samples)
         n = min(x.size, d.size)
-        ax.plot(x[:n], d[:n], ".", ms=2.5, color="0.45", label="d (estimated)")
+        x, d = x[:n], d[:n]
         grid = np.asarray(getattr(eq, "law_grid", None) or [], dtype=float)
         law = np.asarray(getattr(eq, "law_values", None) or [], dtype=float)
+        fitted = _pooled(getattr(eq, "law_samples", None) or {})
+        label = "d (estimated)"
+        if grid.size and grid.size == law.size and fitted.size == n:
+            # partial residuals (as in a GAM's term plot): d less the fit's linear terms in the other
+            # variables, which the curve holds at their means; the points then scatter about the curve by
+            # the fit's residual alone, where raw d against one variable strays by those other terms
+            d = d - fitted + np.interp(x, grid, law)
+            label = "d, the other variables' linear terms removed"
+        ax.plot(x, d, ".", ms=2.5, color="0.45", label=label)
         if grid.size and grid.size == law.size:
             ax.plot(grid, law, "-", color="C3", lw=1.4, label="fitted smooth law")
         elif getattr(eq, "law_samples", None):

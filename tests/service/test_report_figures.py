@@ -172,6 +172,27 @@ def test_the_discrepancy_figure_draws_the_smooth_law_of_its_variable_not_a_sawto
     assert np.sqrt(np.mean((law - np.polyval(cubic, grid)) ** 2)) < 0.02 * np.ptp(law)
 
 
+def test_the_discrepancy_points_are_partial_residuals_that_scatter_about_the_law_by_the_fit_residual(
+        plt, duffing_discovery):
+    """Raw d against one variable strays from the curve by the linear terms in the other variables
+    (held at their means on the curve): the points drawn are d less those terms, so they scatter about
+    the curve by exactly the fit's residual (a GAM term plot's partial residuals)."""
+    from greyfit.service.report_discovery import discrepancy_figure
+    _, result = duffing_discovery
+    eq = result.discrepancy.equations[0]
+    x, d = np.array(eq.variable_samples["est"]), np.array(eq.samples["est"])
+    fitted, grid, law = np.array(eq.law_samples["est"]), np.array(eq.law_grid), np.array(eq.law_values)
+    notes: list[str] = []
+    assert discrepancy_figure(plt, result, False, notes) is not None and not notes
+    points = next(ln for ln in plt.figures[-1].axes[0].get_lines() if ln.get_label().startswith("d,"))
+    np.testing.assert_allclose(points.get_xdata(), x)
+    about_curve = np.asarray(points.get_ydata()) - np.interp(x, grid, law)
+    np.testing.assert_allclose(about_curve, d - fitted, atol=1e-12 * np.ptp(d))
+    raw_about_curve = d - np.interp(x, grid, law)
+    # the other variables' terms lie in the fit's column space, orthogonal to its residual: never wider
+    assert np.std(about_curve) <= np.std(raw_about_curve) * (1 + 1e-3)
+
+
 def test_the_discovery_overlay_keeps_the_measured_line_visible_and_its_axes_carry_units(plt, duffing_discovery):
     """The measured line was thin grey under two model lines; now it is drawn as the compare figure
     draws it (wide and light, underneath), and the axes name the model's units."""

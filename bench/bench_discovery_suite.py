@@ -7,7 +7,7 @@ held between samples (declared as such: `input_interpolation`), and a validation
 seed. Five families: a mass-spring-damper (Coulomb friction, a cubic spring, quadratic drag, a sensor
 offset), a Duffing oscillator, a pendulum by its angle (quadratic drag), two cascaded tanks by the lower
 level (orifice outflows declared linear) and a motor whose speed sensor cannot see the sign
-(bench/suite_systems.py). Every configuration runs over `--seeds` seeds (10 by default: every rate
+(tests/suite_systems.py). Every configuration runs over `--seeds` seeds (10 by default: every rate
 below is over at least 10 runs). Truth is simulated with scipy, independently of greyfit.
 
 Per configuration it prints:
@@ -53,11 +53,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from bench import suite_systems as ss  # noqa: E402
 from greyfit.schemas.discovery import DiscoverRequest  # noqa: E402
 from greyfit.solvers.discovery import discover  # noqa: E402
 from tests import coloured_records as cr  # noqa: E402
 from tests import partial_systems as ps  # noqa: E402
+from tests import suite_systems as ss  # noqa: E402
 from tests.systems import MSD_TRUTH, msd_model  # noqa: E402
 
 N_MSD, N_DUFFING = 1001, 1001
@@ -71,7 +71,7 @@ EFFECTS = {   # name -> (force added to m x'', the loop's effect name, its equat
 
 @dataclass(frozen=True)
 class Config:
-    system: str      # "msd", "duffing" (its cubic undeclared), "pendulum", "tanks", "speed" (bench/suite_systems.py)
+    system: str      # "msd", "duffing" (its cubic undeclared), "pendulum", "tanks", "speed" (tests/suite_systems.py)
     effect: str      # a key of EFFECTS for msd; "cubic"/"drag"/"sqrt"/"abs" for the others; "none": complete model
     outputs: str     # "x" (position only) or "xv" (both states); the one measured output of the others
     noise: str       # "white" or "ar1"

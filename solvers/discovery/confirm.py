@@ -292,6 +292,7 @@ class Refitted:
     lr_p: float | None
     validation: ValidationSummary | None = None
     rejection: RejectedCandidate | None = None   # set when the refit converged but failed an evidence gate
+    only_t: bool = False   # that rejection was on the t-value alone (the BIC drop and likelihood ratio passed)
 
 
 def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
@@ -348,8 +349,8 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     bic_drop = bic(state.fit) - bic(new_fit)
     order, lr_p = refit_likelihood_ratio(state.request, state.fit, new_req, new_fit)
     level = screening.significance / max(screening.tries, 1) / c.multiplicity
-    if (bic_drop < opts.min_bic_drop or (lr_p is not None and lr_p >= level)
-            or (t_value is not None and t_value < opts.min_t_value)):
+    bic_or_lr_fails = bic_drop < opts.min_bic_drop or (lr_p is not None and lr_p >= level)
+    if bic_or_lr_fails or (t_value is not None and t_value < opts.min_t_value):
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
         lr_text = "" if lr_p is None else \
             f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
@@ -357,7 +358,8 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
         return Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p, rejection=(
             RejectedCandidate(effect=c.effect, equation=where, term=c.term, reason="evidence",
                               detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
-                                     f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")))
+                                     f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")),
+            only_t=not bic_or_lr_fails)
     out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p)
     out.validation = validate_refit(request, state, out)
     return out

@@ -89,6 +89,7 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
             _judge(request, state, r, group[0].candidate, before_val, screening, kept, failed)
     finally:
         state.limits = None
+    kept += named_laws_beside_kept_series(request, state, kept, failed, before_val, screening)
     if not kept:
         return False
     winner, runners, verdict, separate = choose(request, state, kept, screening)
@@ -126,6 +127,60 @@ def _judge(request: DiscoverRequest, state: LoopState, r: Refitted | RejectedCan
         rejection, refit = objection, r
     state.rejected.append(rejection)
     failed.append(Failed(head, f"rejected ({rejection.reason})", refit))
+
+
+def named_laws_beside_kept_series(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
+                                  failed: list[Failed], before_val: ValidationSummary | None,
+                                  screening: Screening) -> list[Refitted]:
+    """Named laws rejected on their coefficient's t-value alone, beside a kept series member of the
+    same variables in the same place: back into the comparison, which the BIC decides.
+
+    The series member's evidence shows that a term in those variables is there; which law it is, is
+    what the comparison is for. A named law's coefficient can be nearly collinear with a declared
+    parameter (quadratic drag ω|ω| with a linear damping bω), so its t-value is low under coloured
+    noise while the likelihood ratio and BIC confirm it, and a series member less collinear with the
+    declared terms (ω³) passed the t gate and won by the named law's absence: on a pendulum under
+    AR(1) noise with a held input, 2 of 10 seeds named ω³ though quadratic drag was better by a
+    whitened ΔBIC of 38-46.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (options, validation experiments).
+    state : LoopState
+        The search so far; a law taken back has its rejection removed from `state.rejected`.
+    kept : list of Refitted
+        The refits that passed the gates.
+    failed : list of Failed
+        The contenders rejected; a law taken back is removed.
+    before_val : ValidationSummary or None
+        The validation before this round.
+    screening : Screening
+        The screen they came from.
+
+    Returns
+    -------
+    list of Refitted
+        The laws taken back (their `rejection` cleared), to join `kept`.
+    """
+    series = [r.sc.candidate for r in kept if r.sc.candidate.approximating and r.sc.candidate.variables]
+    out: list[Refitted] = []
+    for f in list(failed):
+        r = f.refit
+        if r is None or not r.only_t or r.rejection is None:
+            continue
+        c = r.sc.candidate
+        if c.approximating or c.catch_all or not c.variables or not any(
+                set(c.variables) == set(s.variables) and _same_place(c, s) for s in series):
+            continue
+        if (memory_objection(state, r, screening) or catch_all_objection(request, state, r, before_val, screening)
+                or validation_objection(request, r, before_val, screening)):
+            continue
+        state.rejected.remove(r.rejection)
+        failed.remove(f)
+        r.rejection = None
+        out.append(r)
+    return out
 
 
 def failed_runners(winner: Refitted, kept: list[Refitted], failed: list[Failed],

@@ -1,10 +1,10 @@
-"""More system families for bench/bench_discovery_suite.py: a pendulum measured by its angle, two
-cascaded tanks measured at the lower level, a motor whose speed sensor cannot see the sign, and a
-mass-spring-damper whose position sensor reads with an offset. Each comes with the undeclared effect
-or without it (a complete model), white or AR(1) measurement noise, the input interpolated linearly or
-held between samples, and a validation record from another seed. Truth is simulated with scipy
-(odeint told where the input has kinks, or interval by interval for a held input), independently of
-greyfit.
+"""System families of bench/bench_discovery_suite.py (and of the tests that pin its findings): a
+pendulum measured by its angle, two cascaded tanks measured at the lower level, a motor whose speed
+sensor cannot see the sign, and a mass-spring-damper whose position sensor reads with an offset.
+Each comes with the undeclared effect or without it (a complete model), white or AR(1) measurement
+noise, the input interpolated linearly or held between samples, and a validation record from another
+seed. Truth is simulated with scipy (odeint told where the input has kinks, or interval by interval
+for a held input), independently of greyfit.
 """
 from __future__ import annotations
 

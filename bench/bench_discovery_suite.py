@@ -58,15 +58,10 @@ from greyfit.solvers.discovery import discover  # noqa: E402
 from tests import coloured_records as cr  # noqa: E402
 from tests import partial_systems as ps  # noqa: E402
 from tests import suite_systems as ss  # noqa: E402
-from tests.systems import MSD_TRUTH, msd_model  # noqa: E402
+from tests.systems import MSD_TRUTH  # noqa: E402
 
-N_MSD, N_DUFFING = 1001, 1001
-EFFECTS = {   # name -> (force added to m x'', the loop's effect name, its equation, SINDy's term)
-    "none": (None, None, None, None),
-    "coulomb": (lambda x, v: 0.5 * np.tanh(v / 1e-3), "coulomb", "v", None),
-    "cubic": (lambda x, v: 3.0 * x ** 3, "cubic_stiffness", "v", "x0^3"),
-    "drag": (lambda x, v: 0.6 * v * np.abs(v), "quadratic_drag", "v", None),
-}
+N_DUFFING = 1001
+EFFECTS = ss.MSD_EFFECTS
 
 
 @dataclass(frozen=True)
@@ -107,34 +102,6 @@ CONFIGS = [
 QUICK = [CONFIGS[0], CONFIGS[3], CONFIGS[7], CONFIGS[12], CONFIGS[15], CONFIGS[21]]
 
 
-def _msd_body(cfg: Config, seed: int) -> tuple[dict, dict]:
-    force = EFFECTS[cfg.effect][0]
-    rec = {}
-    for name, s, x0, t0 in (("est", seed, (0.1, 0.0), 0.0), ("val", seed + 500, (-0.2, 0.1), 20.0)):
-        rec[name] = _msd_states_record(N_MSD, s, cfg, force, name, x0, t0)
-    model = msd_model()
-    model["outputs"] = {o: o for o in ("x", "v")} if cfg.outputs == "xv" else {"x": "x"}
-    return model, rec
-
-
-def _msd_states_record(n, seed, cfg, force, name, x0, t0):
-    """Like tests/coloured_records.msd_record, with the speed measured too when asked."""
-    base = cr.msd_record(n, seed, kind=cfg.noise, level=0.01, extra_force=force, held=cfg.held, name=name,
-                         x0=x0, t0=t0)
-    if cfg.outputs == "xv":
-        t = np.array(base["time"])
-        speed = np.gradient(_clean_position(n, seed, cfg, force, x0, t0), t)
-        noise = cr.coloured_noise(n, cfg.noise if cfg.noise != "ar1" else "ar1", np.random.default_rng(7000 + seed),
-                                  rho=0.8)
-        base["outputs"]["v"] = (speed + 0.01 * np.std(speed) * noise).tolist()
-    return base
-
-
-def _clean_position(n, seed, cfg, force, x0, t0):
-    rec = cr.msd_record(n, seed, kind="white", level=0.0, extra_force=force, held=cfg.held, x0=x0, t0=t0)
-    return np.array(rec["outputs"]["x"])
-
-
 def case_of(cfg: Config, seed: int) -> ss.Case:
     """The request (estimation and validation records) of one configuration and seed, and its truth."""
     if cfg.system == "duffing":
@@ -150,10 +117,7 @@ def case_of(cfg: Config, seed: int) -> ss.Case:
     elif cfg.system == "msd" and cfg.effect == "offset":
         case = ss.sensor_offset_case(cfg.noise, cfg.held, seed)
     elif cfg.system == "msd":
-        model, rec = _msd_body(cfg, seed)
-        _, effect, equation, _ = EFFECTS[cfg.effect]
-        case = ss.Case({"model": model, "experiments": [rec["est"]], "validation": [rec["val"]]},
-                       {"c": MSD_TRUTH["c"], "k": MSD_TRUTH["k"]}, effect, equation)
+        case = ss.msd_case(cfg.effect, cfg.outputs, cfg.noise, cfg.held, seed)
     else:
         case = ss.FAMILIES[cfg.system](cfg.effect != "none", cfg.noise, cfg.held, seed)
     body = case.body

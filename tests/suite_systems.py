@@ -144,6 +144,39 @@ def sensor_offset_case(kind: str, held: bool, seed: int) -> Case:
     return Case(body, {"c": MSD_TRUTH["c"], "k": MSD_TRUTH["k"]}, "output_offset", "x")
 
 
+# --- mass-spring-damper with an undeclared force, position or both states measured ----------------------
+N_MSD = 1001
+MSD_EFFECTS = {   # name -> (force added to m x'', the loop's effect name, its equation, SINDy's term)
+    "none": (None, None, None, None),
+    "coulomb": (lambda x, v: 0.5 * np.tanh(v / 1e-3), "coulomb", "v", None),
+    "cubic": (lambda x, v: 3.0 * x ** 3, "cubic_stiffness", "v", "x0^3"),
+    "drag": (lambda x, v: 0.6 * v * np.abs(v), "quadratic_drag", "v", None),
+}
+
+
+def _msd_states_record(seed: int, kind: str, held: bool, both: bool, force, name: str, x0, t0: float) -> dict:
+    """Like tests/coloured_records.msd_record, with the speed measured too when `both`."""
+    base = cr.msd_record(N_MSD, seed, kind=kind, level=0.01, extra_force=force, held=held, name=name, x0=x0, t0=t0)
+    if both:
+        t = np.array(base["time"])
+        clean = cr.msd_record(N_MSD, seed, kind="white", level=0.0, extra_force=force, held=held, x0=x0, t0=t0)
+        speed = np.gradient(np.array(clean["outputs"]["x"]), t)
+        noise = cr.coloured_noise(N_MSD, kind, np.random.default_rng(7000 + seed), rho=0.8)
+        base["outputs"]["v"] = (speed + 0.01 * np.std(speed) * noise).tolist()
+    return base
+
+
+def msd_case(effect: str, outputs: str, kind: str, held: bool, seed: int) -> Case:
+    """`effect` a key of MSD_EFFECTS; `outputs` "x" (position) or "xv" (both states)."""
+    force, name, equation, _ = MSD_EFFECTS[effect]
+    recs = [_msd_states_record(s, kind, held, outputs == "xv", force, n, x0, t0)
+            for n, s, x0, t0 in (("est", seed, (0.1, 0.0), 0.0), ("val", seed + 500, (-0.2, 0.1), 20.0))]
+    model = msd_model()
+    model["outputs"] = {o: o for o in ("x", "v")} if outputs == "xv" else {"x": "x"}
+    return Case({"model": model, "experiments": [recs[0]], "validation": [recs[1]]},
+                {"c": MSD_TRUTH["c"], "k": MSD_TRUTH["k"]}, name, equation)
+
+
 FAMILIES: dict[str, Callable[..., Case]] = {
     "pendulum": pendulum_case, "tanks": tanks_case, "speed": speed_case,
 }

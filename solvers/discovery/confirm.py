@@ -62,6 +62,9 @@ class LoopState:
     refit_costs: list[RefitCost] = field(default_factory=list)   # what each refit took, in order
     shape: ShapeResult | None = None          # the missing term's shape learned at `shape_fit` (`shape_test`)
     shape_fit: FitResult | None = None
+    # named laws refitted at a fit and rejected on their t-value alone, with their BIC drop there: what
+    # they explain a catch-all may not stand in for (`parsimony.catch_all_objection`)
+    undetermined: list[tuple[FitResult, Candidate, float]] = field(default_factory=list)
 
 
 def screen_state(state: LoopState, opts: DiscoveryOptions, exclude: set[str]) -> Screening:

@@ -90,6 +90,9 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     finally:
         state.limits = None
     kept += named_laws_beside_kept_series(request, state, kept, failed, before_val, screening)
+    state.undetermined += [(state.fit, f.refit.sc.candidate, f.refit.bic_drop) for f in failed
+                           if f.refit is not None and f.refit.only_t and not f.refit.sc.candidate.approximating
+                           and not f.refit.sc.candidate.catch_all]
     if not kept:
         return False
     winner, runners, verdict, separate = choose(request, state, kept, screening)

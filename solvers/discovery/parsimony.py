@@ -1,6 +1,8 @@
 """Parsimony: what a refit that passed the evidence gates must still show to be added.
 
-- A catch-all (a switching coefficient, a step or drift in time, an input delay) is kept only if it
+- A catch-all (a switching coefficient, a step or drift in time, an input delay) is never kept where a
+  named law refitted at the same fit explained more but was rejected on its t-value alone (its size is
+  not determined on these data; the catch-all would stand in for it); it is kept only if it
   improves the validation records (when there are some), never to pile a small coefficient
   (< `PILE_MIN_RELATIVE` of the parameter it changes) onto an accepted effect, and never when it moves
   the declared parameters far outside their intervals (more than `STAND_IN_SIGMAS` standard errors and
@@ -17,6 +19,7 @@ from __future__ import annotations
 from typing import Literal
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, ValidationSummary
+from greyfit.solvers.discovery.candidate import Candidate
 from greyfit.solvers.discovery.confirm import LoopState, Refitted
 from greyfit.solvers.discovery.screening import Screening
 from greyfit.solvers.discovery.summary import equation_names, mean_nrmse, validation_worse
@@ -25,6 +28,10 @@ PILE_MIN_RELATIVE = 0.1
 STAND_IN_SIGMAS = 5.0
 STAND_IN_RELATIVE = 0.1
 BACKED_BY_VALIDATION = 0.2   # a move is backed when the validation error falls by this share
+
+
+def _same_place(a: Candidate, b: Candidate) -> bool:
+    return bool(set(a.equations) & set(b.equations)) or bool(set(a.outputs or {}) & set(b.outputs or {}))
 
 
 def validation_objection(request: DiscoverRequest, r: Refitted, before: ValidationSummary | None,
@@ -80,6 +87,14 @@ def catch_all_objection(request: DiscoverRequest, state: LoopState, r: Refitted,
     c = r.sc.candidate
     if not c.catch_all:
         return None
+    stronger = [(law, drop) for at, law, drop in state.undetermined
+                if at is state.fit and drop >= r.bic_drop and _same_place(law, c)]
+    if stronger:
+        law, drop = max(stronger, key=lambda x: x[1])
+        return rejected(r, screening, "parsimony",
+                        f"a named law explains more here ({law.effect}: {law.term}, BIC drop {drop:.0f} against "
+                        f"{r.bic_drop:.0f}) but its coefficient is not determined on these data (t-value below "
+                        "the gate): a catch-all would stand in for it")
     if state.steps and c.modifies in r.fit.parameters and r.params:
         size = abs(r.fit.parameters[c.modifies].value) or 1.0
         rel = max(abs(r.fit.parameters[n].value) for n in r.params) / size

@@ -137,8 +137,7 @@ def is_right(step, case: ss.Case, ambiguous: bool) -> bool:
     return step.effect == case.effect and case.equation in re.split(r"[ ,]+", step.equation)
 
 
-def run_greyfit(cfg: Config, seed: int, budget: float) -> dict:
-    case = case_of(cfg, seed)
+def run_greyfit(case: ss.Case, budget: float) -> dict:
     case.body["discovery"] = {**case.body.get("discovery", {}), "time_budget_s": budget}
     t0, c0 = time.perf_counter(), time.process_time()
     res = discover(DiscoverRequest.model_validate(case.body))
@@ -155,7 +154,7 @@ def run_greyfit(cfg: Config, seed: int, budget: float) -> dict:
             "named": [s.effect for s in res.steps]}
 
 
-def run_sindy(cfg: Config, seed: int) -> dict | None:
+def run_sindy(cfg: Config, case: ss.Case) -> dict | None:
     """pySINDy on the same record where every state is measured (the mass-spring-damper with both
     states, the motor's plain speed sensor)."""
     if not (cfg.system == "msd" and cfg.outputs == "xv" or cfg.system == "speed" and cfg.effect == "none"):
@@ -164,7 +163,6 @@ def run_sindy(cfg: Config, seed: int) -> dict | None:
         import pysindy
     except ImportError:
         return None
-    case = case_of(cfg, seed)
     exp = case.body["experiments"][0]
     t = np.array(exp["time"])
     x = np.column_stack([exp["outputs"][o] for o in exp["outputs"]])
@@ -189,7 +187,8 @@ def run_sindy(cfg: Config, seed: int) -> dict | None:
 
 def run_seed(job: tuple[Config, int, float]) -> tuple[dict, dict | None]:
     cfg, seed, budget = job
-    return run_greyfit(cfg, seed, budget), run_sindy(cfg, seed)
+    case = case_of(cfg, seed)   # the same records for both
+    return run_greyfit(case, budget), run_sindy(cfg, case)
 
 
 def summarise(cfg: Config, runs: list[dict], sindy: list[dict]) -> str:

@@ -66,6 +66,22 @@ class Candidate:
         """
         return self.generic or self.record_specific
 
+    def same_place(self, other: Candidate) -> bool:
+        """Whether the two act on a common equation or output.
+
+        Parameters
+        ----------
+        other : Candidate
+            The other candidate.
+
+        Returns
+        -------
+        bool
+            True when they share a state equation or an output.
+        """
+        return bool(set(self.equations) & set(other.equations)) or \
+            bool(set(self.outputs or {}) & set(other.outputs or {}))
+
 
 @dataclass
 class OutputFit:

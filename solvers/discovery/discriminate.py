@@ -174,7 +174,7 @@ def named_laws_beside_kept_series(request: DiscoverRequest, state: LoopState, ke
             continue
         c = r.sc.candidate
         if c.approximating or c.catch_all or not c.variables or not any(
-                set(c.variables) == set(s.variables) and _same_place(c, s) for s in series):
+                set(c.variables) == set(s.variables) and c.same_place(s) for s in series):
             continue
         if (memory_objection(state, r, screening) or catch_all_objection(request, state, r, before_val, screening)
                 or validation_objection(request, r, before_val, screening)):
@@ -370,14 +370,10 @@ def named_beside_series(screening: Screening, chosen: list[Scored], state: LoopS
         if c.approximating or c.catch_all or c.refit_only or c.family in seen or c.family in state.tried \
                 or not c.variables:
             continue
-        if any(set(c.variables) == set(s.variables) and _same_place(c, s) for s in series):
+        if any(set(c.variables) == set(s.variables) and c.same_place(s) for s in series):
             seen.add(c.family)
             out.append(sc)
     return out[:MAX_NAMED_BESIDE_SERIES]
-
-
-def _same_place(a: Candidate, b: Candidate) -> bool:
-    return bool(set(a.equations) & set(b.equations)) or bool(set(a.outputs or {}) & set(b.outputs or {}))
 
 
 def _same_hypothesis(a: Scored, b: Scored) -> bool:

@@ -19,7 +19,6 @@ from __future__ import annotations
 from typing import Literal
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, ValidationSummary
-from greyfit.solvers.discovery.candidate import Candidate
 from greyfit.solvers.discovery.confirm import LoopState, Refitted
 from greyfit.solvers.discovery.screening import Screening
 from greyfit.solvers.discovery.summary import equation_names, mean_nrmse, validation_worse
@@ -28,10 +27,6 @@ PILE_MIN_RELATIVE = 0.1
 STAND_IN_SIGMAS = 5.0
 STAND_IN_RELATIVE = 0.1
 BACKED_BY_VALIDATION = 0.2   # a move is backed when the validation error falls by this share
-
-
-def _same_place(a: Candidate, b: Candidate) -> bool:
-    return bool(set(a.equations) & set(b.equations)) or bool(set(a.outputs or {}) & set(b.outputs or {}))
 
 
 def validation_objection(request: DiscoverRequest, r: Refitted, before: ValidationSummary | None,
@@ -88,7 +83,7 @@ def catch_all_objection(request: DiscoverRequest, state: LoopState, r: Refitted,
     if not c.catch_all:
         return None
     stronger = [(law, drop) for at, law, drop in state.undetermined
-                if at is state.fit and drop >= r.bic_drop and _same_place(law, c)]
+                if at is state.fit and drop >= r.bic_drop and law.same_place(c)]
     if stronger:
         law, drop = max(stronger, key=lambda x: x[1])
         return rejected(r, screening, "parsimony",

@@ -268,7 +268,8 @@ def setup_casadi_loop(prob: dict):
     return fit_all
 
 
-TOOLS = {"greyfit MS": lambda prob: setup_greyfit(prob, "multiple_shooting"),
+TOOLS = {"greyfit default": lambda prob: setup_greyfit(prob, "auto"),
+         "greyfit MS": lambda prob: setup_greyfit(prob, "multiple_shooting"),
          "greyfit SS": lambda prob: setup_greyfit(prob, "single_shooting"),
          "CasADi SS jit -O3": setup_casadi, "JAX optimistix LM": setup_jax,
          "CasADi SS loop": setup_casadi_loop, "JAX vmap LM": lambda prob: setup_jax(prob, batched=True)}
@@ -329,7 +330,7 @@ class JobsRunner:
         port = free_port()
         self.proc = serve(workers, self.tmp.name, port)
         self.client = httpx.Client(base_url=f"http://127.0.0.1:{port}", timeout=120)
-        requests = [fit_request(prob, r, "multiple_shooting") for r in range(len(prob["y"]))]
+        requests = [fit_request(prob, r, "auto") for r in range(len(prob["y"]))]   # the default method
         self.body = json.dumps({"requests": requests}).encode()
         first = json.dumps(requests[0]).encode()
         self._wait(self.client.post("/v1/jobs", json={"requests": requests[:workers]}).json()["id"])
@@ -465,7 +466,7 @@ def tools_for(key: str, with_jax: bool) -> list[str]:
     if key == "e":
         names = ["CasADi SS loop", "JAX vmap LM"]
     else:
-        names = ["greyfit MS", "greyfit SS", "CasADi SS jit -O3", "JAX optimistix LM"]
+        names = ["greyfit default", "greyfit MS", "greyfit SS", "CasADi SS jit -O3", "JAX optimistix LM"]
         if key == "b":
             names.append("greyfit MS interpreted")
     return [n for n in names if with_jax or not n.startswith("JAX")]

@@ -102,7 +102,7 @@ def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitW
 
     opts = DiscoveryOptions(effects=SCREENED_EFFECTS, significance=SIGNIFICANCE)
     try:
-        screening = screen(request, result, opts, set(), equations=False)
+        screening = screen(request, result, opts, set(), equations=False, significant_only=True)
     except (RuntimeError, FitError) as exc:   # CasADi could not linearise this model: say so
         return [FitWarning(code="lack_of_fit_not_screened",
                            message=f"lack of fit not screened: the screen failed ({str(exc).splitlines()[0]})",

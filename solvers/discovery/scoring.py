@@ -80,8 +80,7 @@ def effective_n(resid: np.ndarray, max_lag: int = 100) -> float:
     if denom == 0 or n < 8:
         return float(n)
     lags = min(max_lag, n // 4)
-    spec = np.fft.rfft(r, 2 * n)
-    acf = np.fft.irfft(spec * np.conj(spec))[1:lags] / denom
+    acf = _autocovariance(r, lags) / denom
     below = np.flatnonzero(acf < 0.05)
     if not below.size:
         return n / (1 + 2 * float(acf.sum()))
@@ -91,6 +90,32 @@ def effective_n(resid: np.ndarray, max_lag: int = 100) -> float:
         decay = float(acf[cut - 1] / acf[cut - 2])
         total += float(acf[cut - 1]) * decay / (1 - decay)
     return n / (1 + 2 * total)
+
+
+def _autocovariance(r: np.ndarray, lags: int) -> np.ndarray:
+    """Σ_i r_i r_{i+l} for l = 1 … lags − 1 along the last axis, by FFT: zero padding to n + lags
+    keeps those lags free of the circular wrap (padding to 2n, as before, doubled the transform of
+    every screen's residual columns for lags never read)."""
+    n = r.shape[-1]
+    size = _fast_length(n + lags)
+    spec = np.fft.rfft(r, size, axis=-1)
+    return np.fft.irfft(spec * np.conj(spec), size, axis=-1)[..., 1:lags]
+
+
+def _fast_length(n: int) -> int:
+    """The smallest 2^a 3^b 5^c ≥ n (a length the FFT factors well)."""
+    best = 1 << max(n - 1, 1).bit_length()
+    f5 = 1
+    while f5 < best:
+        f35 = f5
+        while f35 < best:
+            f = f35
+            while f < n:
+                f *= 2
+            best = min(best, f)
+            f35 *= 3
+        f5 *= 5
+    return best
 
 
 def effective_n_many(resid: np.ndarray, max_lag: int = 100) -> np.ndarray:
@@ -114,8 +139,7 @@ def effective_n_many(resid: np.ndarray, max_lag: int = 100) -> np.ndarray:
     if n < 8:
         return np.full(k, float(n))
     lags = min(max_lag, n // 4)
-    spec = np.fft.rfft(r, 2 * n, axis=0)
-    acf = np.fft.irfft(spec * np.conj(spec), axis=0)[1:lags]
+    acf = _autocovariance(np.ascontiguousarray(r.T), lags).T
     out = np.full(k, float(n))
     for j in range(k):
         if denom[j] == 0:
@@ -265,7 +289,7 @@ class RegressionScorer:
         return Score(self.rss0, rss1, self.r.size, n_eff, explained, f_stat, p_value, bic_drop,
                      float(coef[0]), corr_before)
 
-    def score_many(self, columns: list[np.ndarray | None]) -> list[Score | None]:
+    def score_many(self, columns: list[np.ndarray | None], least_explained: float = 0.0) -> list[Score | None]:
         """`score` of each entry, the single columns of one length in one vectorised pass.
 
         The pass projects, regresses and measures the effective size of every single column at once
@@ -276,6 +300,10 @@ class RegressionScorer:
         ----------
         columns : list of numpy.ndarray or None
             Stacked candidate column(s), as `score` takes them.
+        least_explained : float, optional
+            A single column that explains a smaller share of the residual is not scored (None): a
+            caller that only asks which candidates are significant, where significance needs that
+            share (the lack-of-fit check), skips their effective sizes, most of the pass's cost.
 
         Returns
         -------
@@ -302,6 +330,13 @@ class RegressionScorer:
         fitted = g0 * coef
         resid1 = self.r0[:, None] - fitted
         rss1 = np.einsum("ij,ij->j", resid1, resid1)
+        enough = (self.rss0 - rss1) / self.rss0 >= least_explained
+        if not enough.all():
+            live[np.flatnonzero(live)[~enough]] = False
+            g0, coef, fitted, resid1, rss1 = g0[:, enough], coef[enough], fitted[:, enough], \
+                resid1[:, enough], rss1[enough]
+            if not enough.any():
+                return out
         n_eff = np.maximum(effective_n_many(resid1), self.n_base + 10.0)
         dof = np.maximum(n_eff - self.n_base - 1, 1.0)
         f_stat = (self.rss0 - rss1) / np.maximum(rss1 / dof, 1e-300)

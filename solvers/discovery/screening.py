@@ -77,7 +77,8 @@ def fitted_values(request: FitRequest, fit: FitResult):
 
 
 def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude: set[str],
-           output_scorer: OutputScorer | None = None, equations: bool = True) -> Screening:
+           output_scorer: OutputScorer | None = None, equations: bool = True,
+           significant_only: bool = False) -> Screening:
     """Score every candidate whose family is not in `exclude`; see the module docstring.
 
     Parameters
@@ -95,6 +96,10 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
     equations : bool
         Also score the equation residuals where states are measured (the loop's fast screen); the
         fit's lack-of-fit check reads the output scores only, and the tries counted are those scored.
+    significant_only : bool
+        Leave out the output candidates that explain less than `opts.min_explained` (they cannot be
+        significant): the lack-of-fit check asks only for the significant ones. Every candidate is
+        still counted in the tries.
 
     Returns
     -------
@@ -157,7 +162,8 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
         out.notes += [n for n in notes if n not in out.notes]
         cands = [c for c in cands if keep(c)]
         columns = scorer.stack_many([(c.equations, c.outputs) for c in cands])
-        scores = scorer.score_many([None if c.refit_only else g for c, g in zip(cands, columns)])
+        scores = scorer.score_many([None if c.refit_only else g for c, g in zip(cands, columns)],
+                                   opts.min_explained if significant_only else 0.0)
         for c, s in zip(cands, scores):
             out.tries += c.tries
             if c.refit_only:

@@ -74,6 +74,18 @@ class Columns:
         """
         return self._driver is not None
 
+    def ready(self) -> bool:
+        """Whether the compiled loop is in use, after looking again for a library built meanwhile.
+
+        Returns
+        -------
+        bool
+            True once the library is loaded (never where compiling is off or impossible).
+        """
+        if self._driver is None:
+            self._find_library()
+        return self._driver is not None
+
     def __call__(self, *args, n: int, accumulate: bool = False) -> list[np.ndarray]:
         if self._driver is None:
             self._find_library()

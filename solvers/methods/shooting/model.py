@@ -40,8 +40,8 @@ class OutputErrorModel:
         self.weights = output_weights(cm, data, options)
         self.xscale = state_scales(cm, data)
         self.free_x0 = [[i for i in range(cm.nx) if i not in d.x0_known] for d in data]
-        self._reused = isinstance(cm, CompiledModel)   # kept across requests (not a stand-in)
-        self._maps = cm.derive(("maps",), FunctionCache) if self._reused else FunctionCache()
+        self.reused = isinstance(cm, CompiledModel)   # kept across requests (not a stand-in)
+        self._maps = cm.derive(("maps",), FunctionCache) if self.reused else FunctionCache()
         self._simulated: "OrderedDict[bytes, tuple]" = OrderedDict()
         self._sensitivities: tuple[ca.Function, ca.Function] | None = None
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
@@ -70,6 +70,45 @@ class OutputErrorModel:
             out_sens, _ = compiled(out_sens, 2 * samples)
             self._sensitivities = (step_sens, out_sens)
         return self._sensitivities
+
+    def output_jacobians(self, e: int, states: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """y, ∂y/∂x and ∂y/∂p of experiment e along `states`, as numbers (one compiled sample loop).
+
+        The checks after every fit (the lack-of-fit screen, the covariance's Jacobian where the
+        structured form does not apply) ask for these; a CasADi `map` built and unpacked per call
+        cost more than the arithmetic.
+
+        Parameters
+        ----------
+        e : int
+            Index of the experiment.
+        states : numpy.ndarray
+            States at every sample, shape (nx, N).
+        p : numpy.ndarray
+            The experiment's full parameter vector, shape (np,).
+
+        Returns
+        -------
+        y : numpy.ndarray
+            Outputs, shape (ny, N).
+        hx : numpy.ndarray
+            ∂y/∂x per sample, shape (N, ny, nx).
+        hp : numpy.ndarray
+            ∂y/∂p per sample, shape (N, ny, np).
+        """
+        cm, o, n = self.cm, self.options, self.data[e].n
+        key = ("sensitivities", o.integrator, o.substeps, o.input_interpolation)
+        if self.reused:
+            out = self.cm.derive(("output_jacobians",), lambda: Columns(
+                ca.Function("greyfit_out_jac", *_dense_outputs(self.cm.derive(
+                    key, lambda: _sensitivity_functions(cm, self.step, o))[1])), 4 * n))
+        else:
+            out = Columns(ca.Function("greyfit_out_jac", *_dense_outputs(
+                _sensitivity_functions(cm, self.step, o)[1])), compile=False)
+        d = self.data[e]
+        y, hx, hp = out(np.asarray(states, dtype=float), d.u, np.asarray(p, dtype=float).ravel(), d.t[None, :], n=n)
+        return (y, hx.reshape(cm.ny, n, cm.nx).transpose(1, 0, 2),
+                hp.reshape(cm.ny, n, cm.np).transpose(1, 0, 2))
 
     def simulator(self, n: int) -> ca.Function:
         """The step accumulated over `n` intervals (cached per integrator settings and `n`).
@@ -116,8 +155,8 @@ class OutputErrorModel:
         o = self.options
         samples = sum(d.n for d in self.data)
         return self._maps.get(("numeric", o.integrator, o.substeps, o.input_interpolation),
-                              lambda: (Columns(self.step, 4 * samples, self._reused),
-                                       Columns(self.cm.output, 4 * samples, self._reused)))
+                              lambda: (Columns(self.step, 4 * samples, self.reused),
+                                       Columns(self.cm.output, 4 * samples, self.reused)))
 
     def step_inputs(self, d: ExperimentData, i0: int, i1: int):
         """Numeric step inputs for intervals i0..i1-1: u0, u1, t0, dt (each horizontally stacked).
@@ -416,6 +455,13 @@ def _sensitivity_functions(cm: CompiledModel, step: ca.Function, options: FitOpt
     return step_sens, out_sens
 
 
+def _dense_outputs(fn: ca.Function) -> tuple[list, list]:
+    """(inputs, outputs) of `fn` with every output densified (a Jacobian with structural zeros is
+    reshaped per sample by its callers)."""
+    ins = [ca.SX.sym(fn.name_in(i), fn.sparsity_in(i)) for i in range(fn.n_in())]
+    return ins, [ca.densify(o) for o in fn(*ins)]
+
+
 def _first_line(exc: Exception) -> str:
     text = str(exc).strip().splitlines()
     return text[0][:200] if text else type(exc).__name__
@@ -504,10 +550,8 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
             a, b = nan, np.full((cm.nx, (n - 1) * cm.np), np.nan)
         a = np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2)
         b = np.array(b).reshape(cm.nx, n - 1, cm.np).transpose(1, 0, 2) @ layout.matrix[e]
-        y, hx, hp = out_sens.map(n)(states, d.u, np.repeat(p[:, None], n, 1), d.t[None, :])
-        y = np.array(y)
-        hx = np.array(hx).reshape(cm.ny, n, cm.nx).transpose(1, 0, 2)
-        hp = np.array(hp).reshape(cm.ny, n, cm.np).transpose(1, 0, 2) @ layout.matrix[e]
+        y, hx, hp = oem.output_jacobians(e, states, p)
+        hp = hp @ layout.matrix[e]
         sens = np.zeros((n, cm.nx, n_theta + n_free))
         for k, i in enumerate(oem.free_x0[e]):
             sens[0, i, col + k] = oem.xscale[i]

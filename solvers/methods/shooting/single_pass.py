@@ -22,6 +22,7 @@ seed 000's seat model 110 against 295 ms, 2 states × 40 000 samples 125 against
 """
 from __future__ import annotations
 
+import hashlib
 import itertools
 import threading
 from collections import OrderedDict
@@ -104,6 +105,143 @@ def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
     derivs = ca.Function("greyfit_ss_sens", [z, *rest], [
         ca.vertcat(xn, ca.vec(s_next)), cost, ca.mtimes(jrow.T, r), ca.triu(ca.mtimes(jrow.T, jrow))])
     return {"value": value, "sens": derivs}
+
+
+def build_row_kernel(oem, free: tuple[int, ...]) -> ca.Function:
+    """The per-sample kernel of the condensed Jacobian: ((x_k, vec S_k), inputs as `build_kernels`)
+    -> ((x_k+1, vec S_k+1), r_k, J_k), J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] dense (ny × (nθ + free)).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+    free : tuple of int
+        The states whose initial value is estimated somewhere (`free_states`).
+
+    Returns
+    -------
+    casadi.Function
+        An SX Function, evaluated over the samples by a compiled column loop (`Columns`).
+    """
+    sens = build_kernels(oem, free)["sens"]
+    cm, nth = oem.cm, oem.layout.size
+    nx, nv = cm.nx, nth + len(free)
+    ins = [ca.SX.sym(sens.name_in(i), sens.sparsity_in(i)) for i in range(sens.n_in())]
+    z, u0, _u1, t0, _dt, theta, mat, off, xs, y, wt = ins
+    xk, s_k = z[:nx], ca.reshape(z[nx:], nx, nv)
+    p = off + ca.mtimes(mat, theta)
+    r = wt * (cm.output(xs * xk, u0, p, t0) - y)
+    jrow = ca.mtimes(ca.jacobian(r, xk), s_k) + ca.horzcat(ca.jacobian(r, theta), ca.SX(cm.ny, nv - nth))
+    return ca.Function("greyfit_ss_rows", ins, [sens(*ins)[0], ca.densify(r), ca.densify(jrow)])
+
+
+def row_columns(oem):
+    """The condensed Jacobian's kernel on numpy columns (`build_row_kernel`), one per model structure.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+
+    Returns
+    -------
+    Columns
+        Compiled where a library is (or becomes) available; see `Columns.ready`.
+    """
+    from greyfit.solvers.dynamics.columns import Columns
+
+    o, free = oem.options, free_states(oem)
+    samples = sum(d.n for d in oem.data)
+    key = ("single_pass_rows", o.integrator, o.substeps, o.input_interpolation, oem.layout.size, free)
+    if not oem.reused:   # a stand-in model of one request: not worth a compiler run
+        return Columns(build_row_kernel(oem, free), compile=False)
+    return oem.cm.derive(key, lambda: Columns(build_row_kernel(oem, free), 4 * samples))
+
+
+def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+    """(J, r, output of each row) of single shooting at the measured samples, w.r.t. [θ, free x0]
+    (scaled): one compiled loop per experiment carrying the sensitivities, the rows written as it
+    goes (the MX graph of mapped blocks it replaces cost 6–10× the arithmetic, and every fit asks
+    for this three times: at the guess, at the optimum, and in the lack-of-fit screen).
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+    theta_s : numpy.ndarray
+        The scaled free parameters, shape (n θ,).
+    x0s : list of dict
+        Per experiment, state name -> initial value (physical units).
+
+    Returns
+    -------
+    jac : numpy.ndarray
+        Jacobian of the weighted residual, shape (measured samples × outputs, n θ + free initial states).
+    res : numpy.ndarray
+        The weighted residual at the measured samples, sample-major.
+    groups : numpy.ndarray
+        The output index of each row.
+    """
+    cm, layout = oem.cm, oem.layout
+    nth, nx, ny = layout.size, cm.nx, cm.ny
+    rows = row_columns(oem)
+    theta_s = np.asarray(theta_s, dtype=float).ravel()
+    key = _rows_key(oem, rows, theta_s, x0s)
+    with _ROWS_LOCK:
+        known = _ROWS.get(key)
+    # the entry holds its kernel, so an id in a key is never reused while the entry lives
+    if known is not None and known[0] is rows:   # a fit's Jacobian at its optimum, asked again by its checks
+        return tuple(a.copy() for a in known[1])
+    free = free_states(oem)
+    free_at = np.asarray(free, dtype=int)
+    nv = nth + free_at.size
+    nw = nth + sum(len(f) for f in oem.free_x0)
+    seed = np.hstack([np.zeros((nx, nth)), np.eye(nx)[:, free_at]]).ravel(order="F")
+    jacs, resids, groups, col = [], [], [], nth
+    for e, d in enumerate(oem.data):
+        n, mask = d.n, d.mask
+        x0 = np.array([x0s[e][s] for s in cm.states], dtype=float) / oem.xscale
+        u1 = np.concatenate([d.u[:, 1:], d.u[:, -1:]], axis=1)
+        dt = np.append(np.diff(d.t), 0.0)[None, :]
+        _, r, j = rows(np.concatenate([x0, seed]), d.u, u1, d.t[None, :], dt, theta_s,
+                       oem.layout.matrix[e], layout.offset, oem.xscale, np.where(mask, d.y, 0.0),
+                       mask * oem.weights[:, None], n=n, accumulate=True)
+        f = np.asarray(oem.free_x0[e], dtype=int)
+        v = np.concatenate([np.arange(nth), nth + np.searchsorted(free_at, f)]).astype(int)
+        wi = np.concatenate([np.arange(nth), col + np.arange(f.size)]).astype(int)
+        col += f.size
+        per_sample = j.reshape(ny, n, nv).transpose(1, 0, 2)          # (n, ny, nv)
+        keep = mask.T.ravel()                                          # sample-major, like r
+        block = np.zeros((n * ny, nw))
+        block[:, wi] = per_sample.reshape(n * ny, nv)[:, v]
+        jacs.append(block[keep])
+        resids.append(r.T.ravel()[keep])
+        groups.append(np.broadcast_to(np.arange(ny), (n, ny)).ravel()[keep])
+    out = (np.vstack(jacs), np.concatenate(resids), np.concatenate(groups))
+    with _ROWS_LOCK:
+        _ROWS[key] = (rows, out)
+        while len(_ROWS) > 4:
+            _ROWS.popitem(last=False)
+    return tuple(a.copy() for a in out)
+
+
+# the last condensed Jacobians, by everything they are computed from (the kernel, the point and a
+# digest of the records, weights and parameter map): a fit's checks ask again at its optimum
+_ROWS: "OrderedDict[tuple, tuple]" = OrderedDict()
+_ROWS_LOCK = threading.Lock()
+
+
+def _rows_key(oem, rows, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> tuple:
+    digest = hashlib.blake2b(digest_size=16)
+    for e, d in enumerate(oem.data):
+        for part in (d.t, d.u, np.where(d.mask, d.y, 0.0), d.mask, oem.layout.matrix[e]):
+            digest.update(np.ascontiguousarray(part, dtype=float).tobytes())
+            digest.update(b"|")
+    for part in (oem.weights, oem.layout.offset, oem.xscale):
+        digest.update(np.ascontiguousarray(part, dtype=float).tobytes())
+    x0 = tuple(tuple(sorted(x.items())) for x in x0s)
+    free = tuple(map(tuple, oem.free_x0))
+    return (id(rows), theta_s.tobytes(), x0, free, digest.digest())
 
 
 class SinglePass:

@@ -745,6 +745,9 @@ def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     groups : numpy.ndarray
         The output index of each row.
     """
+    if single_pass.row_columns(oem).ready():
+        return single_pass.condensed_rows(oem, theta_s, x0s)
+    # until its loop is compiled (a first fit of a structure: built in the background), the graph
     cm = oem.cm
     stages, _ = _stage_functions(oem, sum(d.n for d in oem.data), STAGES_CONDENSED)
     fns = tuple(stages[name].block for name in STAGES_CONDENSED)

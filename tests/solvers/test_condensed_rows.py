@@ -1,0 +1,102 @@
+"""The compiled loops behind every fit's checks: the condensed Jacobian (single_pass.condensed_rows)
+and the lack-of-fit screen's sensitivity recursion (scoring_outputs.propagate).
+
+Truth: central finite differences of the residual itself (independent of any Jacobian code), and
+the interpreted forms they replace (CasADi's graph of mapped blocks; the Python recursion), on a
+case with every complication the layout has: two records of different lengths, an initial state
+estimated in one and known in the other, a missing sample, a per-experiment parameter.
+"""
+import numpy as np
+import pytest
+
+from greyfit.schemas import FitRequest
+from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.discovery import scoring_outputs
+from greyfit.solvers.dynamics import compiled as compiled_mod
+from greyfit.solvers.methods.shooting import single_pass, structured
+from greyfit.solvers.methods.shooting.model import OutputErrorModel
+from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.model.parameters import build_layout
+from tests.systems import msd_experiment, msd_model, simulate_msd
+
+needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C compiler on this machine")
+
+
+@pytest.fixture
+def cache(tmp_path, monkeypatch):
+    monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(compiled_mod, "_memory", {})
+    return tmp_path
+
+
+def _oem():
+    model = msd_model(c=0.4, k=3.0)
+    model["parameters"][2]["per_experiment"] = True   # k: one value per record
+    t1, t2 = np.arange(61) * 0.05, np.arange(47) * 0.05
+    e1 = msd_experiment(t1, simulate_msd(t1), 0.01, 1, name="e1")
+    e1["outputs"]["x"][7] = None
+    e1["initial_state"] = {"v": 0.0}                 # x(0) estimated
+    e2 = msd_experiment(t2, simulate_msd(t2), 0.01, 2, name="e2")
+    e2["initial_state"] = {"x": 0.1, "v": 0.0}
+    request = FitRequest.model_validate({"model": model, "method": "single_shooting", "experiments": [e1, e2]})
+    cm = compile_model(request.model)
+    data = prepare_experiments(request.experiments, cm)
+    layout = build_layout(request.model, [d.name for d in data])
+    return OutputErrorModel(cm, data, layout, request.options)
+
+
+@needs_cc
+def test_condensed_rows_are_the_residuals_derivatives(cache, monkeypatch):
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    oem = _oem()
+    assert single_pass.row_columns(oem).ready()
+    theta = np.array([0.9, 1.1, 0.95])               # scaled c, k@e1, k@e2: away from the optimum
+    x0s = [{"x": 0.13, "v": 0.0}, {"x": 0.1, "v": 0.0}]
+    jac, res, groups = single_pass.condensed_rows(oem, theta, x0s)
+    assert jac.shape == (61 * 2 - 1 + 47 * 2, 4)     # one x sample missing; c, k@e1, k@e2, x0@e1
+    assert set(groups) == {0, 1}
+
+    def residual(w):
+        x0 = [{"x": w[3] * oem.xscale[0], "v": 0.0}, x0s[1]]
+        return single_pass.condensed_rows(oem, w[:3], x0)[1]
+    w0 = np.concatenate([theta, [0.13 / oem.xscale[0]]])
+    for j in range(4):
+        h = 1e-6 * max(abs(w0[j]), 1.0)
+        up, down = w0.copy(), w0.copy()
+        up[j] += h
+        down[j] -= h
+        fd = (residual(up) - residual(down)) / (2 * h)
+        assert np.allclose(jac[:, j], fd, rtol=1e-6, atol=1e-7 * np.abs(fd).max())
+    # k@e1 moves only the first record's rows, k@e2 only the second's
+    first = 61 * 2 - 1
+    assert np.all(jac[first:, 1] == 0) and np.all(jac[:first, 2] == 0) and np.all(jac[first:, 3] == 0)
+
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")   # the graph it replaces: the same numbers
+    oem_graph = _oem()
+    monkeypatch.setattr(single_pass, "row_columns", lambda _oem: type("NotReady", (), {"ready": lambda s: False})())
+    g_jac, g_res, g_groups = structured.condensed_jacobian(oem_graph, theta, x0s)
+    assert np.allclose(g_jac, jac, rtol=1e-12, atol=1e-14)
+    assert np.allclose(g_res, res, rtol=1e-12, atol=1e-14)
+    assert np.array_equal(g_groups, groups)
+
+
+@needs_cc
+@pytest.mark.parametrize("nx, w", [(2, 3), (3, 9), (1, 1)])
+def test_compiled_recursion_equals_the_products_written_out(cache, monkeypatch, nx, w):
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    monkeypatch.setattr(scoring_outputs, "_RECURSIONS", {})
+    rng = np.random.default_rng(nx * 10 + w)
+    n, ny = 23, 2
+    a, d0, d1 = (rng.standard_normal((n - 1, nx, nx)) * 0.5 for _ in range(3))
+    hx, forcing = rng.standard_normal((n, ny, nx)), rng.standard_normal((n, nx, w))
+    got = scoring_outputs.propagate(a, d0, d1, hx, forcing)
+    assert scoring_outputs._recursion(nx, w).ready()
+    s = np.zeros((nx, w))
+    want = [hx[0] @ s]
+    for k in range(n - 1):   # S_{k+1} = A_k S_k + D0_k f_k + D1_k f_{k+1}
+        s = a[k] @ s + d0[k] @ forcing[k] + d1[k] @ forcing[k + 1]
+        want.append(hx[k + 1] @ s)
+    assert np.allclose(got, np.array(want), rtol=1e-12, atol=1e-13)
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")   # the Python loop: the same numbers
+    monkeypatch.setattr(scoring_outputs, "_RECURSIONS", {})
+    assert np.allclose(scoring_outputs.propagate(a, d0, d1, hx, forcing), got, rtol=1e-12, atol=1e-13)

@@ -1,0 +1,65 @@
+"""The lack-of-fit screen's vectorised statistics (solvers/discovery/scoring.py) against their
+definitions: the effective sample size from autocorrelations summed directly in the time domain,
+and the score pass that leaves out columns too weak to be significant.
+"""
+from dataclasses import astuple
+
+import numpy as np
+import pytest
+
+from greyfit.solvers.discovery.scoring import RegressionScorer, effective_n, effective_n_many
+
+
+def _direct_effective_n(r: np.ndarray, max_lag: int = 100) -> float:
+    """The definition: autocorrelations ρ_l = Σ r_i r_{i+l} / Σ r_i², summed until the first below
+    0.05, with the geometric tail of the last two."""
+    r = r - r.mean()
+    n = r.size
+    lags = min(max_lag, n // 4)
+    rho = np.array([r[:-l] @ r[l:] for l in range(1, lags)]) / (r @ r)
+    below = np.flatnonzero(rho < 0.05)
+    if not below.size:
+        return n / (1 + 2 * rho.sum())
+    cut = int(below[0])
+    total = rho[:cut].sum()
+    if cut >= 2 and 0 < rho[cut - 1] < rho[cut - 2]:
+        decay = rho[cut - 1] / rho[cut - 2]
+        total += rho[cut - 1] * decay / (1 - decay)
+    return n / (1 + 2 * total)
+
+
+@pytest.mark.parametrize("n, phi", [(40, 0.0), (101, 0.6), (997, 0.9), (8000, 0.8)])
+def test_effective_n_is_its_definition(n, phi):
+    rng = np.random.default_rng(n)
+    e = rng.standard_normal((n, 4))
+    r = np.empty_like(e)
+    r[0] = e[0]
+    for i in range(1, n):   # AR(1) columns: the sum of autocorrelations is long for phi = 0.9
+        r[i] = phi * r[i - 1] + e[i]
+    want = np.array([_direct_effective_n(r[:, j]) for j in range(4)])
+    assert np.allclose(effective_n_many(r), want, rtol=1e-10)
+    assert np.allclose([effective_n(r[:, j]) for j in range(4)], want, rtol=1e-10)
+    if phi >= 0.8:
+        assert np.all(want < n / 3)   # the coloured case is not trivially n
+
+
+def test_score_pass_leaves_out_only_columns_too_weak_to_count():
+    rng = np.random.default_rng(5)
+    n = 600
+    jac = rng.standard_normal((n, 2))
+    effect = np.sin(np.linspace(0, 20, n))
+    r = 0.8 * effect + rng.standard_normal(n) * 0.5 + jac @ [0.3, -0.2]
+    scorer = RegressionScorer(r, jac)
+    columns = [effect, rng.standard_normal(n), effect + 0.5 * rng.standard_normal(n), None,
+               rng.standard_normal((n, 2))]
+    full = scorer.score_many(columns)
+    cut = scorer.score_many(columns, least_explained=0.05)
+    explained = [s.explained if s is not None else None for s in full]
+    assert explained[0] > 0.3 and explained[2] > 0.05 and explained[1] < 0.05   # the case has both kinds
+    for i, (a, b) in enumerate(zip(full, cut)):
+        if a is None:
+            assert b is None
+        elif columns[i].ndim == 2 or a.explained >= 0.05:   # two-column candidates are scored as before
+            assert b is not None and np.allclose(astuple(b), astuple(a), rtol=1e-12, atol=0)
+        else:
+            assert b is None

@@ -90,7 +90,7 @@ def test_compiled_recursion_equals_the_products_written_out(cache, monkeypatch, 
     a, d0, d1 = (rng.standard_normal((n - 1, nx, nx)) * 0.5 for _ in range(3))
     hx, forcing = rng.standard_normal((n, ny, nx)), rng.standard_normal((n, nx, w))
     got = scoring_outputs.propagate(a, d0, d1, hx, forcing)
-    assert scoring_outputs._recursion(nx, w).ready()
+    assert scoring_outputs._recursion(nx, ny, w).ready()
     s = np.zeros((nx, w))
     want = [hx[0] @ s]
     for k in range(n - 1):   # S_{k+1} = A_k S_k + D0_k f_k + D1_k f_{k+1}

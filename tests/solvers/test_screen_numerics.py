@@ -16,7 +16,7 @@ def _direct_effective_n(r: np.ndarray, max_lag: int = 100) -> float:
     r = r - r.mean()
     n = r.size
     lags = min(max_lag, n // 4)
-    rho = np.array([r[:-l] @ r[l:] for l in range(1, lags)]) / (r @ r)
+    rho = np.array([r[:-lag] @ r[lag:] for lag in range(1, lags)]) / (r @ r)
     below = np.flatnonzero(rho < 0.05)
     if not below.size:
         return n / (1 + 2 * rho.sum())

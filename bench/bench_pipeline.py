@@ -4,7 +4,8 @@
                                    [--baseline /path/to/other/venv/bin/python]
 
 Cases (2 states × 101 samples, seed 000's seat model with 8 states × 1000 samples, 2 states × 40 000
-samples), each by equation error (`-ee`) and by multiple shooting (`-ms`). Every measurement runs in
+samples), each by equation error (`-ee`), by multiple shooting (`-ms`) and by the default method
+(`-auto`: single shooting on these, as the method choice decides; also 2 states × 401 samples). Every measurement runs in
 a fresh process with its compiled functions built first (what a warm service worker runs). The
 stages are `solvers.fit`'s own steps, timed by wrapping them (nested stages, indented, are inside
 their parent, so the column does not add up; "rest" is the total minus the top-level stages).
@@ -42,7 +43,8 @@ BATCH = "greyfit.solvers.methods.batch"
 VERDICT = "greyfit.solvers.checks.verdict"
 STEPS = [(FIT, "prepare_request"), (FIT, "choose_substeps"), (FIT, "compile_model"), (FIT, "prepare_experiments"),
          (FIT, "build_layout"), (BATCH, "build_equation_error"), (BATCH, "OutputErrorModel"),
-         (BATCH, "build_multiple_shooting"), (FIT, "pre_fit_warnings"), (BATCH, "solve_from_starts"),
+         (BATCH, "build_multiple_shooting"), (BATCH, "build_single_shooting"), (BATCH, "choose_shooting"),
+         (FIT, "pre_fit_warnings"), (BATCH, "solve_from_starts"),
          (BATCH, "sensitivity_jacobian"), (FIT, "equation_error_bias_warnings"),
          (BATCH + ":EquationErrorFit", "channels"), (BATCH + ":OutputErrorFit", "channels"),
          (FIT, "residual_analyses"), (FIT, "row_keys"), (FIT, "estimate_covariance"), (FIT, "_result"),
@@ -50,8 +52,9 @@ STEPS = [(FIT, "prepare_request"), (FIT, "choose_substeps"), (FIT, "compile_mode
 TOP = list(dict.fromkeys(name for _, name in STEPS))
 NESTED = [("greyfit.solvers.checks.quality", "finite_result", "assess_fit"),
           (VERDICT, "missing_effect_warnings", "review_fit"), (VERDICT, "noise_level_warnings", "review_fit")]
-CASES = ["msd101-ee", "msd101-ms", "seat-ee", "seat-ms", "msd40000-ee", "msd40000-ms"]
-SLOW = {"msd40000-ee": 10, "msd40000-ms": 40, "seat-ms": 4}   # fewer fits: ~fits / this
+CASES = ["msd101-ee", "msd101-ms", "seat-ee", "seat-ms", "msd40000-ee", "msd40000-ms",
+         "msd101-auto", "msd401-auto", "seat-auto", "msd40000-auto"]
+SLOW = {"msd40000-ee": 10, "msd40000-ms": 40, "seat-ms": 4, "seat-auto": 4, "msd40000-auto": 20}   # fewer fits: ~fits / this
 
 
 def msd_request(n: int, method: str):
@@ -67,7 +70,7 @@ def msd_request(n: int, method: str):
 def case_request(case: str):
     from bench.bench_speed import seat_request
     system, _, short = case.partition("-")
-    method = {"ee": "equation_error", "ms": "multiple_shooting"}[short]
+    method = {"ee": "equation_error", "ms": "multiple_shooting", "auto": "auto"}[short]
     return seat_request(method)[0] if system == "seat" else msd_request(int(system[3:]), method)
 
 

@@ -16,5 +16,7 @@ bash scripts/lint.sh .venv/bin/python
 # The docs site (mkdocs.yml) in strict mode: a broken link, a page left out of the navigation or an
 # option table that no longer builds from the schemas fails the run. No network needed.
 NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet
-# the slowest tests are listed at the end, so a run that grows shows where
-exec .venv/bin/python -m pytest -q --durations=25 "$@"
+# the slowest tests are listed at the end, so a run that grows shows where; the tests run in one
+# worker process per core (pytest-xdist, at most 4): every test keeps its own temporary folders,
+# ports and PostgreSQL schema, and the compile cache is shared safely between processes
+exec .venv/bin/python -m pytest -q --durations=25 -n auto --maxprocesses 4 "$@"

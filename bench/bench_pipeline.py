@@ -5,10 +5,11 @@
 
 Cases (2 states × 101 samples, seed 000's seat model with 8 states × 1000 samples, 2 states × 40 000
 samples), each by equation error (`-ee`), by multiple shooting (`-ms`) and by the default method
-(`-auto`: single shooting on these, as the method choice decides; also 2 states × 401 samples). Every measurement runs in
-a fresh process with its compiled functions built first (what a warm service worker runs). The
-stages are `solvers.fit`'s own steps, timed by wrapping them (nested stages, indented, are inside
-their parent, so the column does not add up; "rest" is the total minus the top-level stages).
+(`-auto`: single shooting on these, as the method choice decides; also 2 states × 401 samples).
+Every measurement runs in a fresh process with its compiled functions built first (what a warm
+service worker runs). The stages are `solvers.fit`'s own steps, timed by wrapping them (nested
+stages, indented, are inside their parent, so the column does not add up; "rest" is the total minus
+the top-level stages).
 
 With `--baseline`, the same cases also run under another interpreter (another checkout of greyfit,
 e.g. the main branch in its own venv), interleaved A B A B over `--rounds` rounds, and the table
@@ -54,7 +55,8 @@ NESTED = [("greyfit.solvers.checks.quality", "finite_result", "assess_fit"),
           (VERDICT, "missing_effect_warnings", "review_fit"), (VERDICT, "noise_level_warnings", "review_fit")]
 CASES = ["msd101-ee", "msd101-ms", "seat-ee", "seat-ms", "msd40000-ee", "msd40000-ms",
          "msd101-auto", "msd401-auto", "seat-auto", "msd40000-auto"]
-SLOW = {"msd40000-ee": 10, "msd40000-ms": 40, "seat-ms": 4, "seat-auto": 4, "msd40000-auto": 20}   # fewer fits: ~fits / this
+# fewer fits: ~fits / this
+SLOW = {"msd40000-ee": 10, "msd40000-ms": 40, "seat-ms": 4, "seat-auto": 4, "msd40000-auto": 20}
 
 
 def msd_request(n: int, method: str):

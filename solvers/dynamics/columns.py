@@ -37,6 +37,10 @@ _libraries: "OrderedDict[str, ctypes.CDLL]" = OrderedDict()    # most recently u
 _open: "weakref.WeakValueDictionary[str, ctypes.CDLL]" = weakref.WeakValueDictionary()
 _lock = threading.Lock()
 
+# Samples per interpreted map or mapaccum of a long record (`Columns`, `Fold`): its build costs little at this length, and one
+# Function serves every record longer than it
+FOLD_CHUNK = 256
+
 
 class Columns:
     """`fn` (dense inputs, one sample each) evaluated at n samples at once."""
@@ -137,6 +141,8 @@ class Columns:
         return cached
 
     def _casadi(self, args, n: int, accumulate: bool) -> list[np.ndarray]:
+        if n > FOLD_CHUNK and all(self.fn.sparsity_in(i).is_dense() for i in range(self.fn.n_in())):
+            return [self._dense(v, j, n) for j, v in enumerate(self._chunked(args, n, accumulate))]
         fm = self._maps.get((n, accumulate), lambda: self.fn.mapaccum(n) if accumulate else self.fn.map(n))
         if not all(fm.sparsity_in(i).is_dense() for i in range(fm.n_in())):
             out = fm(*[a if not isinstance(a, np.ndarray) or a.ndim != 1 else a[:, None] for a in args])
@@ -147,6 +153,33 @@ class Columns:
             full.append(a.ravel(order="F") if a.size == fm.nnz_in(i)
                         else np.tile(a.ravel(order="F"), fm.nnz_in(i) // max(a.size, 1)))
         return [self._dense(v, j, n) for j, v in enumerate(nonzeros(fm, full))]
+
+    def _chunked(self, args, n: int, accumulate: bool) -> list[np.ndarray]:
+        """The outputs' nonzeros over n samples, evaluated FOLD_CHUNK samples at a time (a mapaccum of
+        a long record costs time and memory in proportion to its length to build); an accumulated
+        state goes from the last sample of one chunk to the first of the next."""
+        flat = [np.asarray(a, dtype=float).ravel(order="F") for a in args]
+        per_sample = [a.size == self._nnz_in[i] * n and not (accumulate and i == 0) for i, a in enumerate(flat)]
+        parts: list[list[np.ndarray]] = [[] for _ in self._nnz_out]
+        state = flat[0]
+        for start in range(0, n, FOLD_CHUNK):
+            m = min(FOLD_CHUNK, n - start)
+            fm = self._maps.get((m, accumulate), lambda: self.fn.mapaccum(m) if accumulate else self.fn.map(m))
+            full = []
+            for i, a in enumerate(flat):
+                rows = self._nnz_in[i]
+                if accumulate and i == 0:
+                    full.append(state)
+                elif per_sample[i]:
+                    full.append(a[start * rows:(start + m) * rows])
+                else:
+                    full.append(np.tile(a, m))
+            outs = nonzeros(fm, full)
+            if accumulate:
+                state = outs[0][-self._nnz_out[0]:]
+            for part, o in zip(parts, outs):
+                part.append(o)
+        return [np.concatenate(part) for part in parts]
 
 
 def nonzeros(fn: ca.Function, args: list[np.ndarray]) -> list[np.ndarray]:
@@ -331,13 +364,25 @@ class Fold:
         return BoundFold(self, args, n)
 
     def _casadi(self, args, n: int) -> list[np.ndarray]:
-        fm = self._maps.get((n,), lambda: self.fn.mapaccum(n))
-        full = []
-        for i, a in enumerate(args):   # the map repeats a shared input; its buffer wants every copy
-            full.append(a if a.size == fm.nnz_in(i) else np.tile(a, fm.nnz_in(i) // max(a.size, 1)))
-        outs = nonzeros(fm, full)
-        state = outs[0][-self._nnz_out[0]:]
-        return [state] + [o.reshape(n, self._nnz_out[j + 1]).sum(axis=0) for j, o in enumerate(outs[1:])]
+        # CasADi's mapaccum(n) costs time and memory in proportion to n to build (1.5 s and 330 MB
+        # for 200 000 samples of a small sensitivity step, the peak of a long record's first fit):
+        # chunks of FOLD_CHUNK samples, the state carried from one to the next, cost neither
+        flat = [np.asarray(a, dtype=float).ravel(order="F") for a in args]
+        per_sample = [i > 0 and a.size == self._nnz_in[i] * n and n > 1 for i, a in enumerate(flat)]
+        state, sums = flat[0], [np.zeros(nnz) for nnz in self._nnz_out[1:]]
+        for start in range(0, n, FOLD_CHUNK):
+            m = min(FOLD_CHUNK, n - start)
+            fm = self._maps.get((m,), lambda: self.fn.mapaccum(m))
+            full = [state]
+            for i, a in enumerate(flat[1:], 1):   # the map repeats a shared input; its buffer wants every copy
+                rows = self._nnz_in[i]
+                full.append(a[start * rows:(start + m) * rows] if per_sample[i]
+                            else np.tile(a, fm.nnz_in(i) // max(a.size, 1)))
+            outs = nonzeros(fm, full)
+            state = outs[0][-self._nnz_out[0]:]
+            for total, o in zip(sums, outs[1:]):
+                total += o.reshape(m, total.size).sum(axis=0)
+        return [state] + sums
 
 
 class BoundFold:

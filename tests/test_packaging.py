@@ -15,6 +15,9 @@ def test_dockerfile_installs_with_the_project_script_and_serves_as_non_root():
     # dependencies are installed before the source is copied, at the versions CI tested
     assert text.index("bash scripts/install.sh") < text.index("COPY --chown=greyfit solvers")
     assert re.search(r"^COPY .*constraints\.txt", text, re.M).start() < text.index("bash scripts/install.sh")
+    # and the source's bytecode is in the image (a container's first fit would compile it)
+    assert text.rindex("compileall") > text.index("COPY --chown=greyfit solvers")
+    assert "compileall" in (ROOT / "scripts" / "install.sh").read_text()
 
 
 def test_install_uses_the_tested_versions():

@@ -169,19 +169,30 @@ class OutputScorer(RegressionScorer):
         blocks = []
         for e, d in enumerate(oem.data):
             n = d.n
-            forcing = np.zeros((n, cm.nx, total))
-            direct = np.zeros((n, cm.ny, total))
+            jy = np.zeros((n, cm.ny, total))
+            forcing: dict[int, list[tuple[int, np.ndarray]]] = {}   # column -> (equation, values)
             for (regressor, outputs), lo, hi in zip(items, offsets[:-1], offsets[1:]):
                 for i, cols in (regressor or {}).items():
-                    forcing[:, i, lo:hi] = np.reshape(cols[e], (n, hi - lo))
+                    block = np.reshape(cols[e], (n, hi - lo))
+                    for c in range(hi - lo):
+                        if np.any(block[:, c]):   # a zero column (or part) adds nothing to propagate
+                            forcing.setdefault(lo + c, []).append((i, block[:, c]))
                 for j, cols in (outputs or {}).items():
-                    direct[:, j, lo:hi] += np.reshape(cols[e], (n, hi - lo))
-            jy = direct
-            active = np.flatnonzero(np.any(forcing != 0, axis=(0, 1)))
-            if active.size:
-                jy[:, :, active] += propagate(self.a[e], self.d0[e], self.d1[e], self.hx[e], forcing[:, :, active])
-            blocks.append((jy * oem.weights[None, :, None])[d.mask.T])
-        g = np.concatenate(blocks)[self.ok]
+                    jy[:, j, lo:hi] += np.reshape(cols[e], (n, hi - lo))
+            if forcing:
+                active = np.array(sorted(forcing), dtype=int)
+                # written straight in the recursion's layout (sample, column, equation)
+                laid = np.zeros((n, _padded(active.size), cm.nx))
+                for slot, c in enumerate(active):
+                    for i, values in forcing[c]:
+                        laid[:, slot, i] = values
+                jy[:, :, active] += _propagate_laid(self.a[e], self.d0[e], self.d1[e], self.hx[e], laid, active.size)
+            jy *= oem.weights[None, :, None]
+            # rows (sample, output) where measured; a complete record needs no gather
+            blocks.append(jy.reshape(n * cm.ny, total) if d.mask.all() else jy[d.mask.T])
+        g = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
+        if not self.ok.all():
+            g = g[self.ok]
         out = []
         for w, vec, lo, hi in zip(widths, vectors, offsets[:-1], offsets[1:]):
             out.append(None if w == 0 else (g[:, lo] if vec else g[:, lo:hi]))
@@ -212,22 +223,10 @@ def propagate(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, for
         (n, ny, w) output sensitivities.
     """
     n, nx, w = forcing.shape
-    ny = hx.shape[1]
-    loop = _recursion(nx, ny, w)
-    if n > 1 and loop.ready():
-        # the whole recursion, its forcing and its outputs as one compiled loop: numpy's batched
-        # products of 8 × 8 blocks and a Python loop cost 17 ms of a lack-of-fit screen on a
-        # 1 000-sample, 8-state model; the padding columns stay 0
-        width = -(-w // PROPAGATE_COLUMNS) * PROPAGATE_COLUMNS
-        pad = np.zeros((n, width, nx))
-        pad[:, :w, :] = forcing.transpose(0, 2, 1)
-        f = pad.reshape(n, nx * width).T                     # column k: vec of f_k (nx × width)
-        blocks = [m.transpose(0, 2, 1).reshape(m.shape[0], -1).T for m in (a, d0, d1)]
-        h = hx[1:].transpose(0, 2, 1).reshape(n - 1, ny * nx).T
-        _, y = loop(np.zeros(nx * width), *blocks, f[:, :-1], f[:, 1:], h, n=n - 1, accumulate=True)
-        out = np.zeros((n, ny, w))
-        out[1:] = y.T.reshape(n - 1, width, ny).transpose(0, 2, 1)[:, :, :w]
-        return out
+    if n > 1 and _recursion(nx, hx.shape[1], w).ready():
+        laid = np.zeros((n, _padded(w), nx))
+        laid[:, :w, :] = forcing.transpose(0, 2, 1)
+        return _propagate_laid(a, d0, d1, hx, laid, w)
     drive = np.matmul(d0, forcing[:-1]) + np.matmul(d1, forcing[1:])
     sens = np.empty((n,) + forcing.shape[1:])
     sens[0] = 0.0
@@ -239,9 +238,33 @@ def propagate(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, for
     return np.matmul(hx, sens)
 
 
+def _propagate_laid(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, laid: np.ndarray,
+                    w: int) -> np.ndarray:
+    """`propagate` of the first w of the forcing columns `laid` (n, width, nx), width a multiple of
+    `PROPAGATE_COLUMNS` and the rest zero: one compiled loop where its library is ready (numpy's
+    batched products of 8 × 8 blocks and a Python loop cost 17 ms of a lack-of-fit screen on a
+    1 000-sample, 8-state model), else the numpy recursion."""
+    n, width, nx = laid.shape
+    ny = hx.shape[1]
+    loop = _recursion(nx, ny, w)
+    if not (n > 1 and loop.ready()):
+        return propagate(a, d0, d1, hx, laid[:, :w, :].transpose(0, 2, 1))
+    f = laid.reshape(n, nx * width).T                     # column k: vec of f_k (nx × width)
+    blocks = [m.transpose(0, 2, 1).reshape(m.shape[0], -1).T for m in (a, d0, d1)]
+    h = hx[1:].transpose(0, 2, 1).reshape(n - 1, ny * nx).T
+    _, y = loop(np.zeros(nx * width), *blocks, f[:, :-1], f[:, 1:], h, n=n - 1, accumulate=True)
+    out = np.zeros((n, ny, w))
+    out[1:] = y.T.reshape(n - 1, width, ny).transpose(0, 2, 1)[:, :, :w]
+    return out
+
+
 # the compiled recursion takes the columns in groups of this many (zero-padded): a few libraries per
 # model size serve every screen, whatever the number of candidates
 PROPAGATE_COLUMNS = 8
+
+
+def _padded(w: int) -> int:
+    return -(-w // PROPAGATE_COLUMNS) * PROPAGATE_COLUMNS
 _RECURSIONS: dict[tuple[int, int, int], Columns] = {}
 
 
@@ -249,7 +272,7 @@ def _recursion(nx: int, ny: int, w: int) -> Columns:
     """(S_k, A_k, D0_k, D1_k, f_k, f_k+1, H_k+1) -> (S_k+1, H_k+1 S_k+1), S_k+1 = A_k S_k + D0_k f_k +
     D1_k f_k+1, on numpy columns, for nx states, ny outputs and w forcing columns (padded to a
     multiple of `PROPAGATE_COLUMNS`); compiled in the background on first use."""
-    width = -(-w // PROPAGATE_COLUMNS) * PROPAGATE_COLUMNS
+    width = _padded(w)
     key = (nx, ny, width)
     if key not in _RECURSIONS:
         sx = ca.SX.sym

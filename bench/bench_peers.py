@@ -467,12 +467,13 @@ def tools_for(key: str, with_jax: bool) -> list[str]:
         names = ["CasADi SS loop", "JAX vmap LM"]
     else:
         names = ["greyfit default", "greyfit MS", "greyfit SS", "CasADi SS jit -O3", "JAX optimistix LM"]
-        if key == "b":
-            names.append("greyfit MS interpreted")
+        if key == "b":   # the cold first fit is set against the warm interpreted fit of the default method
+            names += ["greyfit default interpreted", "greyfit MS interpreted"]
     return [n for n in names if with_jax or not n.startswith("JAX")]
 
 
 TOOLS["greyfit MS interpreted"] = TOOLS["greyfit MS"]
+TOOLS["greyfit default interpreted"] = TOOLS["greyfit default"]
 
 
 def run_problem(key: str, args, with_jax: bool, tmp: str) -> dict:

@@ -382,8 +382,10 @@ class Fold:
                             else np.tile(a, fm.nnz_in(i) // max(a.size, 1)))
             outs = nonzeros(fm, full)
             state = outs[0][-self._nnz_out[0]:]
-            for total, o in zip(sums, outs[1:]):
-                total += o.reshape(m, total.size).sum(axis=0)
+            # the running sums as the first row: numpy adds the rows of a C-ordered array one after
+            # another, the compiled loop's order, so both give the same numbers to the last bit
+            sums = [np.add.reduce(np.vstack([total, o.reshape(m, total.size)]), axis=0)
+                    for total, o in zip(sums, outs[1:])]
         return [state] + sums
 
 

@@ -16,44 +16,44 @@ PE_RATIO = 1e-6
 ROUGH_INPUT = 0.5   # effective ω·Δt of an input above which first-order hold misrepresents it
 
 
-def information_warnings(jac: np.ndarray, labels: list[str]) -> list[FitWarning]:
+def information_warnings(gram: np.ndarray, labels: list[str]) -> list[FitWarning]:
     """Condition and every null direction of JᵀJ (column-equilibrated) at the initial guess.
 
     Raises DataError when no column of J is nonzero: nothing at all can be identified.
 
     Parameters
     ----------
-    jac : numpy.ndarray
-        Jacobian of the weighted residual at the initial guess, shape (n_residuals, n_variables).
+    gram : numpy.ndarray
+        JᵀJ of the weighted residual's Jacobian J at the initial guess, shape (n_variables, n_variables).
     labels : list of str
-        Name of each column (free parameters and initial states).
+        Name of each column of J (free parameters and initial states).
 
     Returns
     -------
     list of FitWarning
-        An ``initial_simulation_diverged`` warning when `jac` is not finite; a ``poor_excitation``
+        An ``initial_simulation_diverged`` warning when `gram` is not finite; a ``poor_excitation``
         warning with the condition, the null directions (condition limit `START_CONDITION_LIMIT`) and
         the parameters involved; else an empty list.
 
     Raises
     ------
     DataError
-        When every column of `jac` is zero; names ``experiments``.
+        When every column of J is zero; names ``experiments``.
     """
-    if not np.all(np.isfinite(jac)):
+    if not np.all(np.isfinite(gram)):
         return [FitWarning(code="initial_simulation_diverged",
                            message="the model's simulation at the initial guess is not finite or runs away "
                                    "(|x| > 1e12); "
                                    "the excitation could not be checked",
                            detail={})]
-    norms = np.linalg.norm(jac, axis=0)
+    norms = np.sqrt(np.maximum(np.diag(gram), 0.0))   # of J's columns
     if norms.size == 0 or np.all(norms == 0):
         raise DataError("no free parameter or initial state changes the fitted residual at the "
                         "initial guess: nothing is identifiable from these data. Excite the system "
                         "(vary the inputs) or measure an output that depends on the parameters",
                         "experiments")
     d = np.where(norms > 0, norms, 1.0)
-    normed = (jac.T @ jac) / np.outer(d, d)
+    normed = gram / np.outer(d, d)
     eigval, eigvec = np.linalg.eigh(normed)
     zero_cols = [labels[i] for i in np.flatnonzero(norms == 0)]
     condition = float(eigval[-1] / max(eigval[0], 1e-300))

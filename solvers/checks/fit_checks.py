@@ -57,21 +57,27 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
     theta_s = layout.initial / layout.scale
     if eep is not None:
         jac, _ = problem.evaluate_jacobian(problem.initial_guess(layout.initial))
+        gram = jac.T @ jac
         labels = list(layout.labels)
     elif oem is None:   # each batch method builds one of the two (solvers/methods/batch.py)
         raise ValueError("pre_fit_warnings needs the equation-error problem or the output-error model")
     else:
-        x0s = [dict(zip(cm.states, oem.x0_guess(e))) for e in range(len(data))]
         failures = len(oem.simulation_failures)
-        jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
+        if problem.start_gram is not None:   # the solve's own first pass, done here for it
+            w0 = np.clip(problem.initial_guess(layout.initial), problem.lbw, problem.ubw)   # as run_ipopt
+            gram = problem.start_gram(w0)
+        else:
+            x0s = [dict(zip(cm.states, oem.x0_guess(e))) for e in range(len(data))]
+            jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
+            gram = jac.T @ jac if np.all(np.isfinite(jac)) else np.full((jac.shape[1],) * 2, np.nan)
         if _runs_away(oem, layout):
-            jac = np.full_like(jac, np.nan)   # sensitivities of a run-away simulation say nothing
+            gram = np.full_like(gram, np.nan)   # sensitivities of a run-away simulation say nothing
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
         labels = list(layout.labels) + oem.x0_labels()
     inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
     # a difference equation reads u[k] only: nothing is interpolated between samples
     interpolation = "zoh" if cm.model.discrete is not None else options.input_interpolation
-    return information_warnings(jac, labels) + input_warnings(inputs, interpolation, input_parameters(cm, layout))
+    return information_warnings(gram, labels) + input_warnings(inputs, interpolation, input_parameters(cm, layout))
 
 
 def _runs_away(oem: OutputErrorModel, layout: ParameterLayout) -> bool:

@@ -45,6 +45,9 @@ class LeastSquaresProblem:
     # a solver over a different formulation of the same NLP (e.g. structured multiple shooting);
     # `w` and `g` then only give the sizes, the residual graph is never built
     solver_factory: SolverFactory | None = None
+    # w -> JᵀJ at w, where the solver computes it anyway at its first evaluation (folded single
+    # shooting): the start checks ask for it there instead of a Jacobian of their own
+    start_gram: Callable[[np.ndarray], np.ndarray] | None = None
     # (λ) -> the constraints' curvature added to the Gauss-Newton Hessian (multiple shooting)
     constraint_hessian: Callable[[ca.MX], ca.MX] | None = None
     # where `solver_factory` is a structured form: the same NLP as one CasADi graph, built when a

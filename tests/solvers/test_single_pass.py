@@ -82,7 +82,8 @@ def test_compiled_and_interpreted_folds_reach_the_same_optimum(cache, monkeypatc
 @pytest.mark.parametrize("mode", ["never", "always"])
 def test_one_sensitivity_pass_per_accepted_point(cache, monkeypatch, mode):
     """grad_f and hess_l at the same point share one sensitivity pass: over a fit, no more passes
-    than Ipopt's iterations plus the start (each iteration accepts one point)."""
+    than Ipopt's iterations plus the start (each iteration accepts one point). The start checks'
+    JᵀJ at the guess is that start's pass (`start_gram`), not one more."""
     if mode == "always" and compiled_mod.compiler() is None:
         pytest.skip("no C compiler on this machine")
     monkeypatch.setenv("GREYFIT_COMPILE", mode)
@@ -131,3 +132,24 @@ def test_callbacks_equal_the_graphs_derivatives_when_some_initial_states_are_kno
         value = np.array(ca.DM(got[name]))
         assert value.shape == truth.shape, name
         assert np.max(np.abs(value - truth)) <= 1e-9 * max(1.0, float(np.max(np.abs(truth)))), name
+
+
+@needs_cc
+def test_the_start_checks_gram_is_the_condensed_jacobians(cache, monkeypatch):
+    """`start_gram` (JᵀJ at the guess from the solve's own sensitivity pass) equals JᵀJ of the
+    condensed Jacobian that the start checks computed before, with a free initial state."""
+    from greyfit.solvers.methods.shooting import build_single_shooting
+    from greyfit.solvers.methods.shooting.model import sensitivity_jacobian
+    from tests.solvers.test_structured_nlp import _body, _oem
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    body = _body("single_shooting", output_gain=True)
+    oem = _oem(body)
+    problem = build_single_shooting(oem)
+    assert problem.start_gram is not None
+    w = problem.initial_guess(oem.layout.initial) * 1.03
+    gram = problem.start_gram(w)
+    theta_s = w[:oem.layout.size]
+    x0s = problem.x0_of(w)
+    jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
+    assert gram.shape == (jac.shape[1],) * 2
+    assert np.allclose(gram, jac.T @ jac, rtol=1e-10, atol=1e-12 * np.abs(gram).max())

@@ -48,6 +48,7 @@ class OutputErrorModel:
         self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
         self.structured_data: np.ndarray | None = None   # the structured NLP's data vector, built once
         self.records_digest: bytes | None = None   # of the records, weights and map (`single_pass`), once
+        self.single_pass_token: float | None = None   # this model's record in single shooting's callbacks
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:
         """(step -> x+, ∂x+/∂x, ∂x+/∂p) and (output -> y, ∂y/∂x, ∂y/∂p), built once (compiled C

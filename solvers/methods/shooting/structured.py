@@ -431,11 +431,38 @@ def _free_x0(oem, e: int, pv, free: list[ca.MX]) -> ca.MX:
     return pv[f"X0{e}"] + ca.mtimes(ca.DM(place), free[e])   # the data block is 0 where x0 is free
 
 
+# the `SinglePass` of each folded structure, shared by its NLPs (one per iteration limit, the
+# multistart's and the hybrid's): a point one of them evaluated is known to all (the start checks'
+# pass at the guess is the solve's first); the entry holds its folds, so their ids stay theirs
+_PASSES: "OrderedDict[tuple, tuple[tuple, single_pass.SinglePass]]" = OrderedDict()
+
+
+def _single_pass(oem, folds: dict[str, Fold]) -> single_pass.SinglePass:
+    owners = tuple(fold.fn for fold in folds.values())
+    key = (*map(id, owners), tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)), oem.layout.size)
+    entry = _PASSES.get(key)
+    if entry is not None and all(a is b for a, b in zip(entry[0], owners)):
+        _PASSES.move_to_end(key)
+        return entry[1]
+    sp = single_pass.SinglePass(oem, folds, _data_layout(oem).shapes, single_pass.free_states(oem))
+    _PASSES[key] = (owners, sp)
+    while len(_PASSES) > SOLVER_CACHE_SIZE:
+        _PASSES.popitem(last=False)
+    return sp
+
+
+def _record_token(oem) -> float:
+    """The token of this model's record: one per model, so every solver of it shares its points."""
+    if oem.single_pass_token is None:
+        oem.single_pass_token = single_pass.new_token()
+    return oem.single_pass_token
+
+
 def _single_shooting_terms(oem, folds: dict[str, Fold], theta, pv, pvec) -> tuple[_Terms, tuple]:
     """No gaps and no MX graph of the samples: f, grad_f and the Hessian are callbacks of one
     `single_pass.SinglePass`, each one folded compiled loop (the derivatives one pass per point).
     Also returns the callbacks, which must live as long as the solver."""
-    sp = single_pass.SinglePass(oem, folds, _data_layout(oem).shapes, single_pass.free_states(oem))
+    sp = _single_pass(oem, folds)
     cbs = single_pass.callbacks(sp)
     w = ca.vertcat(theta, ca.MX.sym("x0", sp.nw - sp.nth))
     token = pvec[-1]
@@ -747,12 +774,27 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
                     _SOLVERS.popitem(last=False)
         upgrade = None if is_c or folded else (lambda: make_solver(max_iter, max_cpu_time))
         if folded:   # the token under which the callbacks find this record and cache its points
-            token = single_pass.new_token()
+            token = _record_token(oem)
             record = np.append(_data_vector(oem), token)
             return StructuredSolver(nlp, _folded_vector(oem, token), problem, is_c, upgrade, record)
         return StructuredSolver(nlp, _data_vector(oem), problem, is_c, upgrade)
 
+    def start_gram(w: np.ndarray) -> np.ndarray:
+        """JᵀJ at w (scaled [θ, free x0]) by the sensitivity pass the solve's first evaluation at w
+        then finds done (the structure's shared `SinglePass`, the model's token)."""
+        folds, _ = _single_folds(oem, samples)
+        sp = _single_pass(oem, folds)
+        token = _record_token(oem)
+        sp.attach(np.append(_data_vector(oem), token))
+        _, _, hess = sp.derivatives(np.asarray(w, dtype=float), np.array([token]))
+        rows, cols = (np.asarray(a, dtype=int) for a in sp.hess_sparsity.get_triplet())
+        gram = np.zeros((sp.nw, sp.nw))
+        gram[rows, cols] = hess
+        return gram + np.triu(gram, 1).T
+
     problem.solver_factory = make_solver
+    if folded:
+        problem.start_gram = start_gram
     return problem
 
 

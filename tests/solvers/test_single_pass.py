@@ -153,3 +153,21 @@ def test_the_start_checks_gram_is_the_condensed_jacobians(cache, monkeypatch):
     jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
     assert gram.shape == (jac.shape[1],) * 2
     assert np.allclose(gram, jac.T @ jac, rtol=1e-10, atol=1e-12 * np.abs(gram).max())
+
+
+@needs_cc
+def test_fits_of_one_structure_in_threads_each_get_their_own_record(cache, monkeypatch):
+    """The records reach the shared callbacks by token, not through Ipopt: four fits of one model
+    structure running at once in threads (CasADi releases the GIL) each answer for their own data,
+    exactly as one at a time."""
+    from concurrent.futures import ThreadPoolExecutor
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    requests = [_request(seed=s) for s in (11, 12, 13, 14)]
+    alone = [fit_model(r) for r in requests]
+    with ThreadPoolExecutor(max_workers=4) as pool:
+        together = list(pool.map(fit_model, requests))
+    for a, b in zip(alone, together):
+        assert b.solver.compiled is True
+        for name in ("c", "k"):
+            assert b.parameters[name].value == a.parameters[name].value
+    assert len({round(r.parameters["k"].value, 12) for r in alone}) == 4   # four different records

@@ -25,6 +25,7 @@ from __future__ import annotations
 import hashlib
 import itertools
 import threading
+import weakref
 from collections import OrderedDict
 
 import casadi as ca
@@ -299,7 +300,8 @@ class SinglePass:
         # where each kept nonzero of experiment e lands among the Hessian's (one-to-one per experiment)
         self.h_maps = [(keep, position[a, b]) for keep, a, b in pairs]
         self._records: OrderedDict[float, list[dict]] = OrderedDict()
-        self._attached: OrderedDict[float, np.ndarray] = OrderedDict()
+        # held weakly: a record lives as long as a solver holds it, however many solve at once
+        self._attached: "weakref.WeakValueDictionary[float, np.ndarray]" = weakref.WeakValueDictionary()
         # Ipopt asks for the gradient at nearly every point whose cost it asked for (a Gauss-Newton
         # step is mostly accepted): where the sensitivity pass costs little more than the simulation,
         # the cost comes from it and the gradient and Hessian that follow are already there
@@ -310,7 +312,8 @@ class SinglePass:
 
     def attach(self, record: np.ndarray) -> None:
         """Give the callbacks a record: the data vector (`structured._data_layout`) with its token
-        last. The NLP passes only the token; the record is bound to the folds at its first use.
+        last. The NLP passes only the token; the record is bound to the folds at its first use. It
+        is held weakly: the caller keeps it alive while it solves.
 
         Parameters
         ----------
@@ -319,9 +322,6 @@ class SinglePass:
         """
         with self._lock:
             self._attached[float(record[-1])] = record
-            self._attached.move_to_end(float(record[-1]))
-            while len(self._attached) > 2:   # as the bound records: one per live solver
-                self._attached.popitem(last=False)
 
     def _record(self, p: np.ndarray) -> list[dict]:
         """The record whose token `p` ends with, bound to the two folds (once per token)."""
@@ -330,9 +330,10 @@ class SinglePass:
         if known is not None:
             self._records.move_to_end(token)
             return known
-        if token not in self._attached:
+        attached = self._attached.get(token)
+        if attached is None:
             raise RuntimeError("single shooting: no record attached for this solve")
-        p = self._attached[token]
+        p = attached
 
         def block(name: str) -> np.ndarray:
             start, size = self.offsets[name]

@@ -20,6 +20,7 @@ lengths: a worker builds it once and reuses it (`_SOLVERS`).
 from __future__ import annotations
 
 import os
+import threading
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -752,8 +753,10 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
             owners = (*(st.block for st in stages.values()), oem.cm.constraint)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
-        # the NLP; the entry holds those objects, so an id is never reused while it is cached
-        nlp_key = (*map(id, owners), structure, iters, cpu, o.tol)
+        # the NLP; the entry holds those objects, so an id is never reused while it is cached. One
+        # NLP per thread: an Ipopt instance and its Python callbacks called from two threads at once
+        # crashed the process (fits of one structure in a thread pool; CasADi releases the GIL)
+        nlp_key = (*map(id, owners), structure, iters, cpu, o.tol, threading.get_ident())
         entry = _SOLVERS.get(nlp_key) if penalty is None else None
         if entry is not None and all(a is b for a, b in zip(entry[0], owners)):
             _SOLVERS.move_to_end(nlp_key)
@@ -785,7 +788,8 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
         folds, _ = _single_folds(oem, samples)
         sp = _single_pass(oem, folds)
         token = _record_token(oem)
-        sp.attach(np.append(_data_vector(oem), token))
+        record = np.append(_data_vector(oem), token)   # alive until the pass has bound it
+        sp.attach(record)
         _, _, hess = sp.derivatives(np.asarray(w, dtype=float), np.array([token]))
         rows, cols = (np.asarray(a, dtype=int) for a in sp.hess_sparsity.get_triplet())
         gram = np.zeros((sp.nw, sp.nw))

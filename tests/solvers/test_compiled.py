@@ -173,7 +173,7 @@ def test_a_failed_background_compile_is_tried_again_later(cache, monkeypatch):
     calls = []
     outcome = {"ok": False}
 
-    def build(f, path, queue=False):
+    def build(f, path, queue=False, work=0.0):
         calls.append(path)
         return outcome["ok"]
     monkeypatch.setattr(compiled_mod, "_build", build)
@@ -258,3 +258,30 @@ def test_the_native_target_is_described_by_the_compiler():
     assert (isa == "default") == (flags == ())
     if flags and os.path.exists("/proc/cpuinfo"):
         assert "flags" in isa or "features" in isa.lower()
+
+
+def test_background_builds_take_the_compiler_largest_work_first(tmp_path, monkeypatch):
+    """A new model structure starts a dozen background builds at once: the slot goes to the one
+    with the most expected work (instructions × evaluations: the solve's own kernels), not to
+    whichever polled first."""
+    import threading
+
+    monkeypatch.setenv("GREYFIT_COMPILE_SLOTS", "1")
+    if compiled_mod.fcntl is None:
+        pytest.skip("no file locks on this platform")
+    order, threads = [], []
+    with compiled_mod._compile_slot(tmp_path, 0.0):   # the compiler is busy
+        for work in (1.0, 3.0, 2.0, 5.0):
+            def build(work=work):
+                with compiled_mod._compile_slot(tmp_path, work):
+                    order.append(work)
+            threads.append(threading.Thread(target=build))
+            threads[-1].start()
+        deadline = time.monotonic() + 30
+        while len(compiled_mod._waiting) < 4 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(compiled_mod._waiting) == 4
+    for t in threads:
+        t.join(30)
+    assert order == [5.0, 3.0, 2.0, 1.0]
+    assert not compiled_mod._waiting

@@ -72,3 +72,22 @@ def test_chunked_fold_sums_across_chunks(interpreted, monkeypatch):
     assert all(np.array_equal(g, w) for g, w in zip(got, whole))
     bound = fold.bind([x0, pv, us], n)   # the path every single-shooting callback takes
     assert all(np.allclose(b, g, rtol=1e-15, atol=0) for b, g in zip(bound(), got))
+
+
+def test_a_sparse_next_state_is_carried_into_the_dense_one(interpreted, monkeypatch):
+    """A sensitivity that is structurally zero makes the step's next state sparse (a difference
+    equation's delay states: 17 of 24 entries) while its input is dense: across a chunk boundary the
+    nonzeros go back to their places, as CasADi's own mapaccum does."""
+    x, p, u = ca.SX.sym("x", 3), ca.SX.sym("p", 2), ca.SX.sym("u")
+    xn = ca.vertcat(0.9 * x[0] + p[0] * u, ca.SX(1, 1), 0.5 * x[2] + x[0] * x[1] + p[1])   # x[1]+ ≡ 0
+    fn = ca.Function("sparse_step", [x, p, u], [xn, ca.sumsqr(x - u), p * x[2]])
+    assert fn.sparsity_out(0).nnz() == 2 and fn.sparsity_in(0).nnz() == 3
+    rng = np.random.default_rng(3)
+    n, x0, pv = 50, np.array([0.3, -0.2, 1.0]), np.array([0.7, 0.2])
+    us = rng.standard_normal(n)
+    chunked = Fold(fn)(x0, pv, us, n=n)
+    steps = Columns(fn)(x0, pv, us.reshape(1, n), n=n, accumulate=True)
+    monkeypatch.setattr(columns, "FOLD_CHUNK", n)   # one mapaccum of the whole record
+    assert all(np.array_equal(g, w) for g, w in zip(chunked, Fold(fn)(x0, pv, us, n=n)))
+    whole = Columns(fn)(x0, pv, us.reshape(1, n), n=n, accumulate=True)
+    assert all(np.array_equal(g, w) for g, w in zip(steps, whole))

@@ -60,6 +60,9 @@ class Columns:
         self._nnz_in = [fn.nnz_in(i) for i in range(fn.n_in())]
         self._nnz_out = [sp.nnz() for sp in self._out_sparsity]
         self._scatters: dict[tuple[int, int], np.ndarray] = {}
+        # the compiled loop carries output 0 into input 0 as it stands: with another sparsity it
+        # would read the next state from the wrong places, so only the interpreter accumulates it
+        self._carries_as_is = fn.n_in() > 0 and fn.n_out() > 0 and fn.sparsity_in(0) == fn.sparsity_out(0)
         self._find_library(evaluations)
 
     def _find_library(self, evaluations: float = 0.0) -> None:
@@ -95,7 +98,7 @@ class Columns:
     def __call__(self, *args, n: int, accumulate: bool = False) -> list[np.ndarray]:
         if self._driver is None:
             self._find_library()
-        if self._driver is None:
+        if self._driver is None or (accumulate and not self._carries_as_is):
             return self._casadi(args, n, accumulate)
         fn = self.fn
         inputs, strides = [], []
@@ -347,7 +350,9 @@ class Fold:
         """
         if evaluations is not None:
             self._evaluations = evaluations
-        if self._driver is None and self.fn.is_a("SXFunction"):
+        # the compiled loop carries output 0 into input 0 as it stands (see `Columns`)
+        carries_as_is = self.fn.sparsity_in(0) == self.fn.sparsity_out(0)
+        if self._driver is None and self.fn.is_a("SXFunction") and carries_as_is:
             path = library(self.fn, self._evaluations, self._interpret_meanwhile)
             if path is not None:
                 self._driver = _driver(str(path), self.fn.name(), "fold")

@@ -91,3 +91,27 @@ def test_a_sparse_next_state_is_carried_into_the_dense_one(interpreted, monkeypa
     assert all(np.array_equal(g, w) for g, w in zip(chunked, Fold(fn)(x0, pv, us, n=n)))
     whole = Columns(fn)(x0, pv, us.reshape(1, n), n=n, accumulate=True)
     assert all(np.array_equal(g, w) for g, w in zip(steps, whole))
+
+
+@pytest.mark.skipif(__import__("greyfit.solvers.dynamics.compiled", fromlist=["compiler"]).compiler() is None,
+                    reason="no C compiler on this machine")
+def test_a_sparse_next_state_is_never_carried_by_the_compiled_loop(tmp_path, monkeypatch):
+    """The compiled loops carry output 0 into input 0 as it stands: for a step whose next state is
+    sparser than its state they read it from the wrong places (NaN here), so such a step is folded
+    and accumulated by the interpreter, with CasADi's own numbers."""
+    monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    x, p, u = ca.SX.sym("x", 3), ca.SX.sym("p", 2), ca.SX.sym("u")
+    xn = ca.vertcat(0.9 * x[0] + p[0] * u, ca.SX(1, 1), 0.5 * x[2] + x[0] * x[1] + p[1])
+    fn = ca.Function("sparse_step_c", [x, p, u], [xn, ca.sumsqr(x - u), p * x[2]])
+    rng = np.random.default_rng(4)
+    n, x0, pv = 40, np.array([0.3, -0.2, 1.0]), np.array([0.7, 0.2])
+    us = rng.standard_normal(n)
+    fold = Fold(fn, 1e9)
+    assert not fold.compiled
+    got = fold(x0, pv, us, n=n)
+    acc = fn.mapaccum(n)(x0, pv, us.reshape(1, n))
+    assert np.allclose(got[0], np.array(acc[0][:, -1]).ravel()[[0, 2]], rtol=1e-14, atol=0)
+    assert np.allclose(got[1], float(ca.sum2(acc[1])), rtol=1e-13, atol=0)
+    steps = Columns(fn)(x0, pv, us.reshape(1, n), n=n, accumulate=True)[0]
+    assert np.allclose(steps, np.array(acc[0]), rtol=1e-14, atol=0)

@@ -97,14 +97,17 @@ def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
     r = wt * (cm.output(xs * xk, u0, p, t0) - y)
     cost = 0.5 * ca.sumsqr(r)
     rest = [u0, u1, t0, dt, theta, mat, off, xs, y, wt]
-    value = ca.Function("greyfit_ss_value", [xk, *rest], [xn, cost])
+    # the next state dense, as the state it becomes: a structurally zero entry (a delay state fed
+    # by an input alone) would leave output 0 sparser than input 0, and the compiled fold carries
+    # one into the other as it stands
+    value = ca.Function("greyfit_ss_value", [xk, *rest], [ca.densify(xn), cost])
     sens = sx("S", nx, nv)
     s_next = ca.mtimes(ca.jacobian(xn, xk), sens) + ca.horzcat(ca.jacobian(xn, theta), ca.SX(nx, nf))
     jrow = ca.mtimes(ca.jacobian(r, xk), sens) + ca.horzcat(ca.jacobian(r, theta), ca.SX(cm.ny, nf))
     z = ca.vertcat(xk, ca.vec(sens))
     # the symbolic sparsity of triu(JᵀJ) (e.g. no θ in an output) is the NLP's Hessian pattern
     derivs = ca.Function("greyfit_ss_sens", [z, *rest], [
-        ca.vertcat(xn, ca.vec(s_next)), cost, ca.mtimes(jrow.T, r), ca.triu(ca.mtimes(jrow.T, jrow))])
+        ca.densify(ca.vertcat(xn, ca.vec(s_next))), cost, ca.mtimes(jrow.T, r), ca.triu(ca.mtimes(jrow.T, jrow))])
     return {"value": value, "sens": derivs}
 
 

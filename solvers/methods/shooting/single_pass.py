@@ -273,7 +273,6 @@ class SinglePass:
         for name, (size1, size2) in layout:
             self.offsets[name] = (k, size1 * size2)
             k += size1 * size2
-        self.size = k + 1   # the data vector, its token last
         free_at = np.asarray(free, dtype=int)
         nv = nth + free_at.size
         # S_0 = [0 | e_i for the free states i]

@@ -452,11 +452,12 @@ def _single_pass(oem, folds: dict[str, Fold]) -> single_pass.SinglePass:
     return sp
 
 
-def _record_token(oem) -> float:
-    """The token of this model's record: one per model, so every solver of it shares its points."""
+def _token_record(oem) -> tuple[float, np.ndarray]:
+    """(token, the data vector with the token last) of this model's record: one token per model, so
+    every solver of it shares its points."""
     if oem.single_pass_token is None:
         oem.single_pass_token = single_pass.new_token()
-    return oem.single_pass_token
+    return oem.single_pass_token, np.append(_data_vector(oem), oem.single_pass_token)
 
 
 def _single_shooting_terms(oem, folds: dict[str, Fold], theta, pv, pvec) -> tuple[_Terms, tuple]:
@@ -777,8 +778,7 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
                     _SOLVERS.popitem(last=False)
         upgrade = None if is_c or folded else (lambda: make_solver(max_iter, max_cpu_time))
         if folded:   # the token under which the callbacks find this record and cache its points
-            token = _record_token(oem)
-            record = np.append(_data_vector(oem), token)
+            token, record = _token_record(oem)
             return StructuredSolver(nlp, _folded_vector(oem, token), problem, is_c, upgrade, record)
         return StructuredSolver(nlp, _data_vector(oem), problem, is_c, upgrade)
 
@@ -787,8 +787,7 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
         then finds done (the structure's shared `SinglePass`, the model's token)."""
         folds, _ = _single_folds(oem, samples)
         sp = _single_pass(oem, folds)
-        token = _record_token(oem)
-        record = np.append(_data_vector(oem), token)   # alive until the pass has bound it
+        token, record = _token_record(oem)   # the record stays alive until the pass has bound it
         sp.attach(record)
         _, _, hess = sp.derivatives(np.asarray(w, dtype=float), np.array([token]))
         rows, cols = (np.asarray(a, dtype=int) for a in sp.hess_sparsity.get_triplet())

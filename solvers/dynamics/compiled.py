@@ -38,6 +38,7 @@ import tempfile
 import threading
 import time
 from collections import OrderedDict
+from collections.abc import Iterator
 from pathlib import Path
 
 import casadi as ca
@@ -66,6 +67,9 @@ MAX_SOURCE_BYTES = 8_000_000
 # a background compile that failed (disk full, killed, out of memory) is tried again after this,
 # doubled after each failure: a compiler that always fails costs one attempt per hour at most
 RETRY_AFTER_S = 60.0
+# a background build waits this long for a compile slot, then gives up until it is asked for again
+# (a slot's holder runs one compile, which COMPILE_TIMEOUT_S bounds: a longer wait is a long queue)
+SLOT_WAIT_S = COMPILE_TIMEOUT_S + 10.0
 MAX_RETRY_S = 3600.0
 
 # Appended to every library: evaluates the function at n samples, input i of sample k at
@@ -422,16 +426,19 @@ def wait_for_builds(timeout: float) -> bool:
 
 
 def _build_in_background(fn: ca.Function, path: Path, key: str, work: float = 0.0) -> None:
-    ok = False
+    ok: bool | None = False
     try:
         ok = _build(fn, path, queue=True, work=work)
     finally:   # whatever happened, the key is no longer pending (else it would never be built again)
         _settle(key, ok)
 
 
-def _settle(key: str, ok: bool) -> None:
+def _settle(key: str, ok: bool | None) -> None:
+    """`ok` None: the build never had its turn at the compiler (not a failure: asked again next time)."""
     with _lock:
         _pending.discard(key)
+        if ok is None:
+            return
         if ok:
             _failed.pop(key, None)
         else:
@@ -485,11 +492,12 @@ def prune_disk_cache(folder: Path, keep: Path | None = None) -> int:
     return deleted
 
 
-def _build(fn: ca.Function, library: Path, queue: bool = False, work: float = 0.0) -> bool:
+def _build(fn: ca.Function, library: Path, queue: bool = False, work: float = 0.0) -> bool | None:
     """Build `library` from `fn`; `queue`: wait for one of the compile slots first (a background
     build: the fit goes on interpreted meanwhile; `work`, its expected instructions evaluated, puts
-    it ahead of this process's smaller builds). A foreground build never waits for a slot: a fit
-    is waiting for it, and the number of fits running bounds the number of such builds."""
+    it ahead of this process's smaller builds; None when no slot came within `SLOT_WAIT_S`: nothing
+    was compiled). A foreground build never waits for a slot: a fit is waiting for it, and the
+    number of fits running bounds the number of such builds."""
     try:
         library.parent.mkdir(parents=True, exist_ok=True)
         with _build_lock(library):
@@ -506,7 +514,9 @@ def _build(fn: ca.Function, library: Path, queue: bool = False, work: float = 0.
                 if flags is None:
                     return False
                 lib = Path(tmp) / "lib.so"
-                with _compile_slot(library.parent, work) if queue else contextlib.nullcontext():
+                with _compile_slot(library.parent, work) if queue else contextlib.nullcontext(True) as turn:
+                    if not turn:
+                        return None
                     if not _run_compiler([_compiler_path(), *flags, *CFLAGS, *target()[0], str(source),
                                           "-o", str(lib), "-lm"]):
                         return False
@@ -586,13 +596,15 @@ _tickets = itertools.count()
 
 
 @contextlib.contextmanager
-def _compile_slot(folder: Path, work: float = 0.0):
+def _compile_slot(folder: Path, work: float = 0.0) -> Iterator[bool]:
     """One of `compile_slots()` lock files in `folder`, held while gcc runs: worker processes that meet
     many new model structures at once (a discovery's refits, a batch of new models) queue for the
     compiler instead of starting one each; within a process the build with the most `work` goes
-    first. After a compile's timeout without a free slot, go on."""
+    first. Yields whether the slot came within `SLOT_WAIT_S`: a build that waited longer compiles
+    nothing (it used to go on without a slot, and a discovery's few hundred queued builds then all
+    ran gcc at once after two minutes: 50 compilers, a load average of 200 on 2 cores)."""
     if fcntl is None:
-        yield
+        yield True
         return
     handles = [open(folder / f".compile-slot-{i}", "a") for i in range(compile_slots())]
     held = None
@@ -600,7 +612,7 @@ def _compile_slot(folder: Path, work: float = 0.0):
     with _turn:
         heapq.heappush(_waiting, ticket)
     try:
-        deadline = time.monotonic() + COMPILE_TIMEOUT_S + 10
+        deadline = time.monotonic() + SLOT_WAIT_S
         while held is None and time.monotonic() < deadline:
             with _turn:
                 first = _waiting[0] == ticket
@@ -616,7 +628,7 @@ def _compile_slot(folder: Path, work: float = 0.0):
                 with _turn:
                     _turn.wait(0.05)
         _leave(ticket)   # the next in line may take another slot now
-        yield
+        yield held is not None
     finally:
         if held is not None:
             fcntl.flock(held, fcntl.LOCK_UN)

@@ -285,3 +285,28 @@ def test_background_builds_take_the_compiler_largest_work_first(tmp_path, monkey
         t.join(30)
     assert order == [5.0, 3.0, 2.0, 1.0]
     assert not compiled_mod._waiting
+
+
+def test_a_background_build_without_a_slot_in_time_compiles_nothing(tmp_path, monkeypatch):
+    """A discovery queues a few hundred background builds on a new machine; those that wait longer
+    than `SLOT_WAIT_S` used to run gcc without a slot, all at once (50 compilers on 2 cores). Now
+    such a build gives up, is not counted as a failure, and is asked for again by the next fit."""
+    if compiled_mod.fcntl is None or compiled_mod.compiler() is None:
+        pytest.skip("no file locks or no compiler here")
+    monkeypatch.setenv("GREYFIT_COMPILE_SLOTS", "1")
+    monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setattr(compiled_mod, "SLOT_WAIT_S", 0.3)
+    ran = []
+    monkeypatch.setattr(compiled_mod, "_run_compiler", lambda command: ran.append(command) or False)
+    import casadi as ca
+
+    compiled_mod.cache_dir().mkdir(parents=True)
+    x = ca.SX.sym("x")
+    fn = ca.Function("slotless_probe", [x], [ca.sin(x) * 3.0 + 0.125])
+    key = compiled_mod.function_key(fn)
+    compiled_mod._pending.add(key)
+    with compiled_mod._compile_slot(compiled_mod.cache_dir(), 0.0):   # the compiler is busy throughout
+        compiled_mod._build_in_background(fn, compiled_mod.cache_dir() / "slotless_probe.so", key, 1.0)
+    assert ran == []
+    assert key not in compiled_mod._pending and key not in compiled_mod._failed
+    assert not compiled_mod._waiting

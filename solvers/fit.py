@@ -39,7 +39,7 @@ from greyfit.solvers.checks.input_reading import cubic_retry
 from greyfit.solvers.checks.quality import QualityInputs, assess_fit
 from greyfit.solvers.checks.step_choice import choose_substeps, substeps_retry
 from greyfit.solvers.checks.verdict import review_fit
-from greyfit.solvers.data.experiments import prepare_experiments
+from greyfit.solvers.data.experiments import prepare_experiments, prepared_once
 from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.data.refine import DEFAULT_FACTOR, refine_request, thin_traces
 from greyfit.solvers.errors import DataError
@@ -109,6 +109,11 @@ def fit_model(request: FitRequest) -> FitResult:
     online = online_method(request.method)
     if online is not None:
         return attach_model(online.fit(request), request.model)
+    with prepared_once():   # the solve, the checks and the screen share the records' arrays
+        return _fit_offline(request)
+
+
+def _fit_offline(request: FitRequest) -> FitResult:
     prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
     result = _fit_chosen(prepared)
     # from here on the request names the method that ran: the checks after the fit ask it

@@ -100,3 +100,63 @@ def test_compiled_recursion_equals_the_products_written_out(cache, monkeypatch, 
     monkeypatch.setenv("GREYFIT_COMPILE", "never")   # the Python loop: the same numbers
     monkeypatch.setattr(scoring_outputs, "_RECURSIONS", {})
     assert np.allclose(scoring_outputs.propagate(a, d0, d1, hx, forcing), got, rtol=1e-12, atol=1e-13)
+
+
+@needs_cc
+def test_a_fit_prepares_its_records_once_and_its_checks_reuse_the_optimums_jacobian(cache, monkeypatch):
+    """The solve, the step choice, the input reading and the lack-of-fit screen each prepared the
+    request's records (a 200 000-sample series converted from its list four times), and each
+    condensed Jacobian was keyed by a digest of the records (7 ms at 200 000 samples). Now a fit
+    prepares once, and the screen finds the solve's Jacobian at the optimum by the records' identity:
+    the rows kernel runs once, at the optimum (the start checks' JᵀJ is the solve's first pass), and
+    the input reading and the screen reuse it (the input reading's finer records are simulated)."""
+    from greyfit.solvers.data import experiments as experiments_mod
+    from greyfit.solvers.fit import fit_model
+
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    prepared, rows_runs, kernels = [], [], {}
+    real_prepare, real_rows = experiments_mod.prepare_experiment, single_pass.row_columns
+    monkeypatch.setattr(experiments_mod, "prepare_experiment",
+                        lambda exp, cm, i: prepared.append(exp.name) or real_prepare(exp, cm, i))
+
+    class Counting:
+        def __init__(self, kernel):
+            self.kernel = kernel
+
+        def ready(self):
+            return self.kernel.ready()
+
+        def __call__(self, *args, n, **kw):
+            rows_runs.append(n)
+            return self.kernel(*args, n=n, **kw)
+
+    def rows(oem):   # one proxy per kernel: condensed_rows's cache holds its kernel by identity
+        kernel = real_rows(oem)
+        return kernels.setdefault(id(kernel), (kernel, Counting(kernel)))[1]
+    monkeypatch.setattr(single_pass, "row_columns", rows)
+    t = np.linspace(0.0, 10.0, 401)
+    request = FitRequest.model_validate({"model": msd_model(), "method": "single_shooting",
+                                         "experiments": [msd_experiment(t, simulate_msd(t), 0.005, 3)]})
+    result = fit_model(request)
+    assert result.solver.return_status == "Solve_Succeeded"
+    assert abs(result.parameters["c"].value - 0.8) < 0.05 and abs(result.parameters["k"].value - 5.0) < 0.1
+    assert prepared == ["e1"]
+    assert rows_runs == [401]                          # at the optimum, for the checks and the screen
+    arrays = experiments_mod.prepare_experiments(request.experiments, compile_model(request.model))[0]
+    with pytest.raises(ValueError):                   # shared, so never changed in place
+        arrays.y[0, 0] = 1.0
+
+
+def test_the_input_readings_simulated_residual_is_the_rows_residual(cache):
+    """The input reading takes the ramps' residual from a simulation instead of a sensitivity pass:
+    the same rows (a missing sample, two records, per-record parameters), to rounding."""
+    from greyfit.solvers.checks.input_reading import _weighted_residual
+
+    oem = _oem()
+    theta = np.array([0.9, 1.1, 0.95])
+    x0s = [{"x": 0.13, "v": 0.0}, {"x": 0.1, "v": 0.0}]
+    _, res, _ = single_pass.condensed_rows(oem, theta, x0s)
+    simulated = _weighted_residual(oem, theta, x0s)
+    assert simulated.shape == res.shape == (61 * 2 - 1 + 47 * 2,)
+    assert np.allclose(simulated, res, rtol=0, atol=1e-12 * np.abs(res).max())
+    assert np.abs(res).max() > 0.1                     # away from the optimum: a real residual

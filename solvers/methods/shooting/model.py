@@ -47,7 +47,6 @@ class OutputErrorModel:
         self.simulation_failures: list[str] = []   # why a numeric simulation failed, if one did
         self.node_notes: list[tuple[str, str]] = []   # (experiment, why) a start's simulation diverged
         self.structured_data: np.ndarray | None = None   # the structured NLP's data vector, built once
-        self.records_digest: bytes | None = None   # of the records, weights and map (`single_pass`), once
         self.single_pass_token: float | None = None   # this model's record in single shooting's callbacks
 
     def sensitivity_functions(self) -> tuple[ca.Function, ca.Function]:

@@ -22,7 +22,6 @@ seed 000's seat model 110 against 295 ms, 2 states × 40 000 samples 125 against
 """
 from __future__ import annotations
 
-import hashlib
 import itertools
 import threading
 import weakref
@@ -193,9 +192,9 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     key = _rows_key(oem, rows, theta_s, x0s)
     with _ROWS_LOCK:
         known = _ROWS.get(key)
-    # the entry holds its kernel, so an id in a key is never reused while the entry lives
-    if known is not None and known[0] is rows:   # a fit's Jacobian at its optimum, asked again by its checks
-        return tuple(a.copy() for a in known[1])
+    # the entry holds its kernel and records, so an id in a key is never reused while the entry lives
+    if known is not None and known[0] is rows and known[1] == _records(oem):   # the optimum's, asked again
+        return tuple(a.copy() for a in known[2])
     free = free_states(oem)
     free_at = np.asarray(free, dtype=int)
     nv = nth + free_at.size
@@ -223,7 +222,7 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
         groups.append(np.broadcast_to(np.arange(ny), (n, ny)).ravel()[keep])
     out = (np.vstack(jacs), np.concatenate(resids), np.concatenate(groups))
     with _ROWS_LOCK:
-        _ROWS[key] = (rows, out)
+        _ROWS[key] = (rows, _records(oem), out)
         while len(_ROWS) > 4:
             _ROWS.popitem(last=False)
     return tuple(a.copy() for a in out)
@@ -235,19 +234,35 @@ _ROWS: "OrderedDict[tuple, tuple]" = OrderedDict()
 _ROWS_LOCK = threading.Lock()
 
 
+def _records(oem) -> tuple[_Same, ...]:
+    return tuple(_Same(x) for d in oem.data for x in (d, d.t, d.u, d.y))
+
+
+class _Same:
+    """Equal when it holds the same object: a key part that compares identities, not contents."""
+
+    __slots__ = ("obj",)
+
+    def __init__(self, obj: object):
+        self.obj = obj
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, _Same) and other.obj is self.obj
+
+    def __hash__(self) -> int:
+        return id(self.obj)
+
+
 def _rows_key(oem, rows, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> tuple:
-    if oem.records_digest is None:   # a model's records do not change: 7 ms a call at 200 000 samples
-        digest = hashlib.blake2b(digest_size=16)
-        for e, d in enumerate(oem.data):
-            for part in (d.t, d.u, np.where(d.mask, d.y, 0.0), d.mask, oem.layout.matrix[e]):
-                digest.update(np.ascontiguousarray(part, dtype=float).tobytes())
-                digest.update(b"|")
-        for part in (oem.weights, oem.layout.offset, oem.xscale):
-            digest.update(np.ascontiguousarray(part, dtype=float).tobytes())
-        oem.records_digest = digest.digest()
+    """The records by identity, not by a digest of their contents (7 ms a digest at 200 000 samples,
+    more than the pass it saves): a prepared record's arrays are read-only (`prepare_experiment`),
+    and the steps of one fit share them (`prepared_once`), so the lack-of-fit screen finds the
+    solve's Jacobian at the optimum."""
     x0 = tuple(tuple(sorted(x.items())) for x in x0s)
     free = tuple(map(tuple, oem.free_x0))
-    return (id(rows), theta_s.tobytes(), x0, free, oem.records_digest)
+    small = tuple(np.ascontiguousarray(a, dtype=float).tobytes()
+                  for a in (oem.weights, oem.layout.offset, oem.xscale, *oem.layout.matrix))
+    return (id(rows), theta_s.tobytes(), x0, free, _records(oem), small)
 
 
 # the cost at a trial point from the sensitivity pass when that pass costs at most this many times the

@@ -177,6 +177,11 @@ def prepared_once() -> Iterator[None]:
     choice, the input reading and the lack-of-fit screen: converting a 200 000-sample series from the
     request's list costs milliseconds each time, and the screen finds the solve's Jacobian at the
     optimum by the records' identity. Nested uses share the outer one; on leaving, nothing is kept.
+
+    Yields
+    ------
+    None
+        Within the block, prepared records are shared.
     """
     if _PREPARED.get() is not None:
         yield

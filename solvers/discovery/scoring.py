@@ -319,7 +319,21 @@ class RegressionScorer:
                 out[i] = self.score(g)
         if not single or self.rss0 <= 0:
             return out
+        at = np.asarray(single)
         g = np.column_stack([np.asarray(columns[i]).reshape(-1) for i in single])
+        if least_explained > 0:
+            # most candidates explain too little: judged from the Gram numbers, without forming their
+            # projected columns (rows × candidates, most of a screen's arithmetic after the
+            # propagation); those that may explain enough are scored exactly below, as before
+            qg, r0g = self.q.T @ g, g.T @ self.r0
+            gg = np.einsum("ij,ij->j", g, g)
+            g0g0 = gg - np.einsum("ij,ij->j", qg, qg)
+            # cancellation leaves g0g0 a relative error of about eps · gg / g0g0: generous margins
+            share = r0g ** 2 / np.maximum(g0g0, 1e-300) / self.rss0
+            maybe = (share >= least_explained * (1.0 - 1e-3)) | (g0g0 <= 1e-6 * gg)
+            if not maybe.any():
+                return out
+            at, g = at[maybe], g[:, maybe]
         g0 = self.project(g)
         norm0, norm = np.linalg.norm(g0, axis=0), np.linalg.norm(g, axis=0)
         live = norm0 > 1e-6 * np.maximum(norm, 1e-300)
@@ -345,7 +359,7 @@ class RegressionScorer:
         centred_f = fitted - fitted.mean(axis=0)
         spread = np.sqrt(np.einsum("ij,ij->j", centred_f, centred_f) * float(centred_r @ centred_r))
         corr = np.divide(centred_r @ centred_f, spread, out=np.zeros_like(spread), where=spread > 0)
-        for k, i in enumerate(np.asarray(single)[live]):
+        for k, i in enumerate(at[live]):
             out[i] = Score(self.rss0, float(rss1[k]), self.r.size, float(n_eff[k]),
                            float((self.rss0 - rss1[k]) / self.rss0), float(f_stat[k]), chi2_sf(float(f_stat[k]), 1),
                            float(bic_drop[k]), float(coef[k]), float(corr[k]))

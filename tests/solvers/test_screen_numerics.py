@@ -63,3 +63,35 @@ def test_score_pass_leaves_out_only_columns_too_weak_to_count():
             assert b is not None and np.allclose(astuple(b), astuple(a), rtol=1e-12, atol=0)
         else:
             assert b is None
+
+
+def test_the_gram_prefilter_keeps_every_column_that_explains_enough():
+    """The pass judges the weak columns from Gram numbers (‖g‖², ‖Qᵀg‖², gᵀr₀) without forming their
+    projections; near J's span those numbers cancel. Columns of every kind — nearly in the span,
+    exactly in it, at the threshold, strong, weak — get the same answer as the full pass."""
+    rng = np.random.default_rng(11)
+    n = 2000
+    jac = rng.standard_normal((n, 3))
+    effect = np.cos(np.linspace(0, 30, n))
+    r = 0.5 * effect + rng.standard_normal(n) * 0.6 + jac @ [0.3, -0.2, 1.0]
+    scorer = RegressionScorer(r, jac)
+    share = (scorer.r0 @ effect) ** 2 / (scorer.project(effect) @ scorer.project(effect)) / scorer.rss0
+    columns = [effect, jac @ [1.0, 2.0, -1.0],                       # strong; exactly in the span
+               jac @ [1.0, 2.0, -1.0] + 1e-5 * effect,              # in the span but for a trace of the effect
+               jac @ [1.0, 0.5, 0.0] + 1e-3 * rng.standard_normal(n)]
+    columns += [effect + s * rng.standard_normal(n) for s in np.linspace(0.5, 3.0, 25)]   # across the threshold
+    columns += [rng.standard_normal(n) for _ in range(10)]
+    full = scorer.score_many(columns)
+    edge = sorted(a.explained for a in full if a is not None)[len(columns) // 2]
+    for least in (0.01, share / 2, 0.2, edge * (1 - 1e-9)):   # the last: one column just above it
+        cut = scorer.score_many(columns, least_explained=least)
+        kinds = {a is None or a.explained < least for a in full}
+        assert kinds == {True, False}                                # both kinds at this threshold
+        for a, b in zip(full, cut):
+            if a is None or a.explained < least:
+                assert b is None
+            else:   # 1e-9: a column 1e-5 from J's span keeps 6 digits fewer of its projection, and
+                # the products group the fewer columns otherwise
+                assert b is not None and np.allclose(astuple(b), astuple(a), rtol=1e-9, atol=0)
+    assert full[1] is None                                           # in J's span: nothing to score
+    assert full[2] is not None and full[2].explained > 0.2          # the trace is all it has beyond J

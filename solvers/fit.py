@@ -225,7 +225,9 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     theta = layout.physical(theta_s)
     bounds = _at_bound(layout, theta_s)
     x0s = problem.x0_of(outcome.w)
-    jp = built.jacobian(theta_s, outcome.w, x0s)
+    # at the point the result reports, as its checks read it back (value / scale, an ulp from the
+    # solver's): the input reading and the lack-of-fit screen then find this Jacobian, not compute theirs
+    jp = built.jacobian(theta / layout.scale, outcome.w, x0s)
     keep = np.array([b is None for b in bounds] + [True] * jp.n_extra)
     if built.eep is not None:   # noise in the regressors biases equation error: an instrumental-variable check
         before = before + equation_error_bias_warnings(built.eep, cm, data, layout, outcome.w, keep[:layout.size], opts)

@@ -336,6 +336,7 @@ def test_a_background_build_generates_its_source_in_a_child_interpreter(tmp_path
 
     def refuse(self, *args):   # generating in this process is not what a background build does
         raise AssertionError("generated in the fitting process")
+    assert compiled_mod.wait_for_builds(120)   # no earlier test's build meets the refusal
     monkeypatch.setattr(ca.CodeGenerator, "add", refuse)
     assert compiled_mod.library(fn, 1.0, interpret_meanwhile=True) is None   # started in the background
     assert compiled_mod.wait_for_builds(120)

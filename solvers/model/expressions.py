@@ -11,6 +11,7 @@ Grammar (precedence low to high)::
 """
 from __future__ import annotations
 
+import functools
 import math
 import re
 from dataclasses import dataclass
@@ -208,7 +209,7 @@ class _Parser:
         want = 1 if fname in _UNARY else 2 if fname in _BINARY else 3
         if len(args) != want:
             raise self.fail(f"{fname} takes {want} argument(s), got {len(args)}", name)
-        return ("call", fname, args, name.column)
+        return ("call", fname, tuple(args), name.column)
 
 
 def parse(text: str, where: str) -> Node:
@@ -232,6 +233,13 @@ def parse(text: str, where: str) -> Node:
     ModelDefinitionError
         On a syntax error, an unknown function, a wrong argument count or nesting beyond `MAX_DEPTH`.
     """
+    return _parse(text, where)
+
+
+# a fit's checks parse the model's equations again (the lack-of-fit screen's catalogue reads each
+# equation; ~0.1 ms each on the seat model): the AST is immutable tuples, so one parse serves all
+@functools.lru_cache(maxsize=4096)
+def _parse(text: str, where: str) -> Node:
     return _Parser(text, where).parse()
 
 
@@ -529,6 +537,6 @@ def substitute(node: Node, name: str, replacement: Node) -> Node:
             return ("neg", kids[0])
         if kind in ("bin", "cmp"):
             return (kind, current[1], kids[0], kids[1])
-        return ("call", current[1], list(kids), current[3])
+        return ("call", current[1], tuple(kids), current[3])
 
     return _postorder(node, combine)

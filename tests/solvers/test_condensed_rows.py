@@ -103,6 +103,47 @@ def test_compiled_recursion_equals_the_products_written_out(cache, monkeypatch, 
 
 
 @needs_cc
+@pytest.mark.parametrize("nx, ny, equations, picker", [
+    (8, 8, [4] * 7 + [5] * 7 + [6] * 9 + [7] * 5, "identity"),   # the seat's screen: 4 equations, 28 columns
+    (3, 2, [2, 0, 2], "rows"),                                     # outputs pick states 2 and 0
+    (3, 2, [0, 2, 2, 1], None)])                                   # outputs mix the states
+def test_recursion_by_equation_equals_the_products_written_out(cache, monkeypatch, nx, ny, equations, picker):
+    """Columns that each force one equation take a drive of D_k[:, i] f_k, grouped by equation, and
+    the outputs' product is skipped where H_k picks states: the same numbers as the dense recursion,
+    in the order the columns were given, compiled or not."""
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    monkeypatch.setattr(scoring_outputs, "_RECURSIONS", {})
+    rng = np.random.default_rng(nx * 100 + len(equations))
+    n = 41
+    a, d0, d1 = (rng.standard_normal((n - 1, nx, nx)) * 0.5 / np.sqrt(nx) for _ in range(3))   # stable
+    if picker is None:
+        hx = rng.standard_normal((n, ny, nx))
+    else:
+        h = np.eye(nx)[:ny] if picker == "identity" else np.eye(nx)[[2, 0]]
+        hx = np.repeat(h[None], n, axis=0)
+    columns = [(i, rng.standard_normal(n)) for i in equations]
+    s = np.zeros((nx, len(columns)))
+    forcing = np.zeros((n, nx, len(columns)))
+    for c, (i, values) in enumerate(columns):
+        forcing[:, i, c] = values
+    want = [hx[0] @ s]
+    for k in range(n - 1):
+        s = a[k] @ s + d0[k] @ forcing[k] + d1[k] @ forcing[k + 1]
+        want.append(hx[k + 1] @ s)
+    got = scoring_outputs.propagate_by_equation(a, d0, d1, hx, columns)
+    groups = len({(i, k // scoring_outputs.PROPAGATE_COLUMNS) for i in set(equations)
+                  for k in range(equations.count(i))})
+    assert scoring_outputs._recursion_by_equation(nx, 0 if picker else ny, groups).ready()
+    assert np.allclose(got, np.array(want), rtol=1e-12, atol=1e-13)
+    start = rng.standard_normal(got.shape)   # `into`: added to what is there
+    assert np.allclose(scoring_outputs.propagate_by_equation(a, d0, d1, hx, columns, into=start.copy()),
+                       start + got, rtol=1e-12, atol=1e-13)
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")   # the Python loop: the same numbers
+    monkeypatch.setattr(scoring_outputs, "_RECURSIONS", {})
+    assert np.allclose(scoring_outputs.propagate_by_equation(a, d0, d1, hx, columns), got, rtol=1e-12, atol=1e-13)
+
+
+@needs_cc
 def test_a_fit_prepares_its_records_once_and_its_checks_reuse_the_optimums_jacobian(cache, monkeypatch):
     """The solve, the step choice, the input reading and the lack-of-fit screen each prepared the
     request's records (a 200 000-sample series converted from its list four times), and each

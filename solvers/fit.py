@@ -42,6 +42,7 @@ from greyfit.solvers.checks.verdict import review_fit
 from greyfit.solvers.data.experiments import prepare_experiments, prepared_once
 from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.data.refine import DEFAULT_FACTOR, refine_request, thin_traces
+from greyfit.solvers.dynamics.heap import keep_heap
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
 from greyfit.solvers.inference.profile import check_profile_names, run_profiles
@@ -106,6 +107,7 @@ def fit_model(request: FitRequest) -> FitResult:
         When the experiments do not fit the model or the options name an unknown output; the
         error's `field` names where the fix goes.
     """
+    keep_heap()   # once per process: a fit's arrays reuse the last fit's pages (docs/deployment.md)
     online = online_method(request.method)
     if online is not None:
         return attach_model(online.fit(request), request.model)

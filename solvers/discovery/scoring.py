@@ -312,15 +312,19 @@ class RegressionScorer:
         """
         out: list[Score | None] = [None] * len(columns)
         single = [i for i, g in enumerate(columns) if g is not None and (g.ndim == 1 or g.shape[1] == 1)
-                  and g.shape[0] == self.r.size and np.all(np.isfinite(g))]
+                  and g.shape[0] == self.r.size]
+        # stacked first, then checked in one pass (the columns are often strided views)
+        g = np.column_stack([np.asarray(columns[i]).reshape(-1) for i in single]) if single else np.zeros((0, 0))
+        finite = np.isfinite(g).all(axis=0)
+        if not finite.all():
+            single, g = [i for i, ok in zip(single, finite) if ok], g[:, finite]
         vectorised = set(single)
-        for i, g in enumerate(columns):
+        for i, column in enumerate(columns):
             if i not in vectorised:
-                out[i] = self.score(g)
+                out[i] = self.score(column)
         if not single or self.rss0 <= 0:
             return out
         at = np.asarray(single)
-        g = np.column_stack([np.asarray(columns[i]).reshape(-1) for i in single])
         if least_explained > 0:
             # most candidates explain too little: judged from the Gram numbers, without forming their
             # projected columns (rows × candidates, most of a screen's arithmetic after the

@@ -315,9 +315,9 @@ class RegressionScorer:
                   and g.shape[0] == self.r.size]
         # stacked first, then checked in one pass (the columns are often strided views)
         g = np.column_stack([np.asarray(columns[i]).reshape(-1) for i in single]) if single else np.zeros((0, 0))
-        finite = np.isfinite(g).all(axis=0)
+        finite = np.asarray(np.isfinite(g).all(axis=0), dtype=bool)
         if not finite.all():
-            single, g = [i for i, ok in zip(single, finite) if ok], g[:, finite]
+            single, g = [i for i, ok in zip(single, finite.tolist()) if ok], g[:, finite]
         vectorised = set(single)
         for i, column in enumerate(columns):
             if i not in vectorised:

@@ -588,6 +588,13 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
         # a refinement of every step whether or not its residual asks for one: a back-solve per
         # iteration; Ipopt still refines a step whose residual exceeds residual_ratio_max
         "ipopt.min_refinement_steps": 0,
+        # single shooting starts the barrier at 1e-3, not 0.1: Ipopt scales the objective to gradients
+        # of O(100), where a least-squares cost near its optimum is O(1) or less, and the default
+        # barrier bent the first steps and took iterations to wind down (the seat model 9 → 7 or
+        # 11 → 8, the 101-sample oscillator 5 → 4; the same optima to tol). `auto` runs single
+        # shooting only where the simulation at the guess is sane; multiple shooting, for rough starts
+        # and unstable models, keeps Ipopt's default
+        **({"ipopt.mu_init": 1e-3} if terms.gaps.numel() == 0 else {}),
         "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
         # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
         # reverse mode through the compiled blocks ran finite differences for 17 s

@@ -105,9 +105,8 @@ def test_single_shooting_starts_its_barrier_small_and_reaches_the_same_optimum()
     steps on a least-squares cost and took iterations to wind down: the README's mass-spring-damper
     (101 samples, both states measured) took 5, the seat model 11. Single shooting now starts the
     barrier at 1e-3 (4 iterations here); the optimum is multiple shooting's, which keeps the default."""
-    from tests.systems import msd_experiment, msd_model, simulate_msd
-
     import greyfit
+    from tests.systems import msd_experiment, msd_model, simulate_msd
 
     t = np.linspace(0, 10, 101)
     exp = msd_experiment(t, simulate_msd(t), noise=0.005, seed=1)

@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import ctypes
 import os
-import platform
 import threading
 
 MMAP_THRESHOLD = 32 * 2 ** 20   # glibc's own ceiling for its dynamic threshold
@@ -24,7 +23,8 @@ TRIM_THRESHOLD = 64 * 2 ** 20
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3   # malloc.h
 
 _lock = threading.Lock()
-_done = False
+_done = False   # set once per process
+_kept = False   # whether glibc took the thresholds
 
 
 def keep_heap() -> bool:
@@ -45,14 +45,14 @@ def keep_heap() -> bool:
     return _kept
 
 
-_kept = False
-
-
 def _set() -> None:
     global _kept
     if os.environ.get("GREYFIT_HEAP", "kept").strip().lower() == "system":
         return
-    if platform.system() != "Linux" or platform.libc_ver()[0] != "glibc":
+    try:   # glibc answers with its name and version; elsewhere there is no such name
+        if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
+            return
+    except (AttributeError, ValueError, OSError):
         return
     try:
         mallopt = ctypes.CDLL(None).mallopt

@@ -241,6 +241,13 @@ def propagate(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, for
         laid = np.zeros((n, _padded(w), nx))
         laid[:, :w, :] = forcing.transpose(0, 2, 1)
         return _propagate_laid(a, d0, d1, hx, laid, w)
+    return _propagate_numpy(a, d0, d1, hx, forcing)
+
+
+def _propagate_numpy(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray,
+                     forcing: np.ndarray) -> np.ndarray:
+    """`propagate` by numpy's batched products and a Python loop over the samples."""
+    n = forcing.shape[0]
     drive = np.matmul(d0, forcing[:-1]) + np.matmul(d1, forcing[1:])
     sens = np.empty((n,) + forcing.shape[1:])
     sens[0] = 0.0
@@ -319,7 +326,8 @@ def propagate_by_equation(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.
         forcing = np.zeros((n, nx, len(columns)))
         for c, (i, values) in enumerate(columns):
             forcing[:, i, c] = values
-        into += propagate(a, d0, d1, hx, forcing)
+        # numpy until the grouped loop is built (`propagate` would start building the dense one too)
+        into += _propagate_numpy(a, d0, d1, hx, forcing)
         return into
     width = len(group_equation) * PROPAGATE_COLUMNS
     f = np.zeros((width, n), order="F")   # F order: the per-sample slices below need no copy

@@ -2,10 +2,12 @@
 and the lack-of-fit screen's sensitivity recursion (scoring_outputs.propagate).
 
 Truth: central finite differences of the residual itself (independent of any Jacobian code), and
-the interpreted forms they replace (CasADi's graph of mapped blocks; the Python recursion), on a
+the interpreted forms that run until they are compiled (CasADi's interpreter; the Python recursion), on a
 case with every complication the layout has: two records of different lengths, an initial state
 estimated in one and known in the other, a missing sample, a per-experiment parameter.
 """
+from collections import OrderedDict
+
 import numpy as np
 import pytest
 
@@ -15,6 +17,7 @@ from greyfit.solvers.discovery import scoring_outputs
 from greyfit.solvers.dynamics import compiled as compiled_mod
 from greyfit.solvers.methods.shooting import single_pass, structured
 from greyfit.solvers.methods.shooting.model import OutputErrorModel
+from greyfit.solvers.model import compiler as compiler_mod
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
 from tests.systems import msd_experiment, msd_model, simulate_msd
@@ -71,10 +74,12 @@ def test_condensed_rows_are_the_residuals_derivatives(cache, monkeypatch):
     first = 61 * 2 - 1
     assert np.all(jac[first:, 1] == 0) and np.all(jac[:first, 2] == 0) and np.all(jac[first:, 3] == 0)
 
-    monkeypatch.setenv("GREYFIT_COMPILE", "never")   # the graph it replaces: the same numbers
-    oem_graph = _oem()
-    monkeypatch.setattr(single_pass, "row_columns", lambda _oem: type("NotReady", (), {"ready": lambda s: False})())
-    g_jac, g_res, g_groups = structured.condensed_jacobian(oem_graph, theta, x0s)
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")   # CasADi's interpreter, as before the library is built
+    monkeypatch.setattr(compiled_mod, "_memory", {})
+    monkeypatch.setattr(compiler_mod, "_COMPILED", OrderedDict())   # a new structure: nothing derived yet
+    oem_interpreted = _oem()
+    assert not single_pass.row_columns(oem_interpreted).ready()
+    g_jac, g_res, g_groups = structured.condensed_jacobian(oem_interpreted, theta, x0s)
     assert np.allclose(g_jac, jac, rtol=1e-12, atol=1e-14)
     assert np.allclose(g_res, res, rtol=1e-12, atol=1e-14)
     assert np.array_equal(g_groups, groups)

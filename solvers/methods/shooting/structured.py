@@ -28,7 +28,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.dynamics.columns import Fold, evaluate
+from greyfit.solvers.dynamics.columns import Fold
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.dynamics.compiled import mode as compile_mode
 from greyfit.solvers.dynamics.integration import integrator_of
@@ -67,7 +67,6 @@ def supports(oem, single: bool = False) -> bool:
 
 STAGES_MULTIPLE = ("step", "gap", "out", "gn")
 STAGES_SINGLE = ("step_acc", "out", "sens_acc", "sgn")
-STAGES_CONDENSED = ("out", "sens_acc", "jrow")
 # single shooting's folded callbacks (`single_pass`) from this many samples of a structure on; below,
 # the MX graph of mapped blocks. A Python callback costs ~60 µs a call inside Ipopt, the graph's
 # passes grow with the record: 2 states, warm CPU of a solve, folded / mapped: 101 samples 15.5 /
@@ -209,9 +208,9 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     step (x_k -> x_k+1, the value of a gap and of a simulation), gap (its Jacobians in x_k and θ),
     out (weighted residual r_k with ∂r/∂x, ∂r/∂θ), gn (r_k with its Gauss-Newton pieces: the
     gradient J_kᵀr_k and J_kᵀJ_k of J_k = [∂r/∂x_k, ∂r/∂θ]), sens (x_k and S_k = ∂x_k/∂[θ, x0]
-    -> x_k+1, S_k+1), sgn (the same pieces for single shooting's row J_k = ∂r/∂x S_k + [∂r/∂θ, 0]),
-    jrow (that row itself, for the condensed Jacobian). Single shooting of long records folds its
-    own kernels instead (`single_pass`).
+    -> x_k+1, S_k+1), sgn (the same pieces for single shooting's row J_k = ∂r/∂x S_k + [∂r/∂θ, 0]).
+    Single shooting of long records folds its own kernels instead (`single_pass`), and the
+    condensed Jacobian has its own row kernel (`single_pass.build_row_kernel`).
     """
     cm, nth = oem.cm, oem.layout.size
     nx, nv = cm.nx, nth + cm.nx
@@ -243,9 +242,6 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     jrow = ca.mtimes(rx, sens) + ca.horzcat(rt, ca.SX(cm.ny, nx))
     fns["sgn"] = ca.Function("greyfit_sgn", [z, u0, t0, theta, mat, off, xs, y, wt],
                              [r, ca.mtimes(jrow.T, r), ca.vec(ca.mtimes(jrow.T, jrow))])
-    rx_in, rt_in, s_in = sx("rx", cm.ny, nx), sx("rt", cm.ny, nth), sx("s", nx * nv)
-    jrow_in = ca.mtimes(rx_in, ca.reshape(s_in, nx, nv)) + ca.horzcat(rt_in, ca.SX(cm.ny, nx))
-    fns["jrow"] = ca.Function("greyfit_jrow", [rx_in, rt_in, s_in], [jrow_in.T])
     return fns
 
 
@@ -510,34 +506,6 @@ def _mapped_single_shooting_terms(oem, fns: dict[str, _Stage], theta, pv) -> _Te
         hess += ca.mtimes([place, ca.reshape(ca.sum2(H), nv, nv), place.T])
     return _Terms(w, 0.5 * ca.sumsqr(ca.vertcat(*r_parts)), 0.5 * ca.sumsqr(ca.vertcat(*r_gn)), grad,
                   ca.triu(hess), ca.MX(0, 1), ca.MX(0, 1), ca.MX(0, nw))
-
-
-def _condensed_terms(oem, fns: dict[str, _Stage], theta, pv):
-    """(w, r, ∂r/∂w) of single shooting at the samples, J_k = ∂r_k/∂x S_k + ∂r_k/∂θ."""
-    nx, nth = oem.cm.nx, oem.layout.size
-    free = [ca.MX.sym(f"x0_{e}", len(f)) for e, f in enumerate(oem.free_x0)]
-    w = ca.vertcat(theta, *free)
-    nw = w.numel()
-    off, xs = pv["off"], pv["xs"]
-    seed = np.vstack([np.zeros((nth, nx)), np.eye(nx)]).T.ravel(order="F")   # S_0 = [0 | I]
-    r_parts, jac_parts, col = [], [], nth
-    for e, d in enumerate(oem.data):
-        U, T, Y, W, M = pv[f"U{e}"], pv[f"T{e}"], pv[f"Y{e}"], pv[f"W{e}"], pv[f"M{e}"]
-        z0 = ca.vertcat(_free_x0(oem, e, pv, free), ca.DM(seed))
-        Z = fns["sens_acc"].accum(d.n - 1, z0, U[:, :-1], U[:, 1:], T[:, :-1], T[:, 1:] - T[:, :-1],
-                                  theta, M, off, xs)
-        Z = ca.horzcat(z0, Z)
-        R, RX, RT = fns["out"].map(d.n, Z[:nx, :], U, T, theta, M, off, xs, Y, W)
-        JT, = fns["jrow"].map(d.n, RX, RT, Z[nx:, :])                    # (nθ + nx) × (ny·n)
-        jac = JT.T
-        cols = [jac[:, :nth]]
-        if free[e].numel():
-            cols += [ca.MX(jac.size1(), col - nth), jac[:, [nth + i for i in oem.free_x0[e]]]]
-            col += free[e].numel()
-        cols.append(ca.MX(jac.size1(), nw - col if free[e].numel() else nw - nth))
-        jac_parts.append(ca.horzcat(*cols))
-        r_parts.append(ca.vec(R))
-    return w, ca.vertcat(*r_parts), ca.vertcat(*jac_parts)
 
 
 def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_cpu_time: float,
@@ -808,12 +776,12 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
     return problem
 
 
-_JACOBIANS: "OrderedDict[tuple, tuple]" = OrderedDict()
-
-
 def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     """(J, r, output of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled), at
-    the measured samples: `shooting.sensitivity_jacobian` by one compiled pass per experiment.
+    the measured samples: `shooting.sensitivity_jacobian` by one pass of the row kernel per experiment
+    (`single_pass.condensed_rows`), compiled C once its library is built, CasADi's interpreter until
+    then. (An MX graph of mapped blocks used to stand in until the library was ready: building it
+    cost a seat model's first fit 64 ms, and a warm interpreted seat fit took 12 % longer with it.)
 
     Parameters
     ----------
@@ -833,26 +801,4 @@ def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     groups : numpy.ndarray
         The output index of each row.
     """
-    if single_pass.row_columns(oem).ready():
-        return single_pass.condensed_rows(oem, theta_s, x0s)
-    # until its loop is compiled (a first fit of a structure: built in the background), the graph
-    cm = oem.cm
-    stages, _ = _stage_functions(oem, sum(d.n for d in oem.data), STAGES_CONDENSED)
-    fns = tuple(stages[name].block for name in STAGES_CONDENSED)
-    structure = (tuple(d.n for d in oem.data), tuple(map(tuple, oem.free_x0)))
-    key = (*map(id, fns), structure)
-    entry = _JACOBIANS.get(key)
-    if entry is None or not all(a is b for a, b in zip(entry[0], fns)):
-        pvec, pv = _data_blocks(oem)
-        theta = ca.MX.sym("theta", oem.layout.size)
-        w, r, jac = _condensed_terms(oem, stages, theta, pv)
-        entry = (fns, ca.Function("condensed_jacobian", [w, pvec], [ca.densify(r), ca.densify(jac)]))
-        _JACOBIANS[key] = entry
-        while len(_JACOBIANS) > SOLVER_CACHE_SIZE:
-            _JACOBIANS.popitem(last=False)
-    free = [np.array([x0s[e][cm.states[i]] / oem.xscale[i] for i in f]) for e, f in enumerate(oem.free_x0)]
-    w0 = np.concatenate([np.asarray(theta_s, dtype=float).ravel(), *free])
-    r, jac = evaluate(entry[1], [w0, _data_vector(oem)])
-    keep = np.concatenate([d.mask.T.ravel() for d in oem.data])     # sample-major, like r
-    groups = np.concatenate([np.broadcast_to(np.arange(cm.ny), (d.n, cm.ny)).ravel() for d in oem.data])
-    return jac[keep], r.ravel()[keep], groups[keep]
+    return single_pass.condensed_rows(oem, theta_s, x0s)

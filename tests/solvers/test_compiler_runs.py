@@ -4,6 +4,7 @@ source too large for -O3 is compiled at -O1 or not at all.
 Defect behind these: `subprocess.run(timeout=...)` killed only gcc's driver, and its `cc1` ran on,
 orphaned; a discovery run left a dozen of them (3 GB each) for half an hour beside the fits.
 """
+import contextlib
 import os
 import subprocess
 import sys
@@ -72,3 +73,44 @@ def test_large_sources_compile_at_o1_and_huge_ones_not_at_all():
     assert compiled_mod.optimisation_flags(200_000) == ["-O3"]
     assert compiled_mod.optimisation_flags(3_000_000) == ["-O1"]
     assert compiled_mod.optimisation_flags(12_000_000) is None
+
+
+_EXITS_WHILE_BUILDING = """
+import pathlib, sys, time
+import casadi as ca
+from greyfit.solvers.dynamics import compiled
+x = ca.SX.sym("x", 3)
+assert compiled.library(ca.Function("exits_while_building", [x], [ca.sin(x) * x])) is None   # background
+started = pathlib.Path(sys.argv[1])
+deadline = time.monotonic() + 60
+while not started.exists() and time.monotonic() < deadline:   # the compiler runs
+    time.sleep(0.02)
+time.sleep(0.2)   # the stand-in writes its second pid just after its first
+sys.exit(0)   # the fit has returned, the script ends
+"""
+
+
+@pytest.mark.skipif(sys.platform != "linux", reason="reads /proc")
+def test_a_process_that_exits_takes_its_background_compilers_with_it(tmp_path):
+    """A script whose fit has returned while a library is still compiling ends, and the compiler
+    (here a stand-in that starts a child, as gcc starts cc1, and hangs) ends with it: its output
+    would go to a temporary folder removed at exit, and left running it took a core from the next
+    process's first fit. (Before: it ran on under `timeout` for up to COMPILE_TIMEOUT_S.)"""
+    pids = tmp_path / "pids"
+    cc = tmp_path / "cc"
+    cc.write_text(f"#!/bin/sh\nsleep 300 &\necho $! >> {pids}\necho $$ >> {pids}\nwait\n")
+    cc.chmod(0o755)
+    env = {**os.environ, "CC": str(cc), "GREYFIT_COMPILE": "auto", "GREYFIT_CACHE_DIR": str(tmp_path / "cache")}
+    done = subprocess.run([sys.executable, "-c", _EXITS_WHILE_BUILDING, str(pids)], env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.returncode == 0, done.stderr
+    started = [int(p) for p in pids.read_text().split()]
+    assert len(started) == 2, started
+    deadline = time.monotonic() + 10
+    while any(_alive(p) for p in started) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    alive = [p for p in started if _alive(p)]
+    for p in alive:   # (the old behaviour: leave nothing running after the test)
+        with contextlib.suppress(ProcessLookupError):
+            os.kill(p, 9)
+    assert not alive, "a compiler outlived the process that started it"

@@ -149,7 +149,27 @@ class OutputScorer(RegressionScorer):
         Returns
         -------
         list of numpy.ndarray or None
-            One entry per item, as `stack` returns it.
+            One entry per item, as `stack` returns it: views of the matrix `stack_matrix` makes.
+        """
+        return column_views(*self.stack_matrix(items))
+
+    def stack_matrix(self, items: list[tuple[dict | None, dict | None]]) \
+            -> tuple[np.ndarray, np.ndarray, np.ndarray, list[bool]]:
+        """The columns of `stack_many` side by side, as one C-ordered matrix.
+
+        Parameters
+        ----------
+        items : list of tuple of (dict or None, dict or None)
+            (regressor, outputs) of each candidate, as `stack` takes them.
+
+        Returns
+        -------
+        matrix : numpy.ndarray
+            Weighted ∂y/∂β at the measured samples, rows × all the items' columns.
+        starts, ends : numpy.ndarray
+            Item k's columns are ``matrix[:, starts[k]:ends[k]]`` (none when they are equal).
+        vectors : list of bool
+            Whether item k is one column given as a vector (`stack` returns it 1-D).
         """
         oem, cm = self.oem, self.oem.cm
         widths, vectors = [], []
@@ -170,7 +190,7 @@ class OutputScorer(RegressionScorer):
         ends = starts + np.array(widths, dtype=int)
         total = int(sum(widths))
         if total == 0:
-            return [None] * len(items)
+            return np.zeros((self.r.size, 0)), starts, ends, vectors
         blocks = []
         for e, d in enumerate(oem.data):
             n = d.n
@@ -207,10 +227,25 @@ class OutputScorer(RegressionScorer):
         g = blocks[0] if len(blocks) == 1 else np.concatenate(blocks)
         if not self.ok.all():
             g = g[self.ok]
-        out = []
-        for w, vec, lo, hi in zip(widths, vectors, starts, ends):
-            out.append(None if w == 0 else (g[:, lo] if vec else g[:, lo:hi]))
-        return out
+        return g, starts, ends, vectors
+
+
+def column_views(matrix: np.ndarray, starts: np.ndarray, ends: np.ndarray,
+                 vectors: list[bool]) -> list[np.ndarray | None]:
+    """Each item's columns of `OutputScorer.stack_matrix`'s matrix, as `OutputScorer.stack` gives them.
+
+    Parameters
+    ----------
+    matrix, starts, ends, vectors
+        As `OutputScorer.stack_matrix` returns them.
+
+    Returns
+    -------
+    list of numpy.ndarray or None
+        Per item: a view of its column (1-D) or columns, None when it has none.
+    """
+    return [None if hi == lo else (matrix[:, lo] if vec else matrix[:, lo:hi])
+            for lo, hi, vec in zip(starts.tolist(), ends.tolist(), vectors)]
 
 
 def propagate(a: np.ndarray, d0: np.ndarray, d1: np.ndarray, hx: np.ndarray, forcing: np.ndarray) -> np.ndarray:

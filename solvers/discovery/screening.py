@@ -13,7 +13,7 @@ from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.discovery.effects import Candidate, OutputFit, library
 from greyfit.solvers.discovery.scoring import RegressionScorer, Score
 from greyfit.solvers.discovery.scoring_equations import EquationScorer, build_trace
-from greyfit.solvers.discovery.scoring_outputs import OutputScorer
+from greyfit.solvers.discovery.scoring_outputs import OutputScorer, column_views
 from greyfit.solvers.methods.registry import simulates_outputs
 from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.model.compiler import compile_model
@@ -161,9 +161,10 @@ def screen(request: FitRequest, fit: FitResult, opts: DiscoveryOptions, exclude:
                                OutputFit(list(cm.outputs), scorer.y, data))
         out.notes += [n for n in notes if n not in out.notes]
         cands = [c for c in cands if keep(c)]
-        columns = scorer.stack_many([(c.equations, c.outputs) for c in cands])
+        matrix, starts, ends, vectors = scorer.stack_matrix([(c.equations, c.outputs) for c in cands])
+        columns = column_views(matrix, starts, ends, vectors)
         scores = scorer.score_many([None if c.refit_only else g for c, g in zip(cands, columns)],
-                                   opts.min_explained if significant_only else 0.0)
+                                   opts.min_explained if significant_only else 0.0, within=(matrix, starts))
         for c, s in zip(cands, scores):
             out.tries += c.tries
             if c.refit_only:

@@ -95,3 +95,27 @@ def test_the_gram_prefilter_keeps_every_column_that_explains_enough():
                 assert b is not None and np.allclose(astuple(b), astuple(a), rtol=1e-9, atol=0)
     assert full[1] is None                                           # in J's span: nothing to score
     assert full[2] is not None and full[2].explained > 0.2          # the trace is all it has beyond J
+
+
+def test_columns_gathered_from_their_matrix_score_as_stacked_ones():
+    """The screen hands `score_many` the matrix its columns are views of (`within`): gathered from
+    it row by row, they give the same scores as the columns stacked one by one, whichever columns
+    are single, wide, missing or not finite."""
+    rng = np.random.default_rng(3)
+    n = 800
+    jac = rng.standard_normal((n, 2))
+    effect = np.sin(np.linspace(0, 12, n))
+    r = 0.7 * effect + rng.standard_normal(n) * 0.5 + jac @ [0.3, -0.2]
+    scorer = RegressionScorer(r, jac)
+    matrix = np.column_stack([effect, rng.standard_normal((n, 2)), effect + rng.standard_normal(n),
+                              np.full(n, np.nan), rng.standard_normal(n)])
+    starts = np.array([0, 1, 3, 4, 5, 0])
+    columns = [matrix[:, 0], matrix[:, 1:3], matrix[:, 3], matrix[:, 4], matrix[:, 5], None]
+    for least in (0.0, 0.05):
+        stacked = scorer.score_many(columns, least_explained=least)
+        gathered = scorer.score_many(columns, least_explained=least, within=(matrix, starts))
+        assert [s is None for s in stacked] == [s is None for s in gathered]
+        assert stacked[0] is not None and stacked[3] is None and stacked[5] is None
+        for a, b in zip(stacked, gathered):
+            if a is not None:
+                assert astuple(a) == astuple(b)

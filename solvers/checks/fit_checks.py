@@ -8,9 +8,9 @@ import numpy as np
 from greyfit.schemas.fit import FitOptions, FitWarning
 from greyfit.solvers.checks.excitation import information_warnings, input_warnings, step_size_warning
 from greyfit.solvers.data.experiments import ExperimentData
-from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.methods.equation_error import EquationErrorProblem
+from greyfit.solvers.methods.method_choice import state_jacobian_columns
 from greyfit.solvers.methods.node_initialisation import DIVERGED
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 from greyfit.solvers.model.compiler import CompiledModel
@@ -162,7 +162,7 @@ def fastest_rate(cm: CompiledModel, data: list[ExperimentData], layout: Paramete
     dt : float
         Smallest median sample step over the experiments.
     """
-    jac_fn = cm.derive(("dfdx_columns",), lambda: Columns(_state_jacobian(cm)))
+    jac_fn = state_jacobian_columns(cm)
     rate, dt = 0.0, np.inf
     for e, d in enumerate(data):
         pe = np.asarray(layout.full(e, theta_s), dtype=float).ravel()
@@ -176,11 +176,6 @@ def fastest_rate(cm: CompiledModel, data: list[ExperimentData], layout: Paramete
                 rate = max(rate, float(np.max(np.abs(np.linalg.eigvals(blocks)))))
         dt = min(dt, float(np.median(np.diff(d.t))))
     return rate, dt
-
-
-def _state_jacobian(cm: CompiledModel) -> ca.Function:
-    x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
-    return ca.Function("dfdx", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])
 
 
 def row_keys(data: list[ExperimentData], eep: EquationErrorProblem | None,

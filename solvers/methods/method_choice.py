@@ -114,8 +114,7 @@ def _growth(oem: OutputErrorModel, states: list[np.ndarray]) -> tuple[float, str
     cm = oem.cm
     if cm.model.discrete is not None or cm.nx == 0:
         return 0.0, ""
-    jac = cm.derive(("dfdx_choice",), lambda: Columns(_state_jacobian(cm), 4 * GROWTH_POINTS,
-                                                      isinstance(cm, CompiledModel)))
+    jac = state_jacobian_columns(cm)
     worst, where = 0.0, ""
     for e, d in enumerate(oem.data):
         ks = np.unique(np.linspace(0, d.n - 1, min(d.n, GROWTH_POINTS)).astype(int))
@@ -135,9 +134,28 @@ def _growth(oem: OutputErrorModel, states: list[np.ndarray]) -> tuple[float, str
     return worst, where
 
 
+def state_jacobian_columns(cm) -> Columns:
+    """∂f/∂x on numpy columns (x, u, p, t per sample), one per model structure: the method choice's
+    growth along the start's simulation and the step-size check's fastest rate read the same one
+    (each built, and compiled, its own copy).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The compiled model (a stand-in model's is not compiled).
+
+    Returns
+    -------
+    Columns
+        The (nx × nx) Jacobian per sample, column-major.
+    """
+    return cm.derive(("dfdx",), lambda: Columns(_state_jacobian(cm), 4 * GROWTH_POINTS,
+                                                isinstance(cm, CompiledModel)))
+
+
 def _state_jacobian(cm) -> ca.Function:
     x, u, p, t = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("p", cm.np), ca.SX.sym("t")
-    return ca.Function("dfdx_choice", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])
+    return ca.Function("dfdx", [x, u, p, t], [ca.jacobian(cm.rhs(x, u, p, t), x)])
 
 
 def fallback_reason(result: FitResult) -> str:

@@ -78,13 +78,21 @@ def andrews_bandwidth(blocks: list[np.ndarray]) -> float:
         return 0.0
     xy = sum(np.einsum("ij,ij->j", b[1:], b[:-1]) for b in used)
     xx = sum(np.einsum("ij,ij->j", b[:-1], b[:-1]) for b in used)
-    ok = xx > 0
+    ok = (xx > 0) & np.isfinite(xx) & np.isfinite(xy)
+    if not ok.any():
+        return 0.0
     rho = np.clip(np.divide(xy, xx, out=np.zeros_like(xx), where=ok), -MAX_RHO, MAX_RHO)
     sq = sum(np.sum((b[1:] - rho * b[:-1]) ** 2, axis=0) for b in used)
     sigma2 = sq / sum(b.shape[0] - 1 for b in used)
+    # α is a ratio of sums of σ⁴: the same for σ² in any common unit, so in that of the largest
+    # (the score of a fit stopped far from its optimum reached 1e160, and σ⁴ overflowed into NaN)
+    peak = float(np.max(sigma2[ok], initial=0.0))
+    if not (np.isfinite(peak) and peak > 0):
+        return 0.0
+    sigma2 = sigma2 / peak
     num = float(np.sum((4 * rho ** 2 * sigma2 ** 2 / ((1 - rho) ** 6 * (1 + rho) ** 2))[ok]))
     den = float(np.sum((sigma2 ** 2 / (1 - rho) ** 4)[ok]))
-    if den <= 0:
+    if not (den > 0 and np.isfinite(num)):
         return 0.0
     alpha = num / den
     return float(min(ANDREWS_BARTLETT * (alpha * total) ** (1 / 3), total / 2))

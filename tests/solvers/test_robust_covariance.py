@@ -82,3 +82,42 @@ def test_prewhitening_recovers_the_long_run_variance_of_an_ar1_score_that_the_ke
         plain.append(bartlett_sum(s[:, None], lags)[0, 0] / n)
     assert np.mean(plain) < 0.85 * truth
     assert abs(np.mean(white) / truth - 1) < 0.10, np.mean(white) / truth
+
+
+def test_the_bandwidth_is_the_same_in_any_unit_and_zero_for_a_score_that_is_not_finite():
+    """Andrews' α is a ratio of sums of σ⁴: scores 1e150 times larger (a fit stopped far from its
+    optimum) give the same bandwidth, not an overflow into NaN; scores that are not finite give no
+    lags (before: `int(nan)` raised out of the fit)."""
+    from greyfit.solvers.inference.robust_covariance import andrews_bandwidth, hac_meat
+    rng = np.random.default_rng(4)
+    s = np.column_stack([lfilter([1.0], [1, -0.7], rng.standard_normal(500)), rng.standard_normal(500)])
+    base = andrews_bandwidth([s])
+    assert 1 < base < 250
+    for scale in (1e-150, 1e150):
+        assert andrews_bandwidth([s * scale]) == pytest.approx(base, rel=1e-12)
+    assert andrews_bandwidth([np.full_like(s, np.nan)]) == 0.0
+    assert andrews_bandwidth([np.full_like(s, np.inf)]) == 0.0
+    keys, one = np.arange(500), np.zeros(500, dtype=int)
+    meat, bandwidth = hac_meat(s, np.ones(500), keys, one)
+    meat_big, bandwidth_big = hac_meat(s * 1e150, np.ones(500), keys, one)
+    assert bandwidth_big == pytest.approx(bandwidth, rel=1e-12) and np.all(np.isfinite(meat_big))
+
+
+def test_a_rough_start_that_breaks_the_simulation_still_ends_in_a_result():
+    """A draining tank, h' = -k sqrt(h) + u, fitted by single shooting from k = 30 (60 times the
+    truth: the level runs below zero and the square root fails along the way): the fit recovers the
+    truth instead of raising from the covariance of the failed attempt."""
+    t = np.linspace(0, 10, 201)
+    level = solve_ivp(lambda _t, h: [-0.5 * np.sqrt(max(h[0], 0.0)) + 0.2], (0, 10), [1.0], t_eval=t,
+                      rtol=1e-10, atol=1e-12).y[0]
+    rng = np.random.default_rng(0)
+    body = {"model": {"states": ["h"], "inputs": ["u"],
+                      "parameters": [{"name": "k", "value": 30.0, "lower": 0.01, "upper": 50}],
+                      "equations": {"h": "-k*sqrt(h) + u"}},
+            "experiments": [{"time": t.tolist(), "inputs": {"u": [0.2] * t.size},
+                             "outputs": {"h": (level + 0.01 * rng.standard_normal(t.size)).tolist()},
+                             "initial_state": {"h": 1.0}}],
+            "method": "single_shooting"}
+    result = fit_model(FitRequest.model_validate(body))
+    assert result.quality != "failed"
+    assert result.parameters["k"].value == pytest.approx(0.5, rel=0.02)

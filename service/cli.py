@@ -127,7 +127,11 @@ def main(argv: list[str] | None = None) -> int:
     except json.JSONDecodeError as exc:
         print(f"greyfit: not valid JSON: {exc}", file=sys.stderr)
     except ValidationError as exc:
-        print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
+        if exc.title == "Settings":   # the service's environment, read at start
+            lines = "\n".join(f"GREYFIT_{'_'.join(map(str, e['loc'])).upper()}: {e['msg']}" for e in exc.errors())
+            print(f"greyfit: invalid setting in the environment:\n{lines}", file=sys.stderr)
+        else:
+            print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
     except FitError as exc:
         print(f"greyfit: {type(exc).__name__}: {exc}", file=sys.stderr)
     finally:

@@ -6,7 +6,7 @@ from functools import lru_cache
 from pathlib import Path
 from typing import Literal, Optional
 
-from pydantic import Field
+from pydantic import Field, field_validator
 from pydantic_settings import BaseSettings, SettingsConfigDict
 
 
@@ -70,9 +70,25 @@ class Settings(BaseSettings):
     worker_stall_seconds: float = Field(
         default=60.0, gt=0, description="a local worker whose CPU time stands still this long mid-task "
                                         "(stopped, hung) is lost: replaced and its task retried")
+    compile: Literal["auto", "always", "never"] = Field(
+        default="auto", description="when the numerics compile a model's functions with gcc: auto (in the "
+                                    "background while a first fit runs interpreted; in the foreground for "
+                                    "a long one), always, never")
+    compile_slots: Optional[int] = Field(
+        default=None, ge=1, description="compilers running at once on this machine, across processes "
+                                        "(default: half the CPUs, at least one)")
+    heap: Literal["kept", "system"] = Field(
+        default="kept", description="kept: a fitting process keeps up to 64 MB of freed heap for its next "
+                                    "fit (glibc); system: glibc's defaults")
     body_read_seconds: float = Field(
         default=60.0, gt=0, description="a request body must arrive within this many seconds of the request's "
                                         "start (a 64 MB body: at least ~1.1 MB/s); a slower sender gets 408")
+
+    @field_validator("compile", "heap", mode="before")
+    @classmethod
+    def _lower(cls, value: object) -> object:
+        # the numerics read these variables themselves, case-insensitively
+        return value.strip().lower() if isinstance(value, str) else value
 
     def resolved_database_url(self) -> str:
         if self.database_url:

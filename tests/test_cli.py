@@ -1,5 +1,6 @@
 """`greyfit fit` as a user runs it: result JSON on stdout, clear message and exit 2 on bad input."""
 import json
+import os
 import subprocess
 import sys
 from pathlib import Path
@@ -57,3 +58,27 @@ def test_report_takes_o_for_its_directory_as_the_other_commands_do(tmp_path):
     assert build_parser().parse_args(["report", "r.json", "--out", "d"]).out == "d"   # --out still works
     proc = run_cli("report", str(result))
     assert proc.returncode == 2 and "-o/--out" in proc.stderr
+
+
+@pytest.mark.parametrize("name, value, says", [
+    ("GREYFIT_COMPILE", "nevr", "GREYFIT_COMPILE: Input should be 'auto', 'always' or 'never'"),
+    ("GREYFIT_HEAP", "sytem", "GREYFIT_HEAP: Input should be 'kept' or 'system'"),
+    ("GREYFIT_WORKERS", "0", "GREYFIT_WORKERS: Input should be greater than or equal to 1")])
+def test_serve_refuses_a_setting_it_does_not_know_and_names_the_variable(tmp_path, name, value, says):
+    """A typo in the environment stops the service at start, naming the variable and the values it
+    takes (GREYFIT_COMPILE and GREYFIT_HEAP were read by the numerics alone, which took any unknown
+    value as the default without a word)."""
+    env = {**os.environ, "GREYFIT_DATA_DIR": str(tmp_path), name: value}
+    proc = subprocess.run([sys.executable, "-m", "greyfit.service.cli", "serve", "--port", "0"], cwd=ROOT,
+                          env=env, capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert "invalid setting in the environment" in proc.stderr and says in proc.stderr, proc.stderr
+
+
+def test_the_library_says_when_it_does_not_know_a_compile_setting(monkeypatch):
+    from greyfit.solvers.dynamics import compiled
+    monkeypatch.setenv("GREYFIT_COMPILE", "allways")
+    with pytest.warns(RuntimeWarning, match="GREYFIT_COMPILE='allways' is not one of auto, always, never"):
+        assert compiled.mode() == "auto"
+    monkeypatch.setenv("GREYFIT_COMPILE", "Never")   # case and spaces do not matter
+    assert compiled.mode() == "never"

@@ -40,6 +40,7 @@ import sys
 import tempfile
 import threading
 import time
+import warnings
 from collections import OrderedDict
 from collections.abc import Iterator
 from pathlib import Path
@@ -170,7 +171,17 @@ def mode() -> str:
         ``"auto"``, ``"always"`` or ``"never"``; an unset or unknown value gives ``"auto"``.
     """
     value = os.environ.get("GREYFIT_COMPILE", "auto").strip().lower()
-    return value if value in ("auto", "always", "never") else "auto"
+    if value in ("auto", "always", "never"):
+        return value
+    _unknown_setting("GREYFIT_COMPILE", value, ("auto", "always", "never"), "auto")
+    return "auto"
+
+
+@functools.lru_cache(maxsize=16)
+def _unknown_setting(name: str, value: str, known: tuple[str, ...], used: str) -> None:
+    """Say once per value that a setting is not one greyfit knows (a typo would otherwise go unseen)."""
+    warnings.warn(f"{name}={value!r} is not one of {', '.join(known)}: greyfit uses {used!r}",
+                  RuntimeWarning, stacklevel=3)
 
 
 def cache_dir() -> Path:

@@ -17,6 +17,7 @@ from __future__ import annotations
 import ctypes
 import os
 import threading
+import warnings
 
 MMAP_THRESHOLD = 32 * 2 ** 20   # glibc's own ceiling for its dynamic threshold
 TRIM_THRESHOLD = 64 * 2 ** 20
@@ -47,8 +48,12 @@ def keep_heap() -> bool:
 
 def _set() -> None:
     global _kept
-    if os.environ.get("GREYFIT_HEAP", "kept").strip().lower() == "system":
+    setting = os.environ.get("GREYFIT_HEAP", "kept").strip().lower()
+    if setting == "system":
         return
+    if setting != "kept":   # a typo would otherwise go unseen
+        warnings.warn(f"GREYFIT_HEAP={setting!r} is not one of kept, system: greyfit uses 'kept'",
+                      RuntimeWarning, stacklevel=4)
     try:   # glibc answers with its name and version; elsewhere there is no such name
         if not (os.confstr("CS_GNU_LIBC_VERSION") or "").startswith("glibc"):
             return

@@ -45,3 +45,13 @@ def test_after_a_fit_arrays_of_a_few_megabytes_come_from_the_kept_heap():
 def test_greyfit_heap_system_leaves_glibcs_defaults():
     # glibc's default: the first 16 MB request is an mmap of its own (its threshold starts at 128 KB)
     assert _heap_allocated({"GREYFIT_HEAP": "system"}) is False
+
+
+@glibc
+def test_an_unknown_heap_setting_is_said_and_the_heap_kept(monkeypatch):
+    from greyfit.solvers.dynamics import heap
+    monkeypatch.setattr(heap, "_done", False)
+    monkeypatch.setattr(heap, "_kept", False)
+    monkeypatch.setenv("GREYFIT_HEAP", "sytem")
+    with pytest.warns(RuntimeWarning, match="GREYFIT_HEAP='sytem' is not one of kept, system"):
+        assert heap.keep_heap() is True

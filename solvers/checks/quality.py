@@ -154,17 +154,22 @@ def _curvature_warnings(q: QualityInputs) -> list[FitWarning]:
     if cov.condition is not None and (cov.matrix is None or cov.condition > NEAR_SINGULAR):
         nulls = cov.null_directions
         if not nulls and q.jac.size:
-            norms = np.linalg.norm(q.jac, axis=0)
+            with np.errstate(over="ignore"):
+                norms = np.linalg.norm(q.jac, axis=0)
             d = np.where(norms > 0, norms, 1.0)
-            eigval, eigvec = np.linalg.eigh((q.jac.T @ q.jac) / np.outer(d, d))
-            nulls = null_directions(eigval, eigvec, q.jac_labels, NEAR_SINGULAR)
+            # columns of unit length (a Gram that cannot overflow), where their lengths are finite
+            unit = _gram(q.jac / d) if np.all(np.isfinite(norms)) else None
+            if unit is not None:
+                eigval, eigvec = np.linalg.eigh(unit)
+                nulls = null_directions(eigval, eigvec, q.jac_labels, NEAR_SINGULAR)
         out.append(FitWarning(
             code="hessian_singular",
             message=f"the information matrix is (nearly) singular (condition {cov.condition:.1e}); "
                     f"poorly determined: {'; '.join(nulls)}",
             detail={"condition": cov.condition, "null_directions": nulls}))
-    if q.jac.size and np.all(np.isfinite(q.jac)) and np.isfinite(q.cost):
-        eigval, eigvec = np.linalg.eigh(q.jac.T @ q.jac)
+    gram = _gram(q.jac) if q.jac.size and np.isfinite(q.cost) else None
+    if gram is not None:
+        eigval, eigvec = np.linalg.eigh(gram)
         floor = FLAT_RELATIVE * max(2 * q.cost, 1e-10 * max(float(eigval[-1]), 1e-300))
         flat = [k for k in range(eigval.size) if eigval[k] <= floor]
         if flat:
@@ -176,6 +181,17 @@ def _curvature_warnings(q: QualityInputs) -> list[FitWarning]:
                         "determined value",
                 detail={"directions": dirs}))
     return out
+
+
+def _gram(jac: np.ndarray) -> np.ndarray | None:
+    """JᵀJ, or None where it is not finite: a fit stopped far from its optimum can have a finite J
+    whose products overflow (the coupled tanks from a rough start), and LAPACK's eigensolver then
+    raised out of the fit instead of the fit saying what it is."""
+    if not np.all(np.isfinite(jac)):
+        return None
+    with np.errstate(over="ignore", invalid="ignore"):
+        gram = jac.T @ jac
+    return gram if np.all(np.isfinite(gram)) else None
 
 
 def _residual_warnings(result: FitResult) -> list[FitWarning]:

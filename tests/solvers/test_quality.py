@@ -66,3 +66,24 @@ def test_good_fit_stays_good_and_active_constraint_is_listed():
     assert r.active_constraints == ["k - 10*c >= 0"]
     assert any(w.code == "constraint_active" for w in r.warnings)
     assert r.parameters["k"].value == pytest.approx(10 * r.parameters["c"].value, rel=1e-5)
+
+
+def test_a_finite_jacobian_whose_information_overflows_gives_a_verdict_not_an_exception():
+    """A fit stopped far from its optimum (the coupled tanks from a rough start, found by fuzzing)
+    had a finite Jacobian whose JᵀJ overflowed: LAPACK's eigensolver raised out of the fit. The
+    curvature checks now leave out what they cannot compute, and say what they can."""
+    from greyfit.solvers.checks.quality import QualityInputs, _curvature_warnings, _gram
+    from greyfit.solvers.inference.covariance import CovarianceEstimate
+    jac = np.array([[1e160, 1.0], [2e160, -1.0], [0.5, 3.0]])
+    assert _gram(jac) is None and _gram(np.array([[np.nan, 1.0]])) is None
+    assert np.array_equal(_gram(np.eye(2)), np.eye(2))
+    cov = CovarianceEstimate(["a", "b"], None, {}, {}, "singular", condition=1e30)
+    q = QualityInputs(converged=False, status="Invalid_Number_Detected", cost=1e300, nlp_cost=1e300,
+                      method="single_shooting", covariance=cov, jac=jac, jac_labels=["a", "b"])
+    codes = [w.code for w in _curvature_warnings(q)]
+    assert codes == ["hessian_singular"]   # the flat-cost check needs JᵀJ: left out
+    q.jac = np.array([[1.0, 2.0], [2.0, 4.0 + 1e-9], [0.0, 0.0]])   # finite and nearly rank one
+    q.cost = 1.0
+    warnings = _curvature_warnings(q)
+    assert [w.code for w in warnings] == ["hessian_singular", "flat_cost"]
+    assert warnings[0].detail["null_directions"]

@@ -62,8 +62,13 @@ except ImportError:   # not POSIX: no cross-process lock, at worst a library is 
 # (-O3, or -O1 for a large source: `optimisation_flags`)
 CFLAGS = ["-ffp-contract=off", "-fPIC", "-shared", "-Wl,-Bsymbolic"]
 # interpreted SX costs ~10 ns per instruction here; gcc ~1 s for a few thousand: compile in the
-# foreground when a fit would spend more than about a second interpreting
+# foreground when a fit would spend more than about a second interpreting, and more than gcc would
+# take. gcc's time grows with the source: ~0.3 s, and ~0.3 ms an instruction at -O1 to ~0.8 at -O3
+# (the seat's 8 000-instruction sensitivity kernel 4-7 s; a 117 000-instruction row kernel of 314
+# RK4 substeps 33 s at -O1, in the foreground of a fit that would have interpreted it in 1 s)
 FOREGROUND_WORK = 1e8          # instructions × expected evaluations
+INTERPRET_S_PER_INSTRUCTION = 1e-8
+COMPILE_S, COMPILE_S_PER_INSTRUCTION = 0.3, 5e-4
 COMPILE_TIMEOUT_S = 120
 # generated sources above this compile at -O1, above the next not at all (`optimisation_flags`)
 LARGE_SOURCE_BYTES = 1_000_000
@@ -379,9 +384,10 @@ def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool
     """The compiled library of `fn` (built now, found on disk, or None while it is built in the
     background / where nothing can be compiled), under the policy of `GREYFIT_COMPILE`.
 
-    In ``auto`` mode, the library is built now when the instructions of `fn` times `evaluations`
-    reach `FOREGROUND_WORK`; otherwise a background build is started (unless one is running or a
-    failed one is still backing off) and None is returned.
+    In ``auto`` mode, the library is built now when interpreting `fn` `evaluations` times is
+    expected to take longer than about a second and than gcc (`foreground_pays`); otherwise a
+    background build is started (unless one is running or a failed one is still backing off) and
+    None is returned.
 
     Parameters
     ----------
@@ -406,7 +412,7 @@ def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool
         with _lock:
             _texts.pop(key, None)
         return path
-    if how == "always" or (not interpret_meanwhile and fn.n_instructions() * evaluations >= FOREGROUND_WORK):
+    if how == "always" or (not interpret_meanwhile and foreground_pays(fn.n_instructions(), evaluations)):
         with _lock:
             _texts.pop(key, None)
         return path if _build(fn, path) else None
@@ -420,6 +426,28 @@ def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool
         work = fn.n_instructions() * max(float(evaluations), 1.0)
         threading.Thread(target=_build_in_background, args=(fn, path, key, work, serialised), daemon=True).start()
     return None
+
+
+def foreground_pays(instructions: float, evaluations: float) -> bool:
+    """Whether a fit about to evaluate a Function that often should wait for gcc rather than interpret
+    it while gcc runs in the background: the interpreted work must reach `FOREGROUND_WORK` and take
+    longer than gcc is expected to.
+
+    Parameters
+    ----------
+    instructions : float
+        The Function's instructions (`casadi.Function.n_instructions`).
+    evaluations : float
+        Expected evaluations of it in the fit.
+
+    Returns
+    -------
+    bool
+        True when compiling first is expected to end the fit sooner.
+    """
+    work = instructions * evaluations
+    return work >= FOREGROUND_WORK and \
+        work * INTERPRET_S_PER_INSTRUCTION > COMPILE_S + COMPILE_S_PER_INSTRUCTION * instructions
 
 
 def building_any() -> bool:

@@ -200,6 +200,38 @@ def test_a_failed_background_compile_is_tried_again_later(cache, monkeypatch):
     assert len(calls) == 2 and key not in compiled_mod._failed
 
 
+def test_a_fit_waits_for_gcc_only_where_gcc_is_quicker_than_interpreting(cache, monkeypatch):
+    """auto compiles in the foreground only when interpreting would take over a second and longer
+    than gcc: a large function evaluated a thousand times (a row kernel of 314 RK4 substeps, 117 000
+    instructions, on 240 samples: found by fuzzing rough starts) had a fit wait 33 s for gcc where
+    interpreting took 1 s; it is now compiled in the background while the fit interprets."""
+    import casadi as ca
+    assert compiled_mod.foreground_pays(3_000, 200_000)              # a long record's small kernel
+    assert not compiled_mod.foreground_pays(116_675, 960)            # 1.1 s interpreted, gcc ~58 s
+    assert not compiled_mod.foreground_pays(100, 100_000)            # 0.1 s interpreted: not worth it
+    assert compiled_mod.foreground_pays(116_675, 200_000)            # 233 s interpreted
+    monkeypatch.setenv("GREYFIT_COMPILE", "auto")
+    monkeypatch.setattr(compiled_mod, "compiler", lambda: "/usr/bin/gcc")
+    monkeypatch.setattr(compiled_mod, "_pending", set())
+    foreground = []
+
+    def build(f, path, queue=False, work=0.0, serialised=None):
+        foreground.append(not queue)
+        return False
+    monkeypatch.setattr(compiled_mod, "_build", build)
+    x = ca.SX.sym("x", 80)
+    big = ca.Function("big_probe", [x], [ca.sin(ca.mtimes(ca.DM(np.ones((80, 80))), x)) * x])   # ~6 600 instructions
+    instructions = big.n_instructions()
+    few = 1.5 * compiled_mod.FOREGROUND_WORK / instructions        # past the old threshold, under gcc's time
+    assert not compiled_mod.foreground_pays(instructions, few)
+    assert compiled_mod.library(big, few) is None
+    for _ in range(500):
+        if not compiled_mod._pending:
+            break
+        time.sleep(0.01)
+    assert foreground == [False]                                    # one build, in the background
+
+
 BUILD_ONE = """
 import casadi as ca, sys
 from greyfit.solvers.dynamics import compiled

@@ -1,6 +1,6 @@
 """greyfit against the peers an expert would write, in one interleaved run (issue #26's table).
 
-    python bench/bench_peers.py [--repeats 5] [--problems a b c d e] [--fits 200]
+    python bench/bench_peers.py [--repeats 5] [--problems a b c d e] [--fits 200] [--cold 5]
 
 Peers, installed only for benchmarks (`pip install -e .[bench]`):
 - a hand-written CasADi single shooting as CasADi's own system-identification example writes it: an
@@ -19,7 +19,9 @@ the parent asks every process for one fit in turn, round after round (ABAB...), 
 medians of CPU and wall time, the accuracy against the true parameters and the largest relative
 difference from the hand-written CasADi optimum. Problem e (200 fits of 401 samples) goes through a
 real `greyfit serve` with 2 workers and its jobs API, against one Python loop of the CasADi peer and
-one `jax.vmap` (its compile time apart).
+one `jax.vmap` (its compile time apart). For the seat (b), `--cold` fresh processes per setting, each
+with an empty compile cache, time greyfit's first fit with compiling (`auto`) and without (`never`), in
+turns, against the warm interpreted fit: one first fit per process is a single sample.
 
 The arithmetic floor: the per-sample RK4 step and its forward sensitivity (∂x+/∂x·S + ∂x+/∂θ) as
 CasADi SX, their operation counts after common-subexpression elimination, plus the JᵀJ and Jᵀr
@@ -472,6 +474,34 @@ def start_tool(tool: str, path: str, cache: str):
     return proc, parent, parent.recv()
 
 
+def cold_process(path: str, cache: str, conn) -> None:
+    """A fresh process's first fit of greyfit's default method, its setup included (wall seconds)."""
+    os.environ.update(GREYFIT_CACHE_DIR=cache, OPENBLAS_NUM_THREADS="1")
+    prob = load(path)
+    w0 = time.perf_counter()
+    TOOLS["greyfit default"](prob)(0)
+    conn.send(time.perf_counter() - w0)
+
+
+def cold_starts(path: str, tmp: str, count: int) -> dict[str, list[float]]:
+    """`count` fresh processes with an empty compile cache each, compiling (auto) and not (never) in
+    turns: one first fit per process is a single sample, and it moves with the machine."""
+    ctx = mp.get_context("spawn")
+    out: dict[str, list[float]] = {"auto": [], "never": []}
+    for i in range(count):
+        for how in out:
+            parent, child = ctx.Pipe()
+            old = os.environ.get("GREYFIT_COMPILE")
+            os.environ["GREYFIT_COMPILE"] = how
+            proc = ctx.Process(target=cold_process, args=(path, os.path.join(tmp, f"cold-{how}-{i}"), child))
+            proc.start()
+            os.environ.pop("GREYFIT_COMPILE") if old is None else os.environ.__setitem__("GREYFIT_COMPILE", old)
+            child.close()
+            out[how].append(parent.recv())
+            proc.join()
+    return out
+
+
 def tools_for(key: str, with_jax: bool) -> list[str]:
     if key == "e":
         names = ["CasADi SS loop", "JAX vmap LM"]
@@ -511,8 +541,9 @@ def run_problem(key: str, args, with_jax: bool, tmp: str) -> dict:
         proc.join()
     if runner is not None:
         runner.close()
+    starts = cold_starts(path, tmp, args.cold) if key == "b" and args.cold else {}
     return dict(prob=prob, rows=rows, peak=peak, cold=cold, load=(load_before, load_after),
-                floor=arithmetic_floor(prob))
+                floor=arithmetic_floor(prob), starts=starts)
 
 
 def report(key: str, out: dict) -> list[str]:
@@ -544,6 +575,14 @@ def report(key: str, out: dict) -> list[str]:
         mem = f"{out['peak'][n]:8.0f}" if n in out["peak"] else f"{'':8s}"
         lines.append(f"  {n:28s} {1e3 * cpu[n]:9.1f} {1e3 * wall:9.1f} {best} {iters:4d} {err:12.2e} "
                      f"{agree:9.1e} {per_iter / floor['seconds']:10.1f} {mem} {first_txt}")
+    starts = out.get("starts")
+    if starts and "greyfit default interpreted" in rows:
+        warm = float(np.median([r[0] for r in rows["greyfit default interpreted"]]))
+        for how, walls in starts.items():
+            med = float(np.median(walls))
+            lines.append(f"  first fit in a fresh process, empty cache, GREYFIT_COMPILE={how}: median {med:.2f} s of "
+                         f"{len(walls)} ({min(walls):.2f}-{max(walls):.2f}), {med / warm:.2f}x the warm interpreted "
+                         f"fit ({warm:.2f} s wall)")
     return lines
 
 
@@ -554,6 +593,8 @@ def main() -> None:
     parser.add_argument("--problems", nargs="*", default=list(TITLES), choices=list(TITLES))
     parser.add_argument("--fits", type=int, default=200, help="fits in problem e")
     parser.add_argument("--skip-jax", action="store_true")
+    parser.add_argument("--cold", type=int, default=5,
+                        help="fresh processes per setting for the seat's first fit (problem b; 0: none)")
     args = parser.parse_args()
     with_jax = jax_available() and not args.skip_jax
     print(f"{os.cpu_count()} cores, load average {os.getloadavg()[0]:.2f}; CPU and wall: medians of "

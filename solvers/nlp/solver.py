@@ -45,6 +45,9 @@ class LeastSquaresSolver:
             "ipopt.print_level": 0,
             "ipopt.sb": "yes",
             "print_time": False,
+            # a NaN or Inf at a trial point is Ipopt's to handle (it steps back) and the result's to
+            # report; CasADi's line per evaluation on stderr only buried a library user's output
+            "show_eval_warnings": False,
             **{f"ipopt.{k}": v for k, v in (ipopt or {}).items()},
         }
         if options.hessian == "gauss_newton":

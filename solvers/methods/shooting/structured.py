@@ -563,7 +563,7 @@ def _build_nlp(oem, terms: _Terms, theta, pvec, pv, penalty, max_iter: int, max_
         # shooting only where the simulation at the guess is sane; multiple shooting, for rough starts
         # and unstable models, keeps Ipopt's default
         **({"ipopt.mu_init": 1e-3} if terms.gaps.numel() == 0 else {}),
-        "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False,
+        "ipopt.print_level": 0, "ipopt.sb": "yes", "print_time": False, "show_eval_warnings": False,
         # nor the gradient of the Lagrangian CasADi builds for multipliers nobody reads: its
         # reverse mode through the compiled blocks ran finite differences for 17 s
         "calc_lam_p": False, "calc_multipliers": False, "no_nlp_grad": True})

@@ -116,17 +116,22 @@ def fit_model(request: FitRequest) -> FitResult:
 
 
 def _fit_offline(request: FitRequest) -> FitResult:
+    cpu0, started = time.process_time(), time.perf_counter()
     prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
     result = _fit_chosen(prepared)
     # from here on the request names the method that ran: the checks after the fit ask it
     prepared = prepared.model_copy(update={"method": result.solver.method})
     retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
+    retry = _with_cpu_left(retry, request.options.max_cpu_time - (time.process_time() - cpu0))
     if retry is not None:   # the chosen substeps proved coarse at the estimates: once more, finer
         (prepared, preprocessing), result = retry, _refit(retry[0], result)
+        result.solver.wall_time_s = time.perf_counter() - started   # the user waited for both
     given = "substeps" in request.options.model_fields_set
     retry, late = cubic_retry(prepared, result, preprocessing, given)
+    retry = _with_cpu_left(retry, request.options.max_cpu_time - (time.process_time() - cpu0))
     if retry is not None:   # smooth inputs read as ramps moved the estimates: once more, read as cubics
         (prepared, preprocessing), result = retry, _refit(retry[0], result)
+        result.solver.wall_time_s = time.perf_counter() - started
     if prepared.validation:
         result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
@@ -134,6 +139,16 @@ def _fit_offline(request: FitRequest) -> FitResult:
         thin_traces(result, preprocessing.input_refinement)
     # lack of fit and input handling in the verdict; units and the model travel with the result
     return attach_model(review_fit(prepared, result, late), request.model)
+
+
+def _with_cpu_left(retry, left: float):
+    """A retry (request, report) given the CPU time the fit has left, or None when none is left:
+    `max_cpu_time` is the whole fit's, and each retry used to get all of it again (a fit of two
+    coupled tanks with `max_cpu_time` 20 spent 42 s of CPU in two attempts)."""
+    if retry is None or left <= 0:
+        return None
+    request, report = retry
+    return request.model_copy(update={"options": request.options.model_copy(update={"max_cpu_time": left})}), report
 
 
 def _refit(request: FitRequest, first: FitResult) -> FitResult:

@@ -172,6 +172,40 @@ def test_a_guess_far_slower_than_the_truth_is_refitted_with_finer_substeps():
     assert abs(r.parameters["C"].value - ALIASED_THERMAL["C"]) < 3 * r.parameters["C"].stderr
 
 
+def test_a_retry_gets_only_the_cpu_time_the_fit_has_left(monkeypatch):
+    """`max_cpu_time` is the whole fit's: the substeps retry above runs with what the first attempt
+    left, and not at all when nothing is (each retry used to get all of it again: two coupled tanks
+    with `max_cpu_time` 20 spent 42 s of CPU in two attempts, found by fuzzing rough starts)."""
+    import time
+
+    from greyfit.solvers import fit as fit_mod
+    body = SCENARIOS["thermal"]("aliased_auto", 6)
+    body["model"]["parameters"][0]["value"] = 20.0
+    body.setdefault("options", {})["max_cpu_time"] = 600.0
+    budgets = []
+    real_refit, real_chosen = fit_mod._refit, fit_mod._fit_chosen
+
+    def refit(request, first):
+        budgets.append(request.options.max_cpu_time)
+        return real_refit(request, first)
+    monkeypatch.setattr(fit_mod, "_refit", refit)
+    r = fit(body)
+    assert "refitted" in r.preprocessing.substeps_note and len(budgets) == 1
+    assert 0 < budgets[0] < 600.0                        # what the first attempt left
+    offset = [0.0]
+
+    def spent_after_first(request):   # the first attempt then looks as if it took 601 s of CPU
+        out = real_chosen(request)
+        offset[0] = 601.0
+        return out
+    clock = time.process_time
+    monkeypatch.setattr(fit_mod, "_fit_chosen", spent_after_first)
+    monkeypatch.setattr(fit_mod.time, "process_time", lambda: clock() + offset[0])
+    r = fit(body)
+    assert len(budgets) == 1 and "refitted" not in (r.preprocessing.substeps_note or "")
+    assert "integration_step_coarse" in codes(r) and r.quality != "good"   # and it says the step is coarse
+
+
 # --- residual level against the noise ------------------------------------------------------------
 
 def test_a_validation_record_the_model_misses_is_suspect():

@@ -118,7 +118,7 @@ def fit_model(request: FitRequest) -> FitResult:
 def _fit_offline(request: FitRequest) -> FitResult:
     cpu0, started = time.process_time(), time.perf_counter()
     prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
-    result = _fit_chosen(prepared)
+    result = _fit_chosen(prepared, cpu0)
     # from here on the request names the method that ran: the checks after the fit ask it
     prepared = prepared.model_copy(update={"method": result.solver.method})
     retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
@@ -188,10 +188,11 @@ def read_cubic_inputs(request: FitRequest, report: PreprocessingReport | None):
     return refine_request(request, DEFAULT_FACTOR), report.model_copy(update={"input_refinement": DEFAULT_FACTOR})
 
 
-def _fit_chosen(request: FitRequest) -> FitResult:
+def _fit_chosen(request: FitRequest, cpu0: float) -> FitResult:
     """`_fit_prepared`; where auto chose single shooting and its answer is doubtful, multiple shooting
-    once more with the CPU time left, and the better answer (`method_choice.keep_better`)."""
-    cpu0, started = time.process_time(), time.perf_counter()
+    once more with the CPU time left (of the whole fit, begun at process time `cpu0`), and the better
+    answer (`method_choice.keep_better`)."""
+    started = time.perf_counter()
     result = _fit_prepared(request)
     choice = result.solver.method_choice
     solved = choice is not None and choice.ran == FitMethod.single_shooting and result.solver.starts > 0

@@ -194,8 +194,8 @@ def test_a_retry_gets_only_the_cpu_time_the_fit_has_left(monkeypatch):
     assert 0 < budgets[0] < 600.0                        # what the first attempt left
     offset = [0.0]
 
-    def spent_after_first(request):   # the first attempt then looks as if it took 601 s of CPU
-        out = real_chosen(request)
+    def spent_after_first(request, cpu0):   # the first attempt then looks as if it took 601 s of CPU
+        out = real_chosen(request, cpu0)
         offset[0] = 601.0
         return out
     clock = time.process_time

@@ -173,7 +173,8 @@ def mode() -> str:
     Returns
     -------
     str
-        ``"auto"``, ``"always"`` or ``"never"``; an unset or unknown value gives ``"auto"``.
+        ``"auto"``, ``"always"`` or ``"never"``; an unset value gives ``"auto"``, and so does an
+        unknown one, with a `RuntimeWarning` the first time.
     """
     value = os.environ.get("GREYFIT_COMPILE", "auto").strip().lower()
     if value in ("auto", "always", "never"):

@@ -83,9 +83,10 @@ x = ca.SX.sym("x", 3)
 assert compiled.library(ca.Function("exits_while_building", [x], [ca.sin(x) * x])) is None   # background
 started = pathlib.Path(sys.argv[1])
 deadline = time.monotonic() + 60
-while not started.exists() and time.monotonic() < deadline:   # the compiler runs
+while time.monotonic() < deadline:   # the compiler runs, and has written both its pids
+    if started.exists() and len(started.read_text().split()) >= 2:
+        break
     time.sleep(0.02)
-time.sleep(0.2)   # the stand-in writes its second pid just after its first
 sys.exit(0)   # the fit has returned, the script ends
 """
 

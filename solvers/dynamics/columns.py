@@ -306,25 +306,32 @@ def _driver(path: str, name: str, kind: str = "columns"):
         fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p,
                        ctypes.c_int]
     else:
-        fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
+        fn.argtypes = [ctypes.c_longlong, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p, ctypes.c_void_p]
     fn.restype = ctypes.c_int
     return fn
 
 
 class Fold:
     """`fn` folded over n samples in one call: output 0 of sample k is input 0 of sample k+1 and
-    the other outputs are summed over the samples (the compiled library's `greyfit_fold_` loop,
-    else CasADi's `mapaccum`, with the same results).
+    the other outputs are summed over the samples, except those in `per_sample`, which are kept
+    for every sample (the compiled library's `greyfit_fold_` loop, else CasADi's `mapaccum`, with
+    the same results).
 
     Inputs as for `Columns` with `accumulate`: input 0 is the first sample's state, the others
-    (rows, n) per sample or (rows,) shared. Returns the state after the last sample and the sums,
-    each as its output's nonzeros.
+    (rows, n) per sample or (rows,) shared. Returns the state after the last sample, then per
+    output its sum, or for a `per_sample` output its nonzeros at every sample (sample k's at
+    k·nnz .. (k+1)·nnz − 1), each flat.
     """
 
-    def __init__(self, fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool = False):
+    def __init__(self, fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool = False,
+                 per_sample: tuple[int, ...] = ()):
         """`interpret_meanwhile`: never wait for gcc (a missing library is built in the background
-        and the fold switches to it at its first call after the build has ended)."""
+        and the fold switches to it at its first call after the build has ended); `per_sample`:
+        the outputs (≥ 1) kept per sample rather than summed."""
+        if any(j < 1 or j >= fn.n_out() for j in per_sample):
+            raise ValueError(f"per_sample outputs of {fn.name()} must be among 1 .. {fn.n_out() - 1}")
         self.fn = fn
+        self.per_sample = frozenset(per_sample)
         self._interpret_meanwhile = interpret_meanwhile
         self._maps = FunctionCache(4)
         self._driver = None
@@ -376,13 +383,20 @@ class Fold:
             return self._casadi(args, n)
         strides = [0] + [self._nnz_in[i] if a.size == self._nnz_in[i] * n and n > 1 else 0
                          for i, a in enumerate(args) if i]
-        outputs = [np.empty(nnz) for nnz in self._nnz_out]
+        outputs = self._outputs(n)
         arg = (ctypes.c_void_p * len(args))(*[a.ctypes.data for a in args])
         res = (ctypes.c_void_p * len(outputs))(*[o.ctypes.data for o in outputs])
         astride = (ctypes.c_longlong * len(strides))(*strides)
-        if self._driver(n, arg, astride, res):
+        if self._driver(n, arg, astride, res, self._rstride()):
             raise RuntimeError(f"evaluation of {self.fn.name()} failed")
         return outputs
+
+    def _outputs(self, n: int) -> list[np.ndarray]:
+        return [np.empty(nnz * n if j in self.per_sample else nnz) for j, nnz in enumerate(self._nnz_out)]
+
+    def _rstride(self):
+        return (ctypes.c_longlong * len(self._nnz_out))(
+            *[nnz if j in self.per_sample else 0 for j, nnz in enumerate(self._nnz_out)])
 
     def bind(self, args: list[np.ndarray], n: int) -> "BoundFold":
         """This fold over fixed input buffers, for repeated calls whose inputs change in place.
@@ -409,6 +423,7 @@ class Fold:
         flat = [np.asarray(a, dtype=float).ravel(order="F") for a in args]
         per_sample = [i > 0 and a.size == self._nnz_in[i] * n and n > 1 for i, a in enumerate(flat)]
         state, sums = flat[0], [np.zeros(nnz) for nnz in self._nnz_out[1:]]
+        kept: dict[int, list[np.ndarray]] = {j: [] for j in self.per_sample}
         into = carry_index(self.fn) if n > FOLD_CHUNK else None
         for start in range(0, n, FOLD_CHUNK):
             m = min(FOLD_CHUNK, n - start)
@@ -422,9 +437,13 @@ class Fold:
             state = outs[0][-self._nnz_out[0]:]
             # the running sums as the first row: numpy adds the rows of a C-ordered array one after
             # another, the compiled loop's order, so both give the same numbers to the last bit
-            sums = [np.add.reduce(np.vstack([total, o.reshape(m, total.size)]), axis=0)
-                    for total, o in zip(sums, outs[1:])]
-        return [state] + sums
+            for j in self.per_sample:
+                kept[j].append(outs[j])
+            sums = [total if j in self.per_sample
+                    else np.add.reduce(np.vstack([total, o.reshape(m, total.size)]), axis=0)
+                    for j, (total, o) in enumerate(zip(sums, outs[1:]), 1)]
+        return [state] + [np.concatenate(kept[j]) if j in self.per_sample else total
+                          for j, total in enumerate(sums, 1)]
 
 
 class BoundFold:
@@ -443,10 +462,10 @@ class BoundFold:
         fold, args, n = self.fold, self.args, self.n
         strides = [0] + [fold._nnz_in[i] if a.size == fold._nnz_in[i] * n and n > 1 else 0
                          for i, a in enumerate(args) if i]
-        outputs = [np.empty(nnz) for nnz in fold._nnz_out]
+        outputs = fold._outputs(n)
         return (outputs, (ctypes.c_void_p * len(args))(*[a.ctypes.data for a in args]),
                 (ctypes.c_longlong * len(strides))(*strides),
-                (ctypes.c_void_p * len(outputs))(*[o.ctypes.data for o in outputs]))
+                (ctypes.c_void_p * len(outputs))(*[o.ctypes.data for o in outputs]), fold._rstride())
 
     def __call__(self) -> list[np.ndarray]:
         fold = self.fold
@@ -454,8 +473,8 @@ class BoundFold:
             return fold._casadi(self.args, self.n)
         if self._c is None:
             self._c = self._c_arrays()
-        outputs, arg, astride, res = self._c
+        outputs, arg, astride, res, rstride = self._c
         driver = fold._driver
-        if driver is None or driver(self.n, arg, astride, res):
+        if driver is None or driver(self.n, arg, astride, res, rstride):
             raise RuntimeError(f"evaluation of {fold.fn.name()} failed")
         return [o.copy() for o in outputs]

@@ -109,10 +109,13 @@ int greyfit_columns_FN(long long n, const double** arg, const long long* astride
 }
 
 /* A fold over n samples in one call: output 0 of sample k is input 0 of sample k+1 (the state,
-   ping-ponged between two buffers, its final value written to res[0]); outputs 1.. are summed over
-   the samples into res[j]. Memory stays constant in n: a simulation that reduces to a cost, a
-   gradient and a Gauss-Newton Hessian writes no per-sample values. */
-int greyfit_fold_FN(long long n, const double** arg, const long long* astride, double** res) {
+   ping-ponged between two buffers, its final value written to res[0]); an output j >= 1 with
+   rstride[j] = 0 is summed over the samples into res[j], one with rstride[j] > 0 is written per
+   sample at res[j] + k * rstride[j] (not at all where res[j] is NULL). Memory stays constant in n
+   where nothing is asked per sample: a simulation that reduces to a cost, a gradient and a
+   Gauss-Newton Hessian writes no per-sample values. */
+int greyfit_fold_FN(long long n, const double** arg, const long long* astride, double** res,
+                    const long long* rstride) {
   casadi_int sz_arg, sz_res, sz_iw, sz_w, i, j, k, total = 0;
   casadi_int n_in = FN_n_in(), n_out = FN_n_out();
   casadi_int nnz[64];
@@ -132,15 +135,18 @@ int greyfit_fold_FN(long long n, const double** arg, const long long* astride, d
   if (!a || !r || !iw || !w || !buf) flag = 1;
   double* state[2] = {buf, buf + nnz[0]};
   double* tmp = buf + 2 * nnz[0];
-  for (j = 1; j < n_out && !flag; ++j) for (i = 0; i < nnz[j]; ++i) res[j][i] = 0.0;
+  for (j = 1; j < n_out && !flag; ++j) if (!rstride[j]) for (i = 0; i < nnz[j]; ++i) res[j][i] = 0.0;
   for (k = 0; k < n && !flag; ++k) {
     for (i = 1; i < n_in; ++i) a[i] = arg[i] + k * astride[i];
     a[0] = k ? state[(k - 1) & 1] : arg[0];
     r[0] = state[k & 1];
     double* t = tmp;
-    for (j = 1; j < n_out; ++j) { r[j] = t; t += nnz[j]; }
+    for (j = 1; j < n_out; ++j) {
+      if (rstride[j]) r[j] = res[j] ? res[j] + k * rstride[j] : 0;
+      else { r[j] = t; t += nnz[j]; }
+    }
     flag = FN(a, r, iw, w, 0);
-    for (j = 1; j < n_out; ++j) for (i = 0; i < nnz[j]; ++i) res[j][i] += r[j][i];
+    for (j = 1; j < n_out; ++j) if (!rstride[j]) for (i = 0; i < nnz[j]; ++i) res[j][i] += r[j][i];
   }
   if (!flag && n > 0) for (i = 0; i < nnz[0]; ++i) res[0][i] = state[(n - 1) & 1][i];
   free(a); free(r); free(iw); free(w); free(buf);

@@ -401,7 +401,7 @@ class OutputErrorFit:
         theta = oem.layout.physical(theta_s)
         x0_free = [x0s[e][cm.states[i]] / oem.xscale[i] for e, f in enumerate(oem.free_x0) for i in f]
         x0_scale = [oem.xscale[i] for f in oem.free_x0 for i in f]
-        jac, res, groups = sensitivity_jacobian(oem, theta_s, x0s)
+        jac, res, groups = sensitivity_jacobian(oem, theta_s, x0s, w)
         return Jacobian(jac, res, groups, list(oem.layout.labels) + oem.x0_labels(),
                         np.concatenate([theta, np.array(x0_free) * np.array(x0_scale, dtype=float)]),
                         np.concatenate([oem.layout.scale, x0_scale]), len(x0_free))

@@ -115,3 +115,35 @@ def test_a_sparse_next_state_is_never_carried_by_the_compiled_loop(tmp_path, mon
     assert np.allclose(got[1], float(ca.sum2(acc[1])), rtol=1e-13, atol=0)
     steps = Columns(fn)(x0, pv, us.reshape(1, n), n=n, accumulate=True)[0]
     assert np.allclose(steps, np.array(acc[0]), rtol=1e-14, atol=0)
+
+
+@pytest.mark.parametrize("how", ["never", "always"])
+def test_a_fold_keeps_its_per_sample_outputs(tmp_path, monkeypatch, how):
+    """Outputs named per sample are kept at every sample, not summed, beside the sums (single
+    shooting keeps each sample's residual and Jacobian row this way): the same numbers from the
+    interpreter across chunk boundaries and from the compiled loop, as CasADi's own mapaccum."""
+    from greyfit.solvers.dynamics import compiled as compiled_mod
+    if how == "always" and compiled_mod.compiler() is None:
+        pytest.skip("no C compiler on this machine")
+    monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path))
+    monkeypatch.setenv("GREYFIT_COMPILE", how)
+    monkeypatch.setattr(columns, "FOLD_CHUNK", 16)   # several chunks in the interpreter
+    x, p, u, xn = _step()
+    fn = ca.Function(f"fold_rows_{how}", [x, p, u], [xn, ca.sumsqr(x - u), ca.vertcat(x[0] * u, x[2]),
+                                                   ca.densify(ca.mtimes(x, p.T))])
+    rng = np.random.default_rng(5)
+    n, x0, pv = 50, np.array([0.3, -0.2, 1.0]), np.array([0.7, 0.2])
+    us = rng.standard_normal(n)
+    fold = Fold(fn, 1e9 if how == "always" else 0.0, per_sample=(2, 3))
+    assert fold.compiled == (how == "always")
+    got = fold.bind([x0, pv, us], n)()
+    acc = fn.mapaccum(n)(x0, pv, us.reshape(1, n))
+    assert np.allclose(got[0], np.array(acc[0][:, -1]).ravel(), rtol=1e-14, atol=0)
+    assert np.allclose(got[1], float(ca.sum2(acc[1])), rtol=1e-13, atol=0)
+    assert got[2].shape == (2 * n,) and got[3].shape == (6 * n,)
+    # sample k's nonzeros at k·nnz .. (k+1)·nnz − 1, each block column-major
+    assert np.allclose(got[2].reshape(n, 2).T, np.array(acc[2]), rtol=1e-14, atol=0)
+    assert np.allclose(got[3].reshape(n, 2, 3).transpose(2, 0, 1).reshape(3, 2 * n), np.array(acc[3]),
+                       rtol=1e-14, atol=0)
+    with pytest.raises(ValueError):
+        Fold(fn, per_sample=(0,))   # the carried state is never per sample

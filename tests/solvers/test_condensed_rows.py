@@ -86,6 +86,38 @@ def test_condensed_rows_are_the_residuals_derivatives(cache, monkeypatch):
 
 
 @needs_cc
+@pytest.mark.parametrize("how", ["always", "never"])
+def test_the_solves_last_pass_holds_the_condensed_rows(cache, monkeypatch, how):
+    """The single-shooting pass that gives Ipopt the gradient and JᵀJ also keeps r_k and J_k per
+    sample, so J at the solve's optimum needs no pass of its own: the rows it keeps are those of the
+    row kernel (compiled and interpreted), on the layout with every complication; asked at another
+    point, they are not used."""
+    monkeypatch.setenv("GREYFIT_COMPILE", how)
+    oem = _oem()
+    theta = np.array([0.9, 1.1, 0.95])
+    w = np.concatenate([theta, [0.13 / oem.xscale[0]]])
+    x0s = [{"x": w[3] * oem.xscale[0], "v": 0.0}, {"x": 0.1, "v": 0.0}]
+    folds, _ = structured._single_folds(oem, sum(d.n for d in oem.data))
+    sp = structured._single_pass(oem, folds)
+    token, record = structured._token_record(oem)
+    sp.attach(record)
+    cost, grad, _ = sp.derivatives(w, np.array([token]))
+    assert sp.rows_at(w, token) is not None and sp.rows_at(w + 1e-9, token) is None
+    jac, res, groups = structured.condensed_jacobian(oem, theta, x0s, w)
+    monkeypatch.setattr(single_pass, "_ROWS", OrderedDict())   # the row kernel's own pass
+    want_jac, want_res, want_groups = single_pass.condensed_rows(oem, theta, x0s)
+    assert jac.shape == want_jac.shape == (61 * 2 - 1 + 47 * 2, 4)
+    assert np.allclose(jac, want_jac, rtol=1e-12, atol=1e-14 * np.abs(want_jac).max())
+    assert np.allclose(res, want_res, rtol=1e-12, atol=1e-14 * np.abs(want_res).max())
+    assert np.array_equal(groups, want_groups)
+    assert np.isclose(cost, 0.5 * want_res @ want_res, rtol=1e-12)   # the same point's residual
+    assert np.allclose(grad, want_jac.T @ want_res, rtol=1e-10, atol=1e-12 * np.abs(grad).max())
+    monkeypatch.setattr(single_pass, "_ROWS", OrderedDict())
+    elsewhere = structured.condensed_jacobian(oem, theta, x0s, w + 1e-3)   # not the pass's point: computed
+    assert np.allclose(elsewhere[0], want_jac, rtol=1e-12, atol=1e-14 * np.abs(want_jac).max())
+
+
+@needs_cc
 @pytest.mark.parametrize("nx, w", [(2, 3), (3, 9), (1, 1)])
 def test_compiled_recursion_equals_the_products_written_out(cache, monkeypatch, nx, w):
     monkeypatch.setenv("GREYFIT_COMPILE", "always")
@@ -154,8 +186,9 @@ def test_a_fit_prepares_its_records_once_and_its_checks_reuse_the_optimums_jacob
     request's records (a 200 000-sample series converted from its list four times), and each
     condensed Jacobian was keyed by a digest of the records (7 ms at 200 000 samples). Now a fit
     prepares once, and the screen finds the solve's Jacobian at the optimum by the records' identity:
-    the rows kernel runs once, at the optimum (the start checks' JᵀJ is the solve's first pass), and
-    the input reading and the screen reuse it (the input reading's finer records are simulated)."""
+    the rows at the optimum are the solve's last pass's (the start checks' JᵀJ is its first pass),
+    so the rows kernel never runs, and the input reading and the screen reuse them (the input
+    reading's finer records are simulated)."""
     from greyfit.solvers.data import experiments as experiments_mod
     from greyfit.solvers.fit import fit_model
 
@@ -187,7 +220,7 @@ def test_a_fit_prepares_its_records_once_and_its_checks_reuse_the_optimums_jacob
     assert result.solver.return_status == "Solve_Succeeded"
     assert abs(result.parameters["c"].value - 0.8) < 0.05 and abs(result.parameters["k"].value - 5.0) < 0.1
     assert prepared == ["e1"]
-    assert rows_runs == [401]                          # at the optimum, for the checks and the screen
+    assert rows_runs == []                             # the solve's last pass wrote them
     arrays = experiments_mod.prepare_experiments(request.experiments, compile_model(request.model))[0]
     with pytest.raises(ValueError):                   # shared, so never changed in place
         arrays.y[0, 0] = 1.0

@@ -503,7 +503,8 @@ def x0_reader(oem: OutputErrorModel, offset: int, stride_of):
     return read
 
 
-def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]],
+                         w: np.ndarray | None = None):
     """(J, r, output index of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled).
 
     Forward sensitivities S_{k+1} = A_k S_k + B_k are propagated in numpy from per-step Jacobians
@@ -519,6 +520,9 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
         The scaled free parameters, shape (n θ,).
     x0s : list of dict
         Per experiment, state name -> initial value.
+    w : numpy.ndarray or None, optional
+        The solve's decision vector at this point, when it is the solve's optimum (a single-shooting
+        solve's last pass already holds the rows there).
 
     Returns
     -------
@@ -531,7 +535,7 @@ def sensitivity_jacobian(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[d
         The output index of each row.
     """
     if shooting_structured.supports(oem, single=True):
-        return shooting_structured.condensed_jacobian(oem, theta_s, x0s)
+        return shooting_structured.condensed_jacobian(oem, theta_s, x0s, w)
     cm, layout = oem.cm, oem.layout
     step_sens, out_sens = oem.sensitivity_functions()
     n_theta = layout.size

@@ -66,10 +66,13 @@ def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
     """The two per-sample kernels over scaled states x (x_phys = xs·x) and θ (p = off + M θ).
 
     `value`: (x_k, inputs) -> (x_k+1, ½‖r_k‖²); `sens`: ((x_k, vec S_k), inputs) ->
-    ((x_k+1, vec S_k+1), ½‖r_k‖², J_kᵀr_k, triu(J_kᵀJ_k)), S_k = ∂x_k/∂[θ, x0 of the `free`
-    states] (a known initial state needs no direction: the seat model's 8 known x0 would double
-    the work). Inputs after the state: u_k, u_k+1, t_k, t_k+1 − t_k, θ, M, off, xs, y_k, wt_k (the
-    last sample's step is computed and dropped).
+    ((x_k+1, vec S_k+1), ½‖r_k‖², J_kᵀr_k, triu(J_kᵀJ_k), r_k, J_k), S_k = ∂x_k/∂[θ, x0 of the
+    `free` states] (a known initial state needs no direction: the seat model's 8 known x0 would
+    double the work), J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] dense (ny × (nθ + free)). Outputs 1–3 are
+    summed over the samples, r_k and J_k kept per sample (`SENS_PER_SAMPLE`): the pass at the
+    solve's last point is the condensed Jacobian the fit's checks read at the optimum. Inputs after
+    the state: u_k, u_k+1, t_k, t_k+1 − t_k, θ, M, off, xs, y_k, wt_k (the last sample's step is
+    computed and dropped).
 
     Parameters
     ----------
@@ -106,8 +109,13 @@ def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
     z = ca.vertcat(xk, ca.vec(sens))
     # the symbolic sparsity of triu(JᵀJ) (e.g. no θ in an output) is the NLP's Hessian pattern
     derivs = ca.Function("greyfit_ss_sens", [z, *rest], [
-        ca.densify(ca.vertcat(xn, ca.vec(s_next))), cost, ca.mtimes(jrow.T, r), ca.triu(ca.mtimes(jrow.T, jrow))])
+        ca.densify(ca.vertcat(xn, ca.vec(s_next))), cost, ca.mtimes(jrow.T, r), ca.triu(ca.mtimes(jrow.T, jrow)),
+        ca.densify(r), ca.densify(jrow)])
     return {"value": value, "sens": derivs}
+
+
+# the outputs of the `sens` kernel its fold keeps per sample (r_k, J_k) instead of summing
+SENS_PER_SAMPLE = (4, 5)
 
 
 def build_row_kernel(oem, free: tuple[int, ...]) -> ca.Function:
@@ -127,15 +135,9 @@ def build_row_kernel(oem, free: tuple[int, ...]) -> ca.Function:
         An SX Function, evaluated over the samples by a compiled column loop (`Columns`).
     """
     sens = build_kernels(oem, free)["sens"]
-    cm, nth = oem.cm, oem.layout.size
-    nx, nv = cm.nx, nth + len(free)
     ins = [ca.SX.sym(sens.name_in(i), sens.sparsity_in(i)) for i in range(sens.n_in())]
-    z, u0, _u1, t0, _dt, theta, mat, off, xs, y, wt = ins
-    xk, s_k = z[:nx], ca.reshape(z[nx:], nx, nv)
-    p = off + ca.mtimes(mat, theta)
-    r = wt * (cm.output(xs * xk, u0, p, t0) - y)
-    jrow = ca.mtimes(ca.jacobian(r, xk), s_k) + ca.horzcat(ca.jacobian(r, theta), ca.SX(cm.ny, nv - nth))
-    return ca.Function("greyfit_ss_rows", ins, [sens(*ins)[0], ca.densify(r), ca.densify(jrow)])
+    outs = sens(*ins)
+    return ca.Function("greyfit_ss_rows", ins, [outs[0], *(outs[j] for j in SENS_PER_SAMPLE)])
 
 
 def row_columns(oem):
@@ -198,29 +200,73 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     free = free_states(oem)
     free_at = np.asarray(free, dtype=int)
     nv = nth + free_at.size
-    nw = nth + sum(len(f) for f in oem.free_x0)
     seed = np.hstack([np.zeros((nx, nth)), np.eye(nx)[:, free_at]]).ravel(order="F")
-    jacs, resids, groups, col = [], [], [], nth
+    parts = []
     for e, d in enumerate(oem.data):
-        n, mask = d.n, d.mask
+        n = d.n
         x0 = np.array([x0s[e][s] for s in cm.states], dtype=float) / oem.xscale
         u1 = np.concatenate([d.u[:, 1:], d.u[:, -1:]], axis=1)
         dt = np.append(np.diff(d.t), 0.0)[None, :]
         _, r, j = rows(np.concatenate([x0, seed]), d.u, u1, d.t[None, :], dt, theta_s,
-                       oem.layout.matrix[e], layout.offset, oem.xscale, np.where(mask, d.y, 0.0),
-                       mask * oem.weights[:, None], n=n, accumulate=True)
+                       oem.layout.matrix[e], layout.offset, oem.xscale, np.where(d.mask, d.y, 0.0),
+                       d.mask * oem.weights[:, None], n=n, accumulate=True)
+        parts.append((r.T, j.reshape(ny, n, nv).transpose(1, 0, 2)))
+    return remember_rows(oem, theta_s, x0s, assemble_rows(oem, parts), rows)
+
+
+def assemble_rows(oem, parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(J, r, output of each row) at the measured samples from each experiment's per-sample
+    residuals (n, ny) and rows (n, ny, nθ + free states), as `condensed_rows` returns them."""
+    nth, ny = oem.layout.size, oem.cm.ny
+    free_at = np.asarray(free_states(oem), dtype=int)
+    nv = nth + free_at.size
+    nw = nth + sum(len(f) for f in oem.free_x0)
+    jacs, resids, groups, col = [], [], [], nth
+    for e, (d, (r, per_sample)) in enumerate(zip(oem.data, parts)):
+        n = d.n
         f = np.asarray(oem.free_x0[e], dtype=int)
         v = np.concatenate([np.arange(nth), nth + np.searchsorted(free_at, f)]).astype(int)
         wi = np.concatenate([np.arange(nth), col + np.arange(f.size)]).astype(int)
         col += f.size
-        per_sample = j.reshape(ny, n, nv).transpose(1, 0, 2)          # (n, ny, nv)
-        keep = mask.T.ravel()                                          # sample-major, like r
-        block = np.zeros((n * ny, nw))
-        block[:, wi] = per_sample.reshape(n * ny, nv)[:, v]
-        jacs.append(block[keep])
-        resids.append(r.T.ravel()[keep])
+        keep = d.mask.T.ravel()                                        # sample-major, like r
+        flat = per_sample.reshape(n * ny, nv)
+        if nv == nw and np.array_equal(v, np.arange(nv)) and np.array_equal(wi, v):   # the kernel's columns are J's
+            jacs.append(flat[keep] if not keep.all() else np.array(flat))
+        else:
+            block = np.zeros((n * ny, nw))
+            block[:, wi] = flat[:, v]
+            jacs.append(block[keep])
+        resids.append(np.ravel(r)[keep])
         groups.append(np.broadcast_to(np.arange(ny), (n, ny)).ravel()[keep])
-    out = (np.vstack(jacs), np.concatenate(resids), np.concatenate(groups))
+    if len(jacs) == 1:
+        return jacs[0], resids[0], groups[0]
+    return np.vstack(jacs), np.concatenate(resids), np.concatenate(groups)
+
+
+def remember_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]], out: tuple, rows=None) -> tuple:
+    """Keep `out` (J, r, groups) as the condensed Jacobian at (θ, x0s) for the checks that ask
+    again (the lack-of-fit screen); returns copies.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+    theta_s : numpy.ndarray
+        The scaled free parameters.
+    x0s : list of dict
+        Per experiment, state name -> initial value (physical units).
+    out : tuple of numpy.ndarray
+        (J, r, output of each row), as `condensed_rows` returns them.
+    rows : Columns or None, optional
+        The row kernel (`row_columns`), when already at hand.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        Copies of `out`.
+    """
+    rows = row_columns(oem) if rows is None else rows
+    key = _rows_key(oem, rows, np.asarray(theta_s, dtype=float).ravel(), x0s)
     with _ROWS_LOCK:
         _ROWS[key] = (rows, _records(oem), out)
         while len(_ROWS) > 4:
@@ -325,6 +371,7 @@ class SinglePass:
         self._cost_by_sens = (folds["sens"].fn.n_instructions()
                               <= COST_BY_SENSITIVITY * folds["value"].fn.n_instructions())
         self._point: tuple[bytes, tuple[float, np.ndarray, np.ndarray]] | None = None
+        self._rows: tuple[bytes, list[tuple[np.ndarray, np.ndarray]]] | None = None
         self._lock = threading.RLock()   # the bound folds' buffers are rewritten per call
 
     def attach(self, record: np.ndarray) -> None:
@@ -425,19 +472,47 @@ class SinglePass:
             if point is not None and point[0] == key:
                 return point[1]
             total, grad, hess = 0.0, np.zeros(self.nw), np.zeros(self.hess_sparsity.nnz())
+            parts = []
             for e, rec in enumerate(self._record(p)):
                 bound = rec["sens"]
                 self._x0(e, rec, w, bound.args[0])
                 bound.args[5][:] = w[:self.nth]
-                _, c, g, h = bound()
+                _, c, g, h, r, j = bound()
                 total += float(c[0])
                 v, wi = self.places[e]
                 grad[wi] += g[v]
                 keep, at = self.h_maps[e]
                 hess[at] += h[keep]
+                n = self.n[e]
+                # per sample: r_k (ny), J_k (ny × nv) column-major
+                parts.append((r.reshape(n, self.ny), j.reshape(n, -1, self.ny).transpose(0, 2, 1)))
             result = (total, grad, hess)
             self._point = (key, result)
+            self._rows = (key, parts)
         return result
+
+    def rows_at(self, w: np.ndarray, token: float) -> list[tuple[np.ndarray, np.ndarray]] | None:
+        """Per experiment, the residual (n, ny) and the rows J_k (n, ny, nθ + free states) of the
+        last sensitivity pass, if it ran at w for the record of `token` (the solve's last accepted
+        point is its optimum: the fit's checks read J there without another pass).
+
+        Parameters
+        ----------
+        w : numpy.ndarray
+            The decision vector [θ, free x0] (scaled).
+        token : float
+            The record's token (`attach`).
+
+        Returns
+        -------
+        list of tuple of numpy.ndarray or None
+            None when the last pass ran elsewhere.
+        """
+        key = np.asarray(w, dtype=float).tobytes() + np.array([token], dtype=float).tobytes()
+        with self._lock:
+            if self._rows is None or self._rows[0] != key:
+                return None
+            return self._rows[1]
 
 
 class _PassCallback(ca.Callback):

@@ -145,7 +145,8 @@ def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
             _FOLDS.move_to_end(id(fn))
             known.find_library(work[name])
             return known
-        made = _FOLDS[id(fn)] = Fold(fn, work[name], interpret_meanwhile=True)   # handover.py: never waits for gcc
+        made = _FOLDS[id(fn)] = Fold(fn, work[name], interpret_meanwhile=True,   # handover.py: never waits for gcc
+                                     per_sample=single_pass.SENS_PER_SAMPLE if name == "sens" else ())
         while len(_FOLDS) > 2 * SOLVER_CACHE_SIZE:
             _FOLDS.popitem(last=False)
         return made
@@ -776,7 +777,8 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
     return problem
 
 
-def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
+def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]],
+                       w: np.ndarray | None = None):
     """(J, r, output of each row) of the single-shooting residual w.r.t. [θ, free x0] (scaled), at
     the measured samples: `shooting.sensitivity_jacobian` by one pass of the row kernel per experiment
     (`single_pass.condensed_rows`), compiled C once its library is built, CasADi's interpreter until
@@ -791,6 +793,9 @@ def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
         The scaled free parameters, shape (n θ,).
     x0s : list of dict
         Per experiment, state name -> initial value (physical units).
+    w : numpy.ndarray or None, optional
+        The single-shooting solve's decision vector at this point, when it is the solve's optimum:
+        its last sensitivity pass ran there and wrote the rows, so no pass runs again.
 
     Returns
     -------
@@ -801,4 +806,9 @@ def condensed_jacobian(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     groups : numpy.ndarray
         The output index of each row.
     """
+    if w is not None and oem.single_pass_token is not None:
+        for _, sp in list(_PASSES.values()):
+            parts = sp.rows_at(w, oem.single_pass_token)
+            if parts is not None and len(parts) == len(oem.data):
+                return single_pass.remember_rows(oem, theta_s, x0s, single_pass.assemble_rows(oem, parts))
     return single_pass.condensed_rows(oem, theta_s, x0s)

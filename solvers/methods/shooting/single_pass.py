@@ -216,7 +216,22 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
 
 def assemble_rows(oem, parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(J, r, output of each row) at the measured samples from each experiment's per-sample
-    residuals (n, ny) and rows (n, ny, nθ + free states), as `condensed_rows` returns them."""
+    residuals and rows, as `condensed_rows` returns them.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model (its records' masks and free initial states).
+    parts : list of tuple of numpy.ndarray
+        Per experiment, the weighted residual (n, ny) and the rows J_k (n, ny, nθ + free states of
+        the kernels, `free_states`) at every sample.
+
+    Returns
+    -------
+    tuple of numpy.ndarray
+        J (measured samples × outputs, nθ + the free initial states of every experiment), r, and
+        the output index of each row.
+    """
     nth, ny = oem.layout.size, oem.cm.ny
     free_at = np.asarray(free_states(oem), dtype=int)
     nv = nth + free_at.size

@@ -6,7 +6,7 @@ the registry keeps it, so one hypothesis is counted once.
 """
 from __future__ import annotations
 
-from typing import Callable, Sequence
+from typing import Callable, Sequence, cast
 
 import numpy as np
 
@@ -110,28 +110,37 @@ def drop_duplicates(cands: list[Candidate]) -> list[Candidate]:
         The same in the same order without the later duplicates; candidates on outputs, with data
         transforms or with multi-column regressors are always kept.
     """
-    kept: list[Candidate] = []
-    signatures: dict[tuple, list[np.ndarray]] = {}
-    for c in cands:
-        vec = _unit_column(c)
-        if vec is None:
-            kept.append(c)
+    columns = [_column(c) for c in cands]
+    groups: dict[tuple, list[int]] = {}
+    for k, (c, col) in enumerate(zip(cands, columns)):
+        if col is not None:
+            groups.setdefault((tuple(sorted(c.equations)), col.size), []).append(k)
+    dropped: set[int] = set()
+    for members in groups.values():
+        if len(members) < 2:
             continue
-        where = (tuple(sorted(c.equations)), vec.size)
-        if any(abs(float(vec @ other)) > SAME_COLUMN for other in signatures.get(where, [])):
-            continue
-        signatures.setdefault(where, []).append(vec)
-        kept.append(c)
-    return kept
+        block = np.vstack([cast(np.ndarray, columns[k]) for k in members])
+        norms = np.linalg.norm(block, axis=1)
+        unit = block / np.where(norms > 0, norms, 1.0)[:, None]
+        same = np.abs(unit @ unit.T) > SAME_COLUMN
+        kept_here: list[int] = []
+        for i, k in enumerate(members):
+            if norms[i] == 0:      # no direction: kept, and never anyone's duplicate
+                continue
+            if any(same[i, j] for j in kept_here):
+                dropped.add(k)
+            else:
+                kept_here.append(i)
+    return [c for k, c in enumerate(cands) if k not in dropped]
 
 
-def _unit_column(c: Candidate) -> np.ndarray | None:
+def _column(c: Candidate) -> np.ndarray | None:
+    """The candidate's single column over its equations, non-finite entries 0; None when it is not
+    one column on equations (on outputs, with data transforms, several columns)."""
     if c.outputs or not c.equations or c.transform_experiments is not None:
         return None
     parts = [np.asarray(col, dtype=float) for eq in sorted(c.equations) for col in c.equations[eq]]
     if any(p.ndim != 1 for p in parts):
         return None
-    vec = np.concatenate(parts)
-    vec = np.where(np.isfinite(vec), vec, 0.0)
-    norm = float(np.linalg.norm(vec))
-    return vec / norm if norm > 0 else None
+    vec = parts[0] if len(parts) == 1 else np.concatenate(parts)
+    return np.where(np.isfinite(vec), vec, 0.0)

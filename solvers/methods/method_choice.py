@@ -83,26 +83,43 @@ def _unusable(oem: OutputErrorModel, sims: list[tuple[np.ndarray, np.ndarray]], 
     if failed:
         return failed[0].replace("the simulation", "the simulation at the start guess", 1)
     for d, (xs, _) in zip(oem.data, sims):
-        for i, state in enumerate(cm.states):
-            bad = ~np.isfinite(xs[i]) | (np.abs(xs[i]) > DIVERGED)
-            if bad.any():
-                return (f"state '{state}' of the simulation at the start guess runs away (beyond "
-                        f"{DIVERGED:.0e} or not finite) at t = {d.t[int(np.argmax(bad))]:.4g} in experiment "
-                        f"'{d.name}'")
+        bad = ~np.isfinite(xs) | (np.abs(xs) > DIVERGED)
+        if bad.any():
+            i = int(np.argmax(bad.any(axis=1)))   # the first state in order, as the message names one
+            return (f"state '{cm.states[i]}' of the simulation at the start guess runs away (beyond "
+                    f"{DIVERGED:.0e} or not finite) at t = {d.t[int(np.argmax(bad[i]))]:.4g} in experiment "
+                    f"'{d.name}'")
+    centre, scale = _measured_centres(oem)
+    excess = [np.abs(ys - centre[:, None]) / scale[:, None] for _, ys in sims]
+    beyond = [~np.isfinite(x) | (x > OUTPUT_BLOWUP) for x in excess]
     for j, out in enumerate(cm.outputs):
-        measured = np.concatenate([d.y[j][np.isfinite(d.y[j])] for d in oem.data])
-        if measured.size == 0:
+        if not np.isfinite(centre[j]):   # never measured
             continue
-        centre = float(np.median(measured))
-        scale = max(float(np.ptp(measured)), 1e-6 * float(np.max(np.abs(measured))), 1e-300)
-        for d, (_, ys) in zip(oem.data, sims):
-            excess = np.abs(ys[j] - centre) / scale
-            if not np.all(np.isfinite(ys[j])) or np.max(excess, initial=0.0) > OUTPUT_BLOWUP:
-                k = int(np.argmax(~np.isfinite(excess) | (excess > OUTPUT_BLOWUP)))
+        for d, x, b in zip(oem.data, excess, beyond):
+            if b[j].any():
+                k = int(np.argmax(b[j]))
                 return (f"output '{out}' of the simulation at the start guess reaches "
-                        f"{float(excess[k]):.3g}× the measured range at t = {d.t[k]:.4g} in experiment "
+                        f"{float(x[j, k]):.3g}× the measured range at t = {d.t[k]:.4g} in experiment "
                         f"'{d.name}'")
     return ""
+
+
+def _measured_centres(oem: OutputErrorModel) -> tuple[np.ndarray, np.ndarray]:
+    """Per output, the median of its measured samples and their range (NaN where never measured)."""
+    ny = oem.cm.ny
+    ys = [d.y for d in oem.data]
+    if all(np.isfinite(y).all() for y in ys):   # the usual record: one pass over all outputs
+        measured = ys[0] if len(ys) == 1 else np.concatenate(ys, axis=1)
+        if measured.shape[1]:
+            ptp, top = np.ptp(measured, axis=1), np.max(np.abs(measured), axis=1)
+            return np.median(measured, axis=1), np.maximum(np.maximum(ptp, 1e-6 * top), 1e-300)
+    centre, scale = np.full(ny, np.nan), np.ones(ny)
+    for j in range(ny):
+        measured = np.concatenate([y[j][np.isfinite(y[j])] for y in ys])
+        if measured.size:
+            centre[j] = float(np.median(measured))
+            scale[j] = max(float(np.ptp(measured)), 1e-6 * float(np.max(np.abs(measured))), 1e-300)
+    return centre, scale
 
 
 def _growth(oem: OutputErrorModel, states: list[np.ndarray]) -> tuple[float, str]:

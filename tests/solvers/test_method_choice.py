@@ -219,3 +219,34 @@ def test_no_cpu_time_left_for_the_fallback_is_the_reason_given(monkeypatch):
     assert auto.solver.method == FitMethod.single_shooting and not choice.fallback
     assert "single shooting failed (Maximum_Iterations_Exceeded" in choice.reason
     assert choice.reason.endswith("no CPU time is left (options.max_cpu_time) to try multiple shooting"), choice.reason
+
+
+def test_an_unusable_start_names_the_first_output_and_record_that_leaves_the_measured_range():
+    """The start's simulation checked against every output's measured median and range at once:
+    the message names the first output (in the model's order) that leaves 10× the range, the first
+    record it does so in, and the time; a sample never measured (NaN) takes no part in the range."""
+    from types import SimpleNamespace
+
+    from greyfit.solvers.methods import method_choice
+
+    t = np.linspace(0.0, 1.0, 11)
+    y1 = np.vstack([np.sin(t), np.cos(t)])
+    y2 = y1.copy()
+    y2[0, 3] = np.nan                                            # a missing sample of output a
+    data = [SimpleNamespace(y=y1, t=t, name="r1"), SimpleNamespace(y=y2, t=t + 5.0, name="r2")]
+    oem = SimpleNamespace(cm=SimpleNamespace(states=["s"], outputs=["a", "b"], ny=2), data=data)
+    states = np.zeros((1, t.size))
+    quiet = [(states, y1.copy()), (states, y1.copy())]
+    assert method_choice._unusable(oem, quiet, []) == ""
+    loud = [(states, y1.copy()), (states, y1.copy())]
+    loud[1][1][1, 7] = 50.0                                       # output b, second record, t = 5.7
+    loud[0][1][1, 9] = np.inf                                     # output b, first record, t = 0.9
+    why = method_choice._unusable(oem, loud, [])
+    assert why.startswith("output 'b' ") and "t = 0.9 " in why and "'r1'" in why
+    loud[0][1][1, 9] = y1[1, 9]
+    why = method_choice._unusable(oem, loud, [])
+    spread = np.ptp(np.concatenate([y1[1], y2[1]]))
+    centre = np.median(np.concatenate([y1[1], y2[1]]))
+    assert f"{abs(50.0 - centre) / spread:.3g}×" in why and "t = 5.7 " in why and "'r2'" in why
+    running = [(np.full((1, t.size), 1e300), y1), (states, y1)]
+    assert "state 's'" in method_choice._unusable(oem, running, [])

@@ -134,7 +134,10 @@ def build_row_kernel(oem, free: tuple[int, ...]) -> ca.Function:
     casadi.Function
         An SX Function, evaluated over the samples by a compiled column loop (`Columns`).
     """
-    sens = build_kernels(oem, free)["sens"]
+    o = oem.options
+    kernels = oem.cm.derive(("single_pass", o.integrator, o.substeps, o.input_interpolation, oem.layout.size, free),
+                            lambda: build_kernels(oem, free)) if oem.reused else build_kernels(oem, free)
+    sens = kernels["sens"]
     ins = [ca.SX.sym(sens.name_in(i), sens.sparsity_in(i)) for i in range(sens.n_in())]
     outs = sens(*ins)
     return ca.Function("greyfit_ss_rows", ins, [outs[0], *(outs[j] for j in SENS_PER_SAMPLE)])
@@ -189,14 +192,14 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     """
     cm, layout = oem.cm, oem.layout
     nth, nx, ny = layout.size, cm.nx, cm.ny
-    rows = row_columns(oem)
     theta_s = np.asarray(theta_s, dtype=float).ravel()
-    key = _rows_key(oem, rows, theta_s, x0s)
+    key = _rows_key(oem, theta_s, x0s)
     with _ROWS_LOCK:
         known = _ROWS.get(key)
-    # the entry holds its kernel and records, so an id in a key is never reused while the entry lives
-    if known is not None and known[0] is rows and known[1] == _records(oem):   # the optimum's, asked again
+    # the entry holds its model and records, so an id in a key is never reused while the entry lives
+    if known is not None and known[0] is oem.cm and known[1] == _records(oem):   # the optimum's, asked again
         return tuple(a.copy() for a in known[2])
+    rows = row_columns(oem)
     free = free_states(oem)
     free_at = np.asarray(free, dtype=int)
     nv = nth + free_at.size
@@ -211,7 +214,7 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
                        oem.layout.matrix[e], layout.offset, oem.xscale, np.where(d.mask, d.y, 0.0),
                        d.mask * oem.weights[:, None], n=n, accumulate=True)
         parts.append((r.T, j.reshape(ny, n, nv).transpose(1, 0, 2)))
-    return remember_rows(oem, theta_s, x0s, assemble_rows(oem, parts), rows)
+    return remember_rows(oem, theta_s, x0s, assemble_rows(oem, parts))
 
 
 def assemble_rows(oem, parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -258,7 +261,7 @@ def assemble_rows(oem, parts: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.n
     return np.vstack(jacs), np.concatenate(resids), np.concatenate(groups)
 
 
-def remember_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]], out: tuple, rows=None) -> tuple:
+def remember_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]], out: tuple) -> tuple:
     """Keep `out` (J, r, groups) as the condensed Jacobian at (θ, x0s) for the checks that ask
     again (the lack-of-fit screen); returns copies.
 
@@ -272,18 +275,15 @@ def remember_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]], out: tu
         Per experiment, state name -> initial value (physical units).
     out : tuple of numpy.ndarray
         (J, r, output of each row), as `condensed_rows` returns them.
-    rows : Columns or None, optional
-        The row kernel (`row_columns`), when already at hand.
 
     Returns
     -------
     tuple of numpy.ndarray
         Copies of `out`.
     """
-    rows = row_columns(oem) if rows is None else rows
-    key = _rows_key(oem, rows, np.asarray(theta_s, dtype=float).ravel(), x0s)
+    key = _rows_key(oem, np.asarray(theta_s, dtype=float).ravel(), x0s)
     with _ROWS_LOCK:
-        _ROWS[key] = (rows, _records(oem), out)
+        _ROWS[key] = (oem.cm, _records(oem), out)
         while len(_ROWS) > 4:
             _ROWS.popitem(last=False)
     return tuple(a.copy() for a in out)
@@ -314,7 +314,7 @@ class _Same:
         return id(self.obj)
 
 
-def _rows_key(oem, rows, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> tuple:
+def _rows_key(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> tuple:
     """The records by identity, not by a digest of their contents (7 ms a digest at 200 000 samples,
     more than the pass it saves): a prepared record's arrays are read-only (`prepare_experiment`),
     and the steps of one fit share them (`prepared_once`), so the lack-of-fit screen finds the
@@ -323,7 +323,10 @@ def _rows_key(oem, rows, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> tu
     free = tuple(map(tuple, oem.free_x0))
     small = tuple(np.ascontiguousarray(a, dtype=float).tobytes()
                   for a in (oem.weights, oem.layout.offset, oem.xscale, *oem.layout.matrix))
-    return (id(rows), theta_s.tobytes(), x0, free, _records(oem), small)
+    o = oem.options
+    # the model and the integrator settings choose the kernel (`row_columns`), which is not built to ask
+    kernel = (id(oem.cm), o.integrator, o.substeps, o.input_interpolation)
+    return (kernel, theta_s.tobytes(), x0, free, _records(oem), small)
 
 
 # the cost at a trial point from the sensitivity pass when that pass costs at most this many times the

@@ -239,3 +239,26 @@ def test_the_input_readings_simulated_residual_is_the_rows_residual(cache):
     assert simulated.shape == res.shape == (61 * 2 - 1 + 47 * 2,)
     assert np.allclose(simulated, res, rtol=0, atol=1e-12 * np.abs(res).max())
     assert np.abs(res).max() > 0.1                     # away from the optimum: a real residual
+
+
+def test_a_simulation_asked_again_is_the_same_and_a_copy(cache, monkeypatch):
+    """The optimum is simulated by the residual channels, the screen and its scorer: the second ask
+    of a record, x0 and parameters is served from the last simulations (a copy: changing it changes
+    nothing kept), and another point is simulated anew (its own numbers)."""
+    from greyfit.solvers.methods.shooting import model as model_mod
+
+    oem = _oem()
+    x0 = np.array([0.13, 0.0])
+    p = np.asarray(oem.layout.full(0, np.array([0.9, 1.1, 0.95])), dtype=float).ravel()
+    runs = []
+    real = oem.step_inputs
+    monkeypatch.setattr(oem, "step_inputs", lambda *a: runs.append(1) or real(*a))
+    first = oem.numeric_states(0, x0, p)
+    first[:, :] = np.nan
+    second = oem.numeric_states(0, x0, p)
+    assert len(runs) == 1                                  # the second ask did not simulate
+    assert np.all(np.isfinite(second)) and second.shape == (2, 61)
+    model_mod._STATES.clear()
+    assert np.array_equal(oem.numeric_states(0, x0, p), second)   # simulated anew: the same numbers
+    other = oem.numeric_states(0, x0, p * 1.1)
+    assert not np.allclose(other, second)

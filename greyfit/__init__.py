@@ -12,13 +12,7 @@ use, so `from greyfit import Client` does not import CasADi.
 """
 from __future__ import annotations
 
-from importlib.metadata import PackageNotFoundError, version
 from typing import TYPE_CHECKING, Any
-
-try:
-    __version__ = version("greyfit")
-except PackageNotFoundError:   # running from a source tree that was never installed
-    __version__ = "0+unknown"
 
 if TYPE_CHECKING:
     from greyfit.client import Client
@@ -53,7 +47,19 @@ __all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Clien
            "FrequencyFitRequest"]
 
 
+def _version() -> str:
+    # importlib.metadata costs ~20 ms to import: a fresh process's first fit does not pay it
+    from importlib.metadata import PackageNotFoundError, version
+    try:
+        return version("greyfit")
+    except PackageNotFoundError:   # running from a source tree that was never installed
+        return "0+unknown"
+
+
 def __getattr__(name: str) -> Any:
+    if name == "__version__":
+        globals()[name] = value = _version()
+        return value
     if name not in _LAZY:
         raise AttributeError(f"module 'greyfit' has no attribute {name!r}")
     import importlib

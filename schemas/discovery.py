@@ -6,7 +6,7 @@ from typing import Literal, Optional, get_args
 from pydantic import BaseModel, ConfigDict, Field
 
 from greyfit.schemas.fit import FitRequest, FitResult
-from greyfit.schemas.jobs import job_create
+from greyfit.schemas.jobs import ON_FIRST_USE, job_create
 from greyfit.schemas.model import Expression, Model, Name
 
 # the families of solvers/discovery/families, in the registry's order (schemas do not import
@@ -66,17 +66,20 @@ class DiscoveryOptions(BaseModel):
 
 class DiscoverRequest(FitRequest):
     """A fit request plus `discovery`: fit, find the effect the model lacks, add it, refit."""
+    model_config = ON_FIRST_USE
 
     discovery: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
 
 
 class ValidationSummary(BaseModel):
+    model_config = ON_FIRST_USE
     rmse: dict[str, float]
     fit_percent: dict[str, float]
     nrmse: dict[str, float]
 
 
 class FitSummary(BaseModel):
+    model_config = ON_FIRST_USE
     success: bool = True
     status: str = "success"
     rmse: dict[str, Optional[float]]
@@ -90,6 +93,7 @@ class FitSummary(BaseModel):
 
 
 class CandidateScore(BaseModel):
+    model_config = ON_FIRST_USE
     effect: str
     equation: str = Field(description="the state equations the term enters, or 'output y' for the output path")
     term: str
@@ -107,6 +111,7 @@ class CandidateScore(BaseModel):
 
 
 class Evidence(BaseModel):
+    model_config = ON_FIRST_USE
     scored_on: Literal["equations", "outputs", "refit"] = "equations"
     explained_variance: float = Field(description="fraction of the residual variance (equations or outputs) "
                                                   "the term explains at screening")
@@ -131,6 +136,7 @@ class Evidence(BaseModel):
 
 
 class NewParameter(BaseModel):
+    model_config = ON_FIRST_USE
     name: str
     value: float
     stderr: Optional[float] = None
@@ -139,6 +145,7 @@ class NewParameter(BaseModel):
 
 class RunnerUp(BaseModel):
     """A contender of the chosen effect, refitted against it on the same data."""
+    model_config = ON_FIRST_USE
 
     effect: str
     equation: str
@@ -153,6 +160,7 @@ class RunnerUp(BaseModel):
 
 
 class DiscoveryStep(BaseModel):
+    model_config = ON_FIRST_USE
     effect: str
     equation: str
     term: str
@@ -178,6 +186,7 @@ class DiscoveryStep(BaseModel):
 
 
 class RejectedCandidate(BaseModel):
+    model_config = ON_FIRST_USE
     effect: str
     equation: str
     term: str
@@ -199,6 +208,7 @@ class RejectedCandidate(BaseModel):
 
 class DiscoveryResult(BaseModel):
     """Before and after, each effect added with its evidence, the candidates rejected, the final fit and model."""
+    model_config = ON_FIRST_USE
 
     def report(self) -> str:
         """A text report for people (`greyfit ... --summary` prints it)."""
@@ -242,6 +252,7 @@ class DiscoveryResult(BaseModel):
 
 class DiscrepancyEquation(BaseModel):
     """The missing term of one equation (or output path) as the data show it, without a form assumed."""
+    model_config = ON_FIRST_USE
 
     equation: str = Field(description="the state whose equation the disturbance d(t) enters, or 'output y' "
                                       "for the output path")
@@ -280,6 +291,7 @@ class DiscrepancyEquation(BaseModel):
 
 class Discrepancy(BaseModel):
     """Shape first: a disturbance estimated on each equation in turn, the most likely first."""
+    model_config = ON_FIRST_USE
 
     equations: list[DiscrepancyEquation] = Field(description="one per state equation and output path, the most "
                                                              "likely first")
@@ -293,6 +305,7 @@ class Discrepancy(BaseModel):
 
 class Unexplained(BaseModel):
     """What the final model does not explain: its residual stays well above the noise."""
+    model_config = ON_FIRST_USE
 
     outputs: list[str] = Field(description="outputs whose residual stays above the noise")
     residual_to_noise: dict[str, float] = Field(description="final RMS residual over the estimated noise level")

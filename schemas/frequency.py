@@ -118,7 +118,7 @@ class SineTest(BaseModel):
     and output (plus an offset), after discarding the transient before `settle_time`.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", defer_build=True)
 
     omega: Union[float, list[float]]
     time: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
@@ -130,7 +130,7 @@ class SineTest(BaseModel):
 class FrequencyData(BaseModel):
     """One measured frequency response: omega with real/imag, or gain with phase, or raw sine tests."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", defer_build=True)
 
     name: Name = "data"
     omega: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES,
@@ -148,7 +148,7 @@ class FrequencyData(BaseModel):
 class FrequencyFitOptions(BaseModel):
     """Cost, stability handling and solver options; every field has a default."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", defer_build=True)
 
     cost: Literal["relative_complex", "complex", "log", "log1p_abs_error"] = Field(
         default="relative_complex",
@@ -187,7 +187,7 @@ class FrequencyFitOptions(BaseModel):
 class FrequencyFitRequest(BaseModel):
     """A transfer-function (or linearised ODE) model and measured frequency responses (POST /v1/frequency-fits)."""
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", defer_build=True)
 
     model: FrequencyModel
     data: list[FrequencyData] = Field(min_length=1, max_length=MAX_EXPERIMENTS)

@@ -5,6 +5,11 @@ from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
 
+# The schemas a fit never uses are built on first use, not at import: importing the schemas (pydantic
+# building ~75 models) was most of a fresh process's first-fit overhead, and a job's body repeats its
+# request's whole schema.
+ON_FIRST_USE = ConfigDict(defer_build=True)
+
 JobStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 TaskStatus = Literal["queued", "running", "succeeded", "failed", "cancelled"]
 
@@ -19,7 +24,8 @@ def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> typ
     Assign it to a module-level name `name` in the request schema's own module: the body parser
     processes receive the class by that reference."""
     model = create_model(
-        name, __config__=ConfigDict(extra="forbid"), __doc__=doc or f"A batch of {request_schema.__name__}s.",
+        name, __config__=ConfigDict(extra="forbid", defer_build=True),
+        __doc__=doc or f"A batch of {request_schema.__name__}s.",
         __module__=request_schema.__module__,
         requests=(list[request_schema], Field(min_length=1)),  # type: ignore[valid-type]
         label=(Optional[str], Field(default=None, max_length=200, pattern=LABEL_PATTERN)))
@@ -29,6 +35,7 @@ def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> typ
 
 
 class TaskError(BaseModel):
+    model_config = ON_FIRST_USE
     type: str
     field: Optional[str] = None
     detail: str
@@ -36,6 +43,7 @@ class TaskError(BaseModel):
 
 
 class TaskPublic(BaseModel):
+    model_config = ON_FIRST_USE
     index: int
     status: TaskStatus
     attempts: int
@@ -45,6 +53,7 @@ class TaskPublic(BaseModel):
 
 
 class JobProgress(BaseModel):
+    model_config = ON_FIRST_USE
     done: int
     total: int
     succeeded: int
@@ -53,6 +62,7 @@ class JobProgress(BaseModel):
 
 class JobSummary(BaseModel):
     """A job in the job list: its status and progress, without its tasks (GET /v1/jobs/{id} has them)."""
+    model_config = ON_FIRST_USE
     id: str
     kind: str = Field(description="the task kind (service/task_kinds.py lists them; OpenAPI gives the enum)")
     label: Optional[str] = None
@@ -68,11 +78,13 @@ class JobPublic(JobSummary):
 
 
 class JobsPublic(BaseModel):
+    model_config = ON_FIRST_USE
     data: list[JobSummary]
     count: int
 
 
 class TaskResult(BaseModel):
+    model_config = ON_FIRST_USE
     index: int
     status: TaskStatus
     result: Optional[dict[str, Any]] = None
@@ -80,6 +92,7 @@ class TaskResult(BaseModel):
 
 
 class JobResults(BaseModel):
+    model_config = ON_FIRST_USE
     id: str
     status: JobStatus
     results: list[TaskResult]

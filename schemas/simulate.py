@@ -8,12 +8,14 @@ from pydantic import BaseModel, ConfigDict, Field
 from greyfit.schemas.discovery import DiscoveryResult
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.fit import FitOptions, FitResult
+from greyfit.schemas.jobs import ON_FIRST_USE
 from greyfit.schemas.limits import MAX_EXPERIMENTS
 from greyfit.schemas.model import Model, Name
 from greyfit.schemas.validation import InitialStateSource, ValidationResult
 
 
 class SimulatedExperiment(BaseModel):
+    model_config = ON_FIRST_USE
     name: str
     time: list[float]
     states: dict[str, list[float]]
@@ -39,7 +41,7 @@ class SimulateRequest(BaseModel):
     `parameters`. A per-experiment estimate `k[exp]` applies to the experiment named `exp`.
     """
 
-    model_config = ConfigDict(extra="forbid")
+    model_config = ConfigDict(extra="forbid", defer_build=True)
 
     model: Optional[Model] = None
     parameters: dict[str, float] = Field(default_factory=dict)
@@ -56,6 +58,7 @@ class SimulateRequest(BaseModel):
 
 class SimulateResult(BaseModel):
     """Simulated states and outputs per record, the parameters used, and metrics where outputs were given."""
+    model_config = ON_FIRST_USE
 
     def report(self) -> str:
         """A text report for people (`greyfit ... --summary` prints it)."""

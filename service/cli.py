@@ -91,13 +91,23 @@ def add_output_options(p, what: str, fail_on: bool = True) -> None:
                             "default: exit 0 whatever the quality")
 
 
+class _Version(argparse.Action):
+    """--version, the version read only when asked (importlib.metadata costs every command ~20 ms)."""
+
+    def __init__(self, option_strings, dest=argparse.SUPPRESS, default=argparse.SUPPRESS, help=None):
+        super().__init__(option_strings=option_strings, dest=dest, default=default, nargs=0, help=help)
+
+    def __call__(self, parser, namespace, values, option_string=None):
+        from greyfit import __version__
+        print(f"greyfit {__version__}")   # on stdout, as argparse's own version action prints it
+        parser.exit()
+
+
 def build_parser() -> argparse.ArgumentParser:
-    from greyfit import __version__
     from greyfit.service.cli_suggest import SuggestingArgumentParser  # "did you mean" for options
     parser = SuggestingArgumentParser(prog="greyfit", description=__doc__,
                                       formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--version", action="version", version=f"greyfit {__version__}",
-                        help="print the version and exit")
+    parser.add_argument("--version", action=_Version, help="print the version and exit")
     sub = parser.add_subparsers(dest="command", required=True, metavar="COMMAND")
     p_fit = sub.add_parser("fit", help="fit one request; result JSON (or --summary) on stdout",
                            description="Fit one FitRequest (or a FrequencyFitRequest: model kind transfer_function "

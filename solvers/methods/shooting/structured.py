@@ -170,7 +170,9 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
     a first fit of seed 000's seat model waits for the largest, not for the sum.
     """
     o = oem.options
-    fns, blocks = oem.cm.derive(("stages", o.integrator, o.substeps, o.input_interpolation, oem.layout.size),
+    pattern = single_pass.matrix_pattern(oem).get_triplet()
+    fns, blocks = oem.cm.derive(("stages", o.integrator, o.substeps, o.input_interpolation, oem.layout.size,
+                                 tuple(pattern[0]), tuple(pattern[1])),
                                 lambda: (lambda f: (f, _blocks(f)))(_build_stages(oem)))
 
     def build(name: str) -> tuple[ca.Function, bool]:
@@ -219,7 +221,7 @@ def _build_stages(oem) -> dict[str, ca.Function]:
     u0, u1, t0, dt = sx("u0", cm.nu), sx("u1", cm.nu), sx("t0"), sx("dt")
     theta, mat, off = sx("theta", nth), sx("M", cm.np, nth), sx("off", cm.np)
     y, wt = sx("y", cm.ny), sx("wt", cm.ny)
-    p = off + ca.mtimes(mat, theta)
+    p = off + ca.mtimes(ca.project(mat, single_pass.matrix_pattern(oem)), theta)   # as single_pass.build_kernels
     xn = oem.step(xs * xk, u0, u1, p, t0, dt) / xs
     fns = {}
     fns["step"] = ca.Function("greyfit_step", [xk, u0, u1, t0, dt, theta, mat, off, xs], [xn])

@@ -29,8 +29,8 @@ from greyfit.solvers.model.compiler import CompiledModel
 
 
 def _disturbed_step(oem: OutputErrorModel) -> Columns:
-    """(x, u0, u1, p, t0, dt) -> ∂x+/∂x, ∂x+/∂[u0; d0], ∂x+/∂[u1; d1] with a disturbance d on ẋ, on
-    numpy columns.
+    """(x, u0, u1, p, t0, dt) -> ∂x+/∂x, ∂x+/∂d0, ∂x+/∂d1 at d = 0, for a disturbance d added to ẋ
+    (held or linear between samples like the inputs), on numpy columns.
 
     Built once per compiled model and integrator settings (every output-error fit screens for lack
     of fit, and building the step and its Jacobians costs more than the screen's arithmetic); an SX
@@ -53,13 +53,17 @@ def _disturbed_sens(cm: CompiledModel, options) -> ca.Function:
     # the step builder reads only rhs, nx, nu, np and model: a namespace with the disturbed rhs
     step = make_step(cast(CompiledModel, disturbed), options)
     sym = ca.SX.sym if step.is_a("SXFunction") else ca.MX.sym   # CVODES is MX only
-    xm = sym("x", cm.nx)
-    u0m, u1m = sym("u0", cm.nu + cm.nx), sym("u1", cm.nu + cm.nx)
+    xm, u0m, u1m = sym("x", cm.nx), sym("u0", cm.nu), sym("u1", cm.nu)
+    d0m, d1m = sym("d0", cm.nx), sym("d1", cm.nx)
     pm, t0m, dtm = sym("p", cm.np), sym("t0"), sym("dt")
-    xn = step(xm, u0m, u1m, pm, t0m, dtm)
-    # dense: a Jacobian may be structurally zero (u1 under zero-order hold), and the callers reshape
-    return ca.Function("greyfit_disturbed_sens", [xm, u0m, u1m, pm, t0m, dtm],
-                       [ca.densify(ca.jacobian(xn, v)) for v in (xm, u0m, u1m)])
+    xn = step(xm, ca.vertcat(u0m, d0m), ca.vertcat(u1m, d1m), pm, t0m, dtm)
+    # differentiated in d alone (the inputs' columns were 13 % of the seat's kernel, never read),
+    # at d = 0; dense: a Jacobian may be structurally zero (d1 under zero-order hold), and the
+    # callers reshape
+    jac = [ca.jacobian(xn, v) for v in (xm, d0m, d1m)]
+    zero = ca.DM.zeros(2 * cm.nx)
+    jac = [ca.densify(ca.substitute(j, ca.vertcat(d0m, d1m), zero)) for j in jac]
+    return ca.Function("greyfit_disturbed_sens", [xm, u0m, u1m, pm, t0m, dtm], jac)
 
 
 class OutputScorer(RegressionScorer):
@@ -77,12 +81,10 @@ class OutputScorer(RegressionScorer):
             states = oem.numeric_states(e, x0, p)
             n = d.n
             u0, u1, t0, dt = oem.step_inputs(d, 0, n - 1)
-            zero = np.zeros((cm.nx, n - 1))
-            a, j0, j1 = sens(states[:, :-1], np.vstack([u0, zero]), np.vstack([u1, zero]), p, t0, dt, n=n - 1)
-            nud = cm.nu + cm.nx
+            a, j0, j1 = sens(states[:, :-1], u0, u1, p, t0, dt, n=n - 1)
             self.a.append(np.array(a).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2))
-            self.d0.append(np.array(j0).reshape(cm.nx, n - 1, nud).transpose(1, 0, 2)[:, :, cm.nu:])
-            self.d1.append(np.array(j1).reshape(cm.nx, n - 1, nud).transpose(1, 0, 2)[:, :, cm.nu:])
+            self.d0.append(np.array(j0).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2))
+            self.d1.append(np.array(j1).reshape(cm.nx, n - 1, cm.nx).transpose(1, 0, 2))
             y, hx, _ = oem.output_jacobians(e, states, p)
             self.hx.append(hx)
             self.y.append(y)

@@ -450,7 +450,8 @@ class BoundFold:
     """A `Fold` whose input buffers and C argument arrays are made once: a call costs the loop
     and a few microseconds (building ctypes arrays per call took longer than a short record's
     compiled work). Rewrite `args[i][:]` in place between calls (flat float arrays given are used
-    as they are, so two bound folds may share a record); the outputs are fresh arrays."""
+    as they are, so two bound folds may share a record); the outputs are fresh arrays, or with
+    ``copy=False`` the fold's own buffers, valid until its next call."""
 
     def __init__(self, fold: Fold, args: list[np.ndarray], n: int):
         self.fold, self.n = fold, n
@@ -467,7 +468,7 @@ class BoundFold:
                 (ctypes.c_longlong * len(strides))(*strides),
                 (ctypes.c_void_p * len(outputs))(*[o.ctypes.data for o in outputs]), fold._rstride())
 
-    def __call__(self) -> list[np.ndarray]:
+    def __call__(self, copy: bool = True) -> list[np.ndarray]:
         fold = self.fold
         if fold._driver is None and not fold.find_library():
             return fold._casadi(self.args, self.n)
@@ -477,4 +478,4 @@ class BoundFold:
         driver = fold._driver
         if driver is None or driver(self.n, arg, astride, res, rstride):
             raise RuntimeError(f"evaluation of {fold.fn.name()} failed")
-        return [o.copy() for o in outputs]
+        return [o.copy() for o in outputs] if copy else outputs

@@ -511,7 +511,7 @@ class SinglePass:
                 bound = rec["value"]
                 self._x0(e, rec, w, bound.args[0])
                 bound.args[5][:] = w[:self.nth]
-                total += float(bound()[1][0])
+                total += float(bound(copy=False)[1][0])
         return total
 
     def derivatives(self, w: np.ndarray, p: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
@@ -541,7 +541,7 @@ class SinglePass:
                 bound = rec["sens"]
                 self._x0(e, rec, w, bound.args[0])
                 bound.args[5][:] = w[:self.nth]
-                _, c, g, h, r, j = bound()
+                _, c, g, h, r, j = bound(copy=False)   # read here; the rows kept are copied below
                 total += float(c[0])
                 v, wi = self.places[e]
                 grad[wi] += g[v]
@@ -549,7 +549,7 @@ class SinglePass:
                 hess[at] += h[keep]
                 n = self.n[e]
                 # per sample: r_k (ny), J_k (ny × nv) column-major
-                parts.append((r.reshape(n, self.ny), j.reshape(n, -1, self.ny).transpose(0, 2, 1)))
+                parts.append((r.reshape(n, self.ny).copy(), j.copy().reshape(n, -1, self.ny).transpose(0, 2, 1)))
             result = (total, grad, hess)
             self._point = (key, result)
             self._rows = (key, parts)

@@ -69,7 +69,8 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
         else:
             x0s = [dict(zip(cm.states, oem.x0_guess(e))) for e in range(len(data))]
             jac, _, _ = sensitivity_jacobian(oem, theta_s, x0s)
-            gram = jac.T @ jac if np.all(np.isfinite(jac)) else np.full((jac.shape[1],) * 2, np.nan)
+            with np.errstate(over="ignore", invalid="ignore"):   # an overflow is judged as not finite
+                gram = jac.T @ jac if np.all(np.isfinite(jac)) else np.full((jac.shape[1],) * 2, np.nan)
         if _runs_away(oem, layout):
             gram = np.full_like(gram, np.nan)   # sensitivities of a run-away simulation say nothing
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning

@@ -133,7 +133,8 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     if dof <= 0:
         return CovarianceEstimate(names, None, {}, {}, f"{ndata} residuals for {nvar} free variables: "
                                   "no degree of freedom left to estimate the noise")
-    info = j.T @ j
+    with np.errstate(over="ignore", invalid="ignore"):   # an overflow is reported below, not warned
+        info = j.T @ j
     if not np.all(np.isfinite(info)):
         return CovarianceEstimate(names, None, {}, {}, "the information matrix overflows (weighted residual "
                                   "Jacobian too large); rescale the data or the output weights")

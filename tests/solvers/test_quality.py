@@ -87,3 +87,16 @@ def test_a_finite_jacobian_whose_information_overflows_gives_a_verdict_not_an_ex
     warnings = _curvature_warnings(q)
     assert [w.code for w in warnings] == ["hessian_singular", "flat_cost"]
     assert warnings[0].detail["null_directions"]
+
+
+def test_an_information_matrix_that_overflows_is_said_in_the_result_without_a_numpy_warning():
+    """The covariance of the same overflowing Jacobian says why there is none; numpy's overflow
+    RuntimeWarning (one per diverged fit, printed on stderr by default) is no longer raised."""
+    import warnings
+
+    from greyfit.solvers.inference.covariance import estimate_covariance
+    jac = np.array([[1e160, 1.0], [2e160, -1.0], [0.5, 3.0], [0.1, 0.2]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")            # a RuntimeWarning would fail the test
+        cov = estimate_covariance(jac, np.ones(4), ["a", "b"], np.ones(2), np.ones(2), np.ones(2, dtype=bool), 2)
+    assert cov.matrix is None and "overflows" in (cov.note or "")

@@ -713,12 +713,17 @@ def compile_slots() -> int:
     Returns
     -------
     int
-        The setting, else half the CPUs (at least one): compiles are background work beside fits.
+        The setting, else half the CPUs (at least one): compiles are background work beside fits;
+        a value that is not a whole number of at least 1 gives the default, with a `RuntimeWarning`
+        the first time.
     """
-    value = os.environ.get("GREYFIT_COMPILE_SLOTS", "")
+    value = os.environ.get("GREYFIT_COMPILE_SLOTS", "").strip()
+    default = max(1, (os.cpu_count() or 2) // 2)
     if value.isdigit() and int(value) > 0:
         return int(value)
-    return max(1, (os.cpu_count() or 2) // 2)
+    if value:   # a typo would otherwise go unseen
+        _unknown_setting("GREYFIT_COMPILE_SLOTS", value, ("a whole number of at least 1",), str(default))
+    return default
 
 
 # This process's background builds waiting for a compile slot, largest expected work first: a new

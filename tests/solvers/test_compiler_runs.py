@@ -67,6 +67,10 @@ def test_the_slots_default_to_half_the_cpus(monkeypatch):
     assert compiled_mod.compile_slots() == max(1, (os.cpu_count() or 2) // 2)
     monkeypatch.setenv("GREYFIT_COMPILE_SLOTS", "3")
     assert compiled_mod.compile_slots() == 3
+    for typo in ("two", "0", "1.5"):   # the default, and said (it went unseen)
+        monkeypatch.setenv("GREYFIT_COMPILE_SLOTS", typo)
+        with pytest.warns(RuntimeWarning, match=f"GREYFIT_COMPILE_SLOTS='{typo}'"):
+            assert compiled_mod.compile_slots() == max(1, (os.cpu_count() or 2) // 2)
 
 
 def test_large_sources_compile_at_o1_and_huge_ones_not_at_all():

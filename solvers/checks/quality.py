@@ -239,7 +239,13 @@ def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
     """
     warnings = list(q.before)
     if not q.converged:
-        warnings.append(FitWarning(code="not_converged", message=result.message,
+        message = result.message
+        if result.solver.starts <= 1 and any(w.code == "initial_simulation_diverged" for w in q.before):
+            # a rough start the solver could not leave (fuzzed: a tank's outflow 300× its value,
+            # failed by every method from it, found from 8 starts)
+            message += ("; the start guess's simulation or sensitivities diverge: a start nearer the "
+                        "data, or several starts (options.multistart, e.g. 8), may reach the optimum")
+        warnings.append(FitWarning(code="not_converged", message=message,
                                    detail={"return_status": q.status}))
     for reason in q.simulation_failures:
         warnings.append(FitWarning(code="simulation_failed", message=reason, detail={}))

@@ -50,7 +50,9 @@ def test_residual_analysis_matches_the_direct_sums_over_the_residual_trace(metho
 
 @pytest.mark.parametrize("interpolation", ["foh", "zoh"])
 def test_disturbed_step_jacobians_match_the_casadi_graph(interpolation):
-    """The screen's ∂x+/∂x, ∂x+/∂[u0; d0], ∂x+/∂[u1; d1] (compiled loop) = the MX Jacobians evaluated by map."""
+    """The screen's ∂x+/∂x, ∂x+/∂d0, ∂x+/∂d1 at d = 0 (compiled loop; a disturbance d on ẋ, held or
+    linear like the inputs) = the MX Jacobians of the disturbed step in [u; d] evaluated by map,
+    their disturbance columns."""
     from types import SimpleNamespace
 
     from greyfit.solvers.discovery.scoring_outputs import _disturbed_step
@@ -62,9 +64,8 @@ def test_disturbed_step_jacobians_match_the_casadi_graph(interpolation):
     rng = np.random.default_rng(3)
     x = rng.standard_normal((cm.nx, n))
     u0, u1, t0, dt = oem.step_inputs(d, 0, n)
-    ud0, ud1 = np.vstack([u0, rng.standard_normal((cm.nx, n))]), np.vstack([u1, rng.standard_normal((cm.nx, n))])
     p = np.array([2.0, 0.5, 3.0])
-    got = _disturbed_step(oem)(x, ud0, ud1, p, t0, dt, n=n)
+    got = _disturbed_step(oem)(x, u0, u1, p, t0, dt, n=n)
     # the graph the screen used to evaluate: the disturbed RK4 step in MX, differentiated by CasADi
     xs, us, ds = ca.SX.sym("x", cm.nx), ca.SX.sym("u", cm.nu), ca.SX.sym("d", cm.nx)
     ps, ts = ca.SX.sym("p", cm.np), ca.SX.sym("t")
@@ -74,9 +75,14 @@ def test_disturbed_step_jacobians_match_the_casadi_graph(interpolation):
     pm, t0m, dtm = ca.MX.sym("p", cm.np), ca.MX.sym("t0"), ca.MX.sym("dt")
     xn = step(xm, a0, a1, pm, t0m, dtm)
     graph = ca.Function("g", [xm, a0, a1, pm, t0m, dtm], [ca.jacobian(xn, v) for v in (xm, a0, a1)])
-    expected = graph.map(n)(x, ud0, ud1, np.repeat(p[:, None], n, 1), t0, dt)
+    zero = np.zeros((cm.nx, n))
+    a, j0, j1 = (np.array(e) for e in graph.map(n)(x, np.vstack([u0, zero]), np.vstack([u1, zero]),
+                                                   np.repeat(p[:, None], n, 1), t0, dt))
+    nud = cm.nu + cm.nx
+    expected = [a] + [np.hstack([j[:, k * nud + cm.nu:(k + 1) * nud] for k in range(n)]) for j in (j0, j1)]
     for g, e in zip(got, expected):
-        np.testing.assert_allclose(g, np.array(e), rtol=1e-12, atol=1e-14)
+        assert g.shape == e.shape == (cm.nx, n * cm.nx)
+        np.testing.assert_allclose(g, e, rtol=1e-12, atol=1e-14)
 
 
 def test_numeric_step_simulates_as_the_mapped_step():

@@ -10,7 +10,7 @@ from greyfit.solvers.checks.excitation import information_warnings, input_warnin
 from greyfit.solvers.data.experiments import ExperimentData
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.methods.equation_error import EquationErrorProblem
-from greyfit.solvers.methods.method_choice import state_jacobian_columns
+from greyfit.solvers.methods.method_choice import eigenvalues, state_jacobian_columns
 from greyfit.solvers.methods.node_initialisation import DIVERGED
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 from greyfit.solvers.model.compiler import CompiledModel
@@ -174,7 +174,7 @@ def fastest_rate(cm: CompiledModel, data: list[ExperimentData], layout: Paramete
             blocks = a.reshape(cm.nx, ks.size, cm.nx).transpose(1, 0, 2)
             blocks = blocks[np.all(np.isfinite(blocks), axis=(1, 2))]
             if blocks.size:
-                rate = max(rate, float(np.max(np.abs(np.linalg.eigvals(blocks)))))
+                rate = max(rate, float(np.max(np.abs(eigenvalues(blocks)))))
         dt = min(dt, float(np.median(np.diff(d.t))))
     return rate, dt
 

@@ -143,7 +143,7 @@ def _growth(oem: OutputErrorModel, states: list[np.ndarray]) -> tuple[float, str
         rates = np.zeros(ks.size)
         ok = np.all(np.isfinite(blocks), axis=(1, 2))
         if ok.any():
-            rates[ok] = np.maximum(np.max(np.linalg.eigvals(blocks[ok]).real, axis=1), 0.0)
+            rates[ok] = np.maximum(np.max(eigenvalues(blocks[ok]).real, axis=1), 0.0)
         t = d.t[ks]
         growth = float(np.sum(0.5 * (rates[1:] + rates[:-1]) * np.diff(t)))
         if growth > worst:
@@ -168,6 +168,27 @@ def state_jacobian_columns(cm) -> Columns:
     """
     return cm.derive(("dfdx",), lambda: Columns(_state_jacobian(cm), 4 * GROWTH_POINTS,
                                                 isinstance(cm, CompiledModel)))
+
+
+def eigenvalues(blocks: np.ndarray) -> np.ndarray:
+    """The eigenvalues of each square block, computed once per distinct block: a model linear in its
+    states has one ∂f/∂x all along its trajectory (the seat model's 50 growth points were 50
+    identical 8 × 8 eigenvalue problems, 0.5 ms of every `auto` fit).
+
+    Parameters
+    ----------
+    blocks : numpy.ndarray
+        (k, n, n) finite matrices.
+
+    Returns
+    -------
+    numpy.ndarray
+        (k, n) complex, as `numpy.linalg.eigvals` gives them block by block.
+    """
+    k = blocks.shape[0]
+    if k > 1 and np.array_equal(blocks, np.broadcast_to(blocks[0], blocks.shape)):
+        return np.broadcast_to(np.linalg.eigvals(blocks[:1]), (k, blocks.shape[1]))
+    return np.linalg.eigvals(blocks)
 
 
 def _state_jacobian(cm) -> ca.Function:

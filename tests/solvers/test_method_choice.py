@@ -250,3 +250,22 @@ def test_an_unusable_start_names_the_first_output_and_record_that_leaves_the_mea
     assert f"{abs(50.0 - centre) / spread:.3g}×" in why and "t = 5.7 " in why and "'r2'" in why
     running = [(np.full((1, t.size), 1e300), y1), (states, y1)]
     assert "state 's'" in method_choice._unusable(oem, running, [])
+
+
+def test_eigenvalues_of_repeated_blocks_are_those_of_each_block():
+    """A model linear in its states has one ∂f/∂x along the whole trajectory: its eigenvalues are
+    computed once, and they are what each block's own eigenvalue problem gives; distinct blocks are
+    each solved."""
+    from greyfit.solvers.methods.method_choice import eigenvalues
+
+    rng = np.random.default_rng(7)
+    a = rng.standard_normal((5, 5))
+    same = np.repeat(a[None], 50, axis=0)
+    got = eigenvalues(same)
+    assert got.shape == (50, 5)
+    assert all(np.array_equal(np.sort_complex(g), np.sort_complex(np.linalg.eigvals(a))) for g in got)
+    mixed = same.copy()
+    mixed[17] += 0.5 * np.eye(5)                     # one block shifted: its eigenvalues by 0.5
+    got = eigenvalues(mixed)
+    np.testing.assert_allclose(np.sort_complex(got[17]), np.sort_complex(np.linalg.eigvals(a) + 0.5), rtol=1e-12)
+    np.testing.assert_allclose(np.sort_complex(got[3]), np.sort_complex(np.linalg.eigvals(a)), rtol=0)

@@ -102,8 +102,9 @@ def test_the_solves_last_pass_holds_the_condensed_rows(cache, monkeypatch, how):
     token, record = structured._token_record(oem)
     sp.attach(record)
     cost, grad, _ = sp.derivatives(w, np.array([token]))
-    assert sp.rows_at(w, token) is not None and sp.rows_at(w + 1e-9, token) is None
+    assert sp.rows_at(w + 1e-9, token) is None and sp.rows_at(w, token + 1.0) is None   # another point, record
     jac, res, groups = structured.condensed_jacobian(oem, theta, x0s, w)
+    assert sp.rows_at(w, token) is None          # taken: a pass does not hold a record's rows after
     monkeypatch.setattr(single_pass, "_ROWS", OrderedDict())   # the row kernel's own pass
     want_jac, want_res, want_groups = single_pass.condensed_rows(oem, theta, x0s)
     assert jac.shape == want_jac.shape == (61 * 2 - 1 + 47 * 2, 4)

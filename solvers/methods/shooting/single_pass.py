@@ -558,7 +558,8 @@ class SinglePass:
     def rows_at(self, w: np.ndarray, token: float) -> list[tuple[np.ndarray, np.ndarray]] | None:
         """Per experiment, the residual (n, ny) and the rows J_k (n, ny, nθ + free states) of the
         last sensitivity pass, if it ran at w for the record of `token` (the solve's last accepted
-        point is its optimum: the fit's checks read J there without another pass).
+        point is its optimum: the fit's checks read J there without another pass). They are given
+        once; the pass keeps them no longer.
 
         Parameters
         ----------
@@ -576,7 +577,11 @@ class SinglePass:
         with self._lock:
             if self._rows is None or self._rows[0] != key:
                 return None
-            return self._rows[1]
+            parts = self._rows[1]
+            # taken once: a structure's pass would otherwise hold a long record's rows (n × outputs
+            # × unknowns) until its next fit
+            self._rows = None
+            return parts
 
 
 class _PassCallback(ca.Callback):

@@ -165,6 +165,25 @@ def build_kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
 SENS_PER_SAMPLE = (4, 5)
 
 
+def kernels(oem, free: tuple[int, ...]) -> dict[str, ca.Function]:
+    """`build_kernels`, built once per model structure (`kernel_key`) and shared by the solve's
+    folds and the condensed Jacobian's row kernel.
+
+    Parameters
+    ----------
+    oem : OutputErrorModel
+        The output-error model.
+    free : tuple of int
+        The states whose initial value is estimated somewhere (`free_states`).
+
+    Returns
+    -------
+    dict of str to casadi.Function
+        As `build_kernels`.
+    """
+    return oem.cm.derive(("single_pass", *kernel_key(oem, free)), lambda: build_kernels(oem, free))
+
+
 def build_row_kernel(oem, free: tuple[int, ...]) -> ca.Function:
     """The per-sample kernel of the condensed Jacobian: ((x_k, vec S_k), inputs as `build_kernels`)
     -> ((x_k+1, vec S_k+1), r_k, J_k), J_k = ∂r_k/∂x S_k + [∂r_k/∂θ, 0] dense (ny × (nθ + free)).
@@ -181,9 +200,7 @@ def build_row_kernel(oem, free: tuple[int, ...]) -> ca.Function:
     casadi.Function
         An SX Function, evaluated over the samples by a compiled column loop (`Columns`).
     """
-    kernels = oem.cm.derive(("single_pass", *kernel_key(oem, free)),
-                            lambda: build_kernels(oem, free)) if oem.reused else build_kernels(oem, free)
-    sens = kernels["sens"]
+    sens = kernels(oem, free)["sens"]
     ins = [ca.SX.sym(sens.name_in(i), sens.sparsity_in(i)) for i in range(sens.n_in())]
     outs = sens(*ins)
     return ca.Function("greyfit_ss_rows", ins, [outs[0], *(outs[j] for j in SENS_PER_SAMPLE)])

@@ -131,8 +131,7 @@ def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
     """Single shooting's two kernels (`single_pass.build_kernels`) as folds, compiled where it pays
     (side by side when both are new: gcc runs outside the GIL); whether both are compiled C."""
     free = single_pass.free_states(oem)
-    kernels = oem.cm.derive(("single_pass", *single_pass.kernel_key(oem, free)),
-                            lambda: single_pass.build_kernels(oem, free))
+    kernels = single_pass.kernels(oem, free)
     # trial points evaluate the cost about as often as accepted ones the sensitivities
     work = {"value": 2.0 * samples * EXPECTED_ITERATIONS, "sens": samples * EXPECTED_ITERATIONS}
 

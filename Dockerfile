@@ -2,8 +2,9 @@
 FROM python:3.11-slim
 
 # gcc compiles each model's per-sample functions once (cached under /data/cache); without it greyfit
-# falls back to CasADi's interpreter, 2-3x slower on long records
-RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+# falls back to CasADi's interpreter, 2-3x slower on long records. tcc compiles them in milliseconds
+# for a new model's first fit while gcc builds (the seat model's first fit 0.69 -> 0.47 s)
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev tcc \
  && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 10001 greyfit && mkdir /data && chown greyfit /data

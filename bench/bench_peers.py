@@ -20,8 +20,9 @@ medians of CPU and wall time, the accuracy against the true parameters and the l
 difference from the hand-written CasADi optimum. Problem e (200 fits of 401 samples) goes through a
 real `greyfit serve` with 2 workers and its jobs API, against one Python loop of the CasADi peer and
 one `jax.vmap` (its compile time apart). For the seat (b), `--cold` fresh processes per setting, each
-with an empty compile cache, time greyfit's first fit with compiling (`auto`) and without (`never`), in
-turns, against the warm interpreted fit: one first fit per process is a single sample.
+with an empty compile cache, time greyfit's first fit with compiling (`auto`, with the quick tier: tcc
+where it is installed), with gcc alone (`auto`, `GREYFIT_QUICK_COMPILER=off`) and without compiling
+(`never`), in turns, against the warm interpreted fit: one first fit per process is a single sample.
 
 The arithmetic floor: the per-sample RK4 step and its forward sensitivity (∂x+/∂x·S + ∂x+/∂θ) as
 CasADi SX, their operation counts after common-subexpression elimination, plus the JᵀJ and Jᵀr
@@ -483,21 +484,30 @@ def cold_process(path: str, cache: str, conn) -> None:
     conn.send(time.perf_counter() - w0)
 
 
+# the settings of the cold first fits: (label, environment)
+COLD_SETTINGS = {"GREYFIT_COMPILE=auto": {"GREYFIT_COMPILE": "auto"},
+                 "GREYFIT_COMPILE=auto, GREYFIT_QUICK_COMPILER=off": {"GREYFIT_COMPILE": "auto",
+                                                                      "GREYFIT_QUICK_COMPILER": "off"},
+                 "GREYFIT_COMPILE=never": {"GREYFIT_COMPILE": "never"}}
+
+
 def cold_starts(path: str, tmp: str, count: int) -> dict[str, list[float]]:
-    """`count` fresh processes with an empty compile cache each, compiling (auto) and not (never) in
+    """`count` fresh processes with an empty compile cache each, per setting of `COLD_SETTINGS` in
     turns: one first fit per process is a single sample, and it moves with the machine."""
     ctx = mp.get_context("spawn")
-    out: dict[str, list[float]] = {"auto": [], "never": []}
+    out: dict[str, list[float]] = {label: [] for label in COLD_SETTINGS}
     for i in range(count):
-        for how in out:
+        for k, (label, env) in enumerate(COLD_SETTINGS.items()):
             parent, child = ctx.Pipe()
-            old = os.environ.get("GREYFIT_COMPILE")
-            os.environ["GREYFIT_COMPILE"] = how
-            proc = ctx.Process(target=cold_process, args=(path, os.path.join(tmp, f"cold-{how}-{i}"), child))
+            old = {name: os.environ.get(name) for name in ("GREYFIT_COMPILE", "GREYFIT_QUICK_COMPILER")}
+            os.environ.pop("GREYFIT_QUICK_COMPILER", None)
+            os.environ.update(env)
+            proc = ctx.Process(target=cold_process, args=(path, os.path.join(tmp, f"cold-{k}-{i}"), child))
             proc.start()
-            os.environ.pop("GREYFIT_COMPILE") if old is None else os.environ.__setitem__("GREYFIT_COMPILE", old)
+            for name, value in old.items():
+                os.environ.pop(name, None) if value is None else os.environ.__setitem__(name, value)
             child.close()
-            out[how].append(parent.recv())
+            out[label].append(parent.recv())
             proc.join()
     return out
 
@@ -580,7 +590,7 @@ def report(key: str, out: dict) -> list[str]:
         warm = float(np.median([r[0] for r in rows["greyfit default interpreted"]]))
         for how, walls in starts.items():
             med = float(np.median(walls))
-            lines.append(f"  first fit in a fresh process, empty cache, GREYFIT_COMPILE={how}: median {med:.2f} s of "
+            lines.append(f"  first fit in a fresh process, empty cache, {how}: median {med:.2f} s of "
                          f"{len(walls)} ({min(walls):.2f}-{max(walls):.2f}), {med / warm:.2f}x the warm interpreted "
                          f"fit ({warm:.2f} s wall)")
     return lines

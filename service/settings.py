@@ -77,6 +77,11 @@ class Settings(BaseSettings):
     compile_slots: Optional[int] = Field(
         default=None, ge=1, description="compilers running at once on this machine, across processes "
                                         "(default: half the CPUs, at least one)")
+    quick_compiler: str = Field(
+        default="tcc", min_length=1, description="a fast C compiler (name on PATH, or path) that compiles a new "
+                                                 "model's sample loops in milliseconds for its first fits while gcc "
+                                                 "builds the optimised ones; not found: those fits interpret; "
+                                                 "off: never used")
     heap: Literal["kept", "system"] = Field(
         default="kept", description="kept: a fitting process keeps up to 64 MB of freed heap for its next "
                                     "fit (glibc); system: glibc's defaults")

@@ -22,8 +22,9 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.dynamics.compiled import library, max_loaded
+from greyfit.solvers.dynamics.compiled import builds_ended, library, max_loaded
 from greyfit.solvers.dynamics.function_cache import FunctionCache
+from greyfit.solvers.dynamics.quick import pays, quick_library
 
 # POSIX's dlclose; elsewhere a library stays loaded once loaded (as before the bound)
 _dlclose: Callable[[int], None] | None = getattr(_ctypes, "dlclose", None)
@@ -63,14 +64,27 @@ class Columns:
         # the compiled loop carries output 0 into input 0 as it stands: with another sparsity it
         # would read the next state from the wrong places, so only the interpreter accumulates it
         self._carries_as_is = fn.n_in() > 0 and fn.n_out() > 0 and fn.sparsity_in(0) == fn.sparsity_out(0)
+        self._stand_in: int | None = None   # on the quick tier's library: `builds_ended` when it was loaded
+        self._instructions = fn.n_instructions() if self._dense_inputs else 0
+        self._work = self._instructions * evaluations   # interpreted (and expected) instructions
         self._find_library(evaluations)
 
-    def _find_library(self, evaluations: float = 0.0) -> None:
-        # asked again while missing: a library compiled in the background is picked up when ready
-        if self._dense_inputs:
-            path = library(self.fn, evaluations)
-            if path is not None:
-                self._driver = _driver(str(path), self.fn.name())
+    def _find_library(self, evaluations: float = 0.0, n: int = 0) -> None:
+        # asked again while missing: a library compiled in the background is picked up when ready;
+        # meanwhile the quick tier's (quick.py), once the interpreted work would cost more
+        if not self._dense_inputs or (self._stand_in is not None and self._stand_in == builds_ended()):
+            return
+        ended = builds_ended()
+        path = library(self.fn, evaluations)
+        if path is not None:
+            self._driver, self._stand_in = _driver(str(path), self.fn.name()), None
+        elif self._driver is None:
+            self._work += self._instructions * n
+            quick = quick_library(self.fn) if pays(self._instructions, self._work) else None
+            if quick is not None:
+                self._driver, self._stand_in = _driver(str(quick), self.fn.name()), ended
+        else:
+            self._stand_in = ended
 
     @property
     def compiled(self) -> bool:
@@ -91,13 +105,13 @@ class Columns:
         bool
             True once the library is loaded (never where compiling is off or impossible).
         """
-        if self._driver is None:
+        if self._driver is None or self._stand_in is not None:
             self._find_library()
         return self._driver is not None
 
     def __call__(self, *args, n: int, accumulate: bool = False) -> list[np.ndarray]:
-        if self._driver is None:
-            self._find_library()
+        if self._driver is None or self._stand_in is not None:
+            self._find_library(n=n)
         if self._driver is None or (accumulate and not self._carries_as_is):
             return self._casadi(args, n, accumulate)
         fn = self.fn
@@ -338,6 +352,7 @@ class Fold:
         self._nnz_in = [fn.nnz_in(i) for i in range(fn.n_in())]
         self._nnz_out = [fn.nnz_out(j) for j in range(fn.n_out())]
         self._evaluations = evaluations
+        self._stand_in: int | None = None   # as `Columns`
         self.find_library()
 
     def find_library(self, evaluations: float | None = None) -> bool:
@@ -359,10 +374,20 @@ class Fold:
             self._evaluations = evaluations
         # the compiled loop carries output 0 into input 0 as it stands (see `Columns`)
         carries_as_is = self.fn.sparsity_in(0) == self.fn.sparsity_out(0)
-        if self._driver is None and self.fn.is_a("SXFunction") and carries_as_is:
+        looks = self._driver is None or (self._stand_in is not None and self._stand_in != builds_ended())
+        if looks and self.fn.is_a("SXFunction") and carries_as_is:
+            ended = builds_ended()
             path = library(self.fn, self._evaluations, self._interpret_meanwhile)
             if path is not None:
-                self._driver = _driver(str(path), self.fn.name(), "fold")
+                self._driver, self._stand_in = _driver(str(path), self.fn.name(), "fold"), None
+            elif self._driver is None:
+                # quick.py: until gcc's library is ready, where the expected interpreted work pays for it
+                instructions = self.fn.n_instructions()
+                quick = quick_library(self.fn) if pays(instructions, instructions * self._evaluations) else None
+                if quick is not None:
+                    self._driver, self._stand_in = _driver(str(quick), self.fn.name(), "fold"), ended
+            else:
+                self._stand_in = ended
         return self._driver is not None
 
     @property
@@ -377,7 +402,7 @@ class Fold:
         return self._driver is not None
 
     def __call__(self, *args: np.ndarray, n: int) -> list[np.ndarray]:
-        if self._driver is None:
+        if self._driver is None or self._stand_in is not None:
             self.find_library()
         if self._driver is None:
             return self._casadi(args, n)
@@ -435,12 +460,13 @@ class Fold:
                             else np.tile(a, fm.nnz_in(i) // max(a.size, 1)))
             outs = nonzeros(fm, full)
             state = outs[0][-self._nnz_out[0]:]
-            # the running sums as the first row: numpy adds the rows of a C-ordered array one after
-            # another, the compiled loop's order, so both give the same numbers to the last bit
+            # the running sums as the first row, added one row after another, the compiled loop's
+            # order, so both give the same numbers to the last bit: a cumulative sum (np.add.reduce
+            # sums a single column pairwise: a one-number output such as the cost came out an ulp apart)
             for j in self.per_sample:
                 kept[j].append(outs[j])
             sums = [total if j in self.per_sample
-                    else np.add.reduce(np.vstack([total, o.reshape(m, total.size)]), axis=0)
+                    else np.cumsum(np.vstack([total, o.reshape(m, total.size)]), axis=0)[-1]
                     for j, (total, o) in enumerate(zip(sums, outs[1:]), 1)]
         return [state] + [np.concatenate(kept[j]) if j in self.per_sample else total
                           for j, total in enumerate(sums, 1)]
@@ -470,7 +496,7 @@ class BoundFold:
 
     def __call__(self, copy: bool = True) -> list[np.ndarray]:
         fold = self.fold
-        if fold._driver is None and not fold.find_library():
+        if (fold._driver is None or fold._stand_in is not None) and not fold.find_library():
             return fold._casadi(self.args, self.n)
         if self._c is None:
             self._c = self._c_arrays()

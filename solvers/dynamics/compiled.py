@@ -167,6 +167,7 @@ KEEP_RECENT_S = 600.0
 _memory: dict[str, ca.Function] = {}   # insertion order is recency: a hit moves its key to the end
 _pending: set[str] = set()                      # keys compiled in the background now
 _failed: dict[str, tuple[int, float]] = {}       # key -> (failures, monotonic time of the next try)
+_ended = [0]   # background builds ended in this process: a loop on a stand-in library looks again when it moves
 _lock = threading.Lock()
 # the compilers and source generators running for this process's builds, each the leader of its
 # own process group: ended when the process exits (`_end_children`)
@@ -469,6 +470,19 @@ def building_any() -> bool:
         return bool(_pending)
 
 
+def builds_ended() -> int:
+    """How many background builds of this process have ended (built, failed or given up): a loop
+    running a stand-in (the interpreter, or the quick tier's library) asks for gcc's library again
+    only when this has moved, not at every call.
+
+    Returns
+    -------
+    int
+        A count that only grows.
+    """
+    return _ended[0]
+
+
 def wait_for_builds(timeout: float) -> bool:
     """Wait until the background builds of this process have ended (or `timeout` has passed).
 
@@ -505,6 +519,7 @@ def _settle(key: str, ok: bool | None) -> None:
     """`ok` None: the build never had its turn at the compiler (not a failure: asked again next time)."""
     with _lock:
         _pending.discard(key)
+        _ended[0] += 1
         if ok is None:
             return
         if ok:

@@ -23,8 +23,10 @@ needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C comp
 
 @pytest.fixture
 def empty_cache(tmp_path, monkeypatch):
-    """An empty compile cache, nothing loaded or pending."""
+    """An empty compile cache, nothing loaded or pending; no quick tier (tests/solvers/test_quick_compile.py):
+    what runs before gcc's build ends is the interpreter."""
     monkeypatch.setenv("GREYFIT_CACHE_DIR", str(tmp_path / "cache"))
+    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "off")
     monkeypatch.setattr(compiled_mod, "_memory", {})
     monkeypatch.setattr(compiled_mod, "_pending", set())
     monkeypatch.setattr(compiled_mod, "_failed", {})

@@ -1,0 +1,135 @@
+"""A quick tier for the sample loops: the Tiny C Compiler (tcc), where present, compiles a kernel
+in the foreground while gcc builds its optimised library in the background.
+
+gcc takes 1-7 s for a model's sensitivity kernel (the seat model's 9 800 instructions: 1.1 s at
+-O1, 4-7 s at -O3), so a first fit of a new structure interprets its loops until gcc is done. tcc
+compiles the same generated source in ~15 ms; its code is about half as fast as gcc -O3's and five
+times faster than CasADi's interpreter (per 1 000 samples of that kernel: 6.1, 2.9 and 33 ms). A
+loop that would interpret meanwhile runs tcc's library instead, and moves to gcc's at its first call
+after gcc's build has ended (`columns.Fold`, `columns.Columns`).
+
+The numbers do not change: tcc contracts no multiply-adds and reassociates nothing, like gcc with
+-ffp-contract=off, and calls the same libm as CasADi's interpreter, so all three give the same bits
+(tests/solvers/test_quick_compile.py). The libraries live in a temporary folder of this process,
+removed at exit; gcc's disk cache is the one other processes share.
+
+`GREYFIT_QUICK_COMPILER`: the quick compiler's name or path (default ``tcc``, searched on PATH; not
+found: no quick tier), or ``off``. ``GREYFIT_COMPILE=never`` turns it off too.
+"""
+from __future__ import annotations
+
+import atexit
+import os
+import shutil
+import subprocess
+import tempfile
+import threading
+from pathlib import Path
+
+import casadi as ca
+
+from greyfit.solvers.dynamics import compiled
+
+# the quick compiler's time limit: tcc compiles megabytes a second; a compiler that hangs is ended
+QUICK_TIMEOUT_S = 30.0
+# a quick build costs ~8 ms (generating the source, starting tcc) and ~4 µs an instruction (the seat
+# model's 9 800-instruction kernel 48 ms, a 16-instruction output 8 ms): a loop is quick-compiled
+# once its interpreted work, done and expected, would take longer (`pays`)
+QUICK_S, QUICK_S_PER_INSTRUCTION = 0.008, 4e-6
+OFF = ("off", "none", "never", "0")
+
+_quick: dict[str, Path | None] = {}   # function key -> its library (None: tcc failed on it)
+_lock = threading.Lock()
+_folder: dict[int, Path] = {}   # pid -> folder: a forked worker makes its own
+
+
+def quick_compiler() -> str | None:
+    """The quick compiler's full path (`GREYFIT_QUICK_COMPILER`, default ``tcc`` on PATH).
+
+    Returns
+    -------
+    str or None
+        None where it is off, not found, or compiling is off (``GREYFIT_COMPILE=never``).
+    """
+    if compiled.mode() == "never":
+        return None
+    value = os.environ.get("GREYFIT_QUICK_COMPILER", "tcc").strip() or "tcc"
+    if value.lower() in OFF:
+        return None
+    return compiled._which(value)
+
+
+def pays(instructions: float, work: float) -> bool:
+    """Whether interpreting `work` instructions (done and expected) of a Function of this size takes
+    longer than building its quick library.
+
+    Parameters
+    ----------
+    instructions : float
+        The Function's instructions (`casadi.Function.n_instructions`).
+    work : float
+        Instructions × evaluations, those interpreted so far and those expected.
+
+    Returns
+    -------
+    bool
+    """
+    return work * compiled.INTERPRET_S_PER_INSTRUCTION > QUICK_S + QUICK_S_PER_INSTRUCTION * instructions
+
+
+def quick_library(fn: ca.Function) -> Path | None:
+    """The library of `fn` built by the quick compiler: built now (in the foreground: ~15 ms for a
+    kernel of 10 000 instructions), or this process's earlier build.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        An SX Function whose gcc library is not ready.
+
+    Returns
+    -------
+    pathlib.Path or None
+        Path of the library, or None where there is no quick compiler, the source is too large to
+        compile (`compiled.optimisation_flags`) or the compiler failed on it.
+    """
+    cc = quick_compiler()
+    if cc is None or not fn.is_a("SXFunction"):
+        return None
+    key = compiled.function_key(fn)
+    with _lock:
+        if key in _quick:
+            return _quick[key]
+    path = _build(fn, cc, key)
+    with _lock:
+        _quick[key] = path
+    return path
+
+
+def _build(fn: ca.Function, cc: str, key: str) -> Path | None:
+    try:
+        folder = _process_folder()
+        source = folder / f"{fn.name()}_{key}.c"
+        gen = ca.CodeGenerator(source.name, {"with_header": False})
+        gen.add(fn)
+        gen.generate(str(folder) + os.sep)
+        with open(source, "a") as c_file:
+            c_file.write(compiled.COLUMNS_DRIVER.replace("FN", fn.name()))
+        if compiled.optimisation_flags(source.stat().st_size) is None:
+            return None
+        library = folder / f"{fn.name()}_{key}.so"
+        # -Bsymbolic as for gcc: the driver calls this library's own function, not a namesake
+        done = subprocess.run([cc, "-shared", "-fPIC", "-Wl,-Bsymbolic", str(source), "-o", str(library), "-lm"],
+                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=QUICK_TIMEOUT_S)
+        source.unlink(missing_ok=True)
+        return library if done.returncode == 0 and library.exists() else None
+    except (OSError, subprocess.SubprocessError, RuntimeError):
+        return None
+
+
+def _process_folder() -> Path:
+    pid = os.getpid()
+    with _lock:
+        if pid not in _folder:
+            _folder[pid] = Path(tempfile.mkdtemp(prefix="greyfit-quick-"))
+            atexit.register(shutil.rmtree, _folder[pid], True)
+        return _folder[pid]

@@ -1,0 +1,120 @@
+"""The quick tier (solvers/dynamics/quick.py): tcc's library runs a sample loop while gcc builds,
+then gcc's takes over, and neither changes a number.
+
+Truth is CasADi's interpreter on the same Function (its `mapaccum` / `map`) and the interpreted fit
+of the same request (`GREYFIT_COMPILE=never`), which must be matched bit for bit. gcc is held
+behind a gate (test_handover's wrapper) so the test decides when its build ends.
+"""
+import casadi as ca
+import numpy as np
+import pytest
+
+from greyfit.solvers.dynamics import compiled as compiled_mod
+from greyfit.solvers.dynamics import quick
+from greyfit.solvers.dynamics.columns import Columns, Fold
+from greyfit.solvers.fit import fit_model
+from tests.solvers import test_handover as handover
+from tests.solvers.test_compiled import _request
+from tests.solvers.test_handover import _interpreted, _summary
+from tests.systems import MSD_TRUTH
+
+# test_handover's fixtures: an empty compile cache, and gcc behind a gate
+empty_cache, gated_cc = handover.empty_cache, handover.gated_cc
+
+needs_tcc = pytest.mark.skipif(compiled_mod.compiler() is None or compiled_mod._which("tcc") is None,
+                               reason="no gcc or no tcc on this machine")
+
+
+@pytest.fixture
+def fresh_quick(monkeypatch, gated_cc):
+    """gcc held at its gate, the quick tier on and remembering nothing."""
+    monkeypatch.setattr(quick, "_quick", {})
+    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "tcc")
+    return gated_cc
+
+
+def _step(tag: str) -> ca.Function:
+    """A pendulum-like step with the operations models use (sin, exp, sqrt, fabs, fmax, pow), its
+    state carried, a summed cost and a per-sample Jacobian; `tag` makes the graph (and key) new."""
+    x, u, p = ca.SX.sym("x", 2), ca.SX.sym("u"), ca.SX.sym("p", 3)
+    acc = -p[0] * ca.sin(x[0]) - p[1] * x[1] * ca.fabs(x[1]) + ca.sqrt(ca.fmax(u, 0)) \
+        + ca.exp(-p[2] * x[0] ** 2) - 0.1 * x[1] ** 3 + len(tag) * 1e-3
+    xn = ca.vertcat(x[0] + 0.01 * x[1], x[1] + 0.01 * acc)
+    return ca.Function(f"quick_step_{tag}", [x, u, p], [xn, ca.sumsqr(xn), ca.jacobian(xn, p)])
+
+
+def _inputs(n: int):
+    rng = np.random.default_rng(3)
+    return [np.array([0.3, -0.1]), rng.uniform(-0.5, 2.0, n), np.array([9.81, 0.4, 1.3])]
+
+
+@needs_tcc
+def test_a_fold_runs_tccs_library_until_gccs_is_built_with_the_same_numbers(fresh_quick):
+    fn, n = _step("fold"), 3000
+    fold = Fold(fn, evaluations=1e6, interpret_meanwhile=True, per_sample=(2,))
+    args = _inputs(n)
+    reference = fold._casadi(args, n)                   # CasADi's mapaccum
+    first = fold(*args, n=n)
+    assert fold.compiled and fold._stand_in is not None   # tcc's, while gcc waits at its gate
+    assert compiled_mod.building_any()
+    for got, want in zip(first, reference):
+        assert np.array_equal(got, want)
+    fresh_quick.touch()
+    assert compiled_mod.wait_for_builds(120)
+    second = fold(*args, n=n)
+    assert fold.compiled and fold._stand_in is None        # gcc's now
+    for got, want in zip(second, reference):
+        assert np.array_equal(got, want)
+
+
+@needs_tcc
+def test_a_loop_is_quick_compiled_only_once_interpreting_it_would_cost_more(fresh_quick):
+    fn = _step("columns")
+    loop = Columns(fn)
+    x = np.tile(np.array([[0.3], [-0.1]]), (1, 50))
+    u, p = np.linspace(0, 1, 50), np.array([9.81, 0.4, 1.3])
+    want = [np.asarray(v) for v in fn.map(50)(x, u, p)]
+    calls = 0
+    while loop._driver is None:
+        got = loop(x, u, p, n=50)
+        for g, w in zip(got, want):
+            assert np.array_equal(g, w)
+        calls += 1
+        assert calls < 10_000
+    # ~40 instructions × 50 samples a call: tcc's ~8 ms are worth it after a few hundred calls
+    cost = quick.QUICK_S + quick.QUICK_S_PER_INSTRUCTION * fn.n_instructions()
+    per_call = fn.n_instructions() * 50 * compiled_mod.INTERPRET_S_PER_INSTRUCTION
+    assert calls == pytest.approx(cost / per_call, abs=2)
+    assert loop._stand_in is not None
+    for g, w in zip(loop(x, u, p, n=50), want):
+        assert np.array_equal(g, w)
+
+
+@needs_tcc
+def test_the_quick_tier_is_off_where_asked_and_without_its_compiler(fresh_quick, monkeypatch):
+    fn = _step("off")
+    assert quick.quick_library(fn) is not None
+    monkeypatch.setattr(quick, "_quick", {})
+    for setting in ("off", "OFF", "none", "/nonexistent/tcc", "no-such-compiler"):
+        monkeypatch.setenv("GREYFIT_QUICK_COMPILER", setting)
+        assert quick.quick_compiler() is None and quick.quick_library(fn) is None
+    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "tcc")
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")
+    assert quick.quick_library(fn) is None
+
+
+@needs_tcc
+def test_a_first_fit_on_tccs_loops_answers_as_the_interpreter_does(fresh_quick, monkeypatch):
+    """Single shooting at 4 001 samples (the folded loops) while gcc is held: the fit runs on tcc's
+    libraries, says it ran compiled, and answers as the interpreted fit to the last bit; after gcc's
+    build, the same again."""
+    request = _request(n=4001, method="single_shooting")
+    reference = _summary(_interpreted(monkeypatch, request))
+    first = fit_model(request)
+    assert first.solver.compiled is True and compiled_mod.building_any()
+    assert _summary(first) == reference
+    for name in ("c", "k"):
+        assert first.parameters[name].value == pytest.approx(MSD_TRUTH[name], rel=0.02)
+    fresh_quick.touch()
+    assert compiled_mod.wait_for_builds(120)
+    assert _summary(fit_model(request)) == reference

@@ -220,8 +220,9 @@ class SolverInfo(BaseModel):
     derivative_filter: Optional[str] = None
     linear_in_parameters: Optional[bool] = None
     compiled: Optional[bool] = Field(
-        default=None, description="whether the per-sample model functions ran as compiled C (true) or "
-        "in CasADi's interpreter (false); null where the method has no such functions")
+        default=None, description="whether the per-sample model functions ran as compiled C (true: gcc's "
+        "library, or on a new model's first fits the Tiny C Compiler's until gcc's is built) or in CasADi's "
+        "interpreter (false); null where the method has no such functions")
     starts_at_best: Optional[int] = Field(
         default=None, description="multistart: how many starts reached the best cost (relative 1e-6); "
         "null for a single start")

@@ -24,6 +24,7 @@ import shutil
 import subprocess
 import tempfile
 import threading
+from collections import OrderedDict
 from pathlib import Path
 
 import casadi as ca
@@ -38,7 +39,12 @@ QUICK_TIMEOUT_S = 30.0
 QUICK_S, QUICK_S_PER_INSTRUCTION = 0.008, 4e-6
 OFF = ("off", "none", "never", "0")
 
-_quick: dict[str, Path | None] = {}   # function key -> its library (None: tcc failed on it)
+# function key -> its library (None: tcc failed on it), oldest first; past MAX_QUICK the oldest
+# file is deleted (a process that loaded it keeps its mapping; asked again, it is built again): a
+# worker that meets hundreds of structures (a discovery) would otherwise fill its temporary folder
+_quick: "OrderedDict[str, Path | None]" = OrderedDict()
+MAX_QUICK = 64
+_gates: dict[str, threading.Lock] = {}   # one build of a key at a time (two threads, one source file)
 _lock = threading.Lock()
 _folder: dict[int, Path] = {}   # pid -> folder: a forked worker makes its own
 
@@ -97,11 +103,20 @@ def quick_library(fn: ca.Function) -> Path | None:
         return None
     key = compiled.function_key(fn)
     with _lock:
-        if key in _quick:
-            return _quick[key]
-    path = _build(fn, cc, key)
-    with _lock:
-        _quick[key] = path
+        gate = _gates.setdefault(key, threading.Lock())
+    with gate:
+        with _lock:
+            if key in _quick and (_quick[key] is None or _quick[key].exists()):
+                _quick.move_to_end(key)
+                return _quick[key]
+        path = _build(fn, cc, key)
+        with _lock:
+            _quick[key] = path
+            _gates.pop(key, None)
+            while len(_quick) > MAX_QUICK:
+                old = _quick.popitem(last=False)[1]
+                if old is not None:
+                    old.unlink(missing_ok=True)
     return path
 
 

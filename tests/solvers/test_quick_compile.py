@@ -5,6 +5,8 @@ Truth is CasADi's interpreter on the same Function (its `mapaccum` / `map`) and 
 of the same request (`GREYFIT_COMPILE=never`), which must be matched bit for bit. gcc is held
 behind a gate (test_handover's wrapper) so the test decides when its build ends.
 """
+from collections import OrderedDict
+
 import casadi as ca
 import numpy as np
 import pytest
@@ -28,7 +30,7 @@ needs_tcc = pytest.mark.skipif(compiled_mod.compiler() is None or compiled_mod._
 @pytest.fixture
 def fresh_quick(monkeypatch, gated_cc):
     """gcc held at its gate, the quick tier on and remembering nothing."""
-    monkeypatch.setattr(quick, "_quick", {})
+    monkeypatch.setattr(quick, "_quick", OrderedDict())
     monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "tcc")
     return gated_cc
 
@@ -94,7 +96,7 @@ def test_a_loop_is_quick_compiled_only_once_interpreting_it_would_cost_more(fres
 def test_the_quick_tier_is_off_where_asked_and_without_its_compiler(fresh_quick, monkeypatch):
     fn = _step("off")
     assert quick.quick_library(fn) is not None
-    monkeypatch.setattr(quick, "_quick", {})
+    monkeypatch.setattr(quick, "_quick", OrderedDict())
     for setting in ("off", "OFF", "none", "/nonexistent/tcc", "no-such-compiler"):
         monkeypatch.setenv("GREYFIT_QUICK_COMPILER", setting)
         assert quick.quick_compiler() is None and quick.quick_library(fn) is None
@@ -118,3 +120,18 @@ def test_a_first_fit_on_tccs_loops_answers_as_the_interpreter_does(fresh_quick, 
     fresh_quick.touch()
     assert compiled_mod.wait_for_builds(120)
     assert _summary(fit_model(request)) == reference
+
+
+@needs_tcc
+def test_a_process_keeps_few_quick_libraries_and_builds_a_dropped_one_again(fresh_quick, monkeypatch):
+    monkeypatch.setattr(quick, "MAX_QUICK", 2)
+    fns = [_step(f"keep{k}") for k in range(3)]
+    paths = [quick.quick_library(fn) for fn in fns]
+    assert all(p is not None for p in paths)
+    assert not paths[0].exists() and paths[1].exists() and paths[2].exists()
+    again = quick.quick_library(fns[0])
+    assert again is not None and again.exists()
+    fold = Fold(fns[0], evaluations=1e6, interpret_meanwhile=True)
+    args = _inputs(500)
+    for got, want in zip(fold(*args, n=500), fold._casadi(args, 500)):
+        assert np.array_equal(got, want)

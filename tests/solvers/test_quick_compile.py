@@ -135,3 +135,19 @@ def test_a_process_keeps_few_quick_libraries_and_builds_a_dropped_one_again(fres
     args = _inputs(500)
     for got, want in zip(fold(*args, n=500), fold._casadi(args, 500)):
         assert np.array_equal(got, want)
+
+
+@needs_tcc
+@pytest.mark.parametrize("family", ["block", "amplitude_damping", "reactor", "rlc"])
+def test_first_fits_of_several_families_on_tcc_answer_as_the_interpreter(fresh_quick, monkeypatch, family):
+    """A heated block, a damped oscillator, an Arrhenius reactor and an RLC circuit (exp, powers,
+    products of states), measured at their outputs with coloured noise, their first fit on tcc's
+    loops while gcc is held: every number as the interpreted fit's."""
+    from greyfit.schemas import FitRequest
+    from tests import discovery_systems as ds
+    request = FitRequest.model_validate({"model": getattr(ds, f"{family}_model")(), "method": "single_shooting",
+                                         "experiments": [getattr(ds, f"{family}_record")(4)]})
+    reference = _summary(_interpreted(monkeypatch, request))
+    first = fit_model(request)
+    assert first.solver.compiled is True and compiled_mod.building_any()
+    assert _summary(first) == reference

@@ -44,6 +44,7 @@ OFF = ("off", "none", "never", "0")
 # worker that meets hundreds of structures (a discovery) would otherwise fill its temporary folder
 _quick: "OrderedDict[str, Path | None]" = OrderedDict()
 MAX_QUICK = 64
+_externals: "OrderedDict[str, ca.Function]" = OrderedDict()   # library path -> its external Function
 _gates: dict[str, threading.Lock] = {}   # one build of a key at a time (two threads, one source file)
 _lock = threading.Lock()
 _folder: dict[int, Path] = {}   # pid -> folder: a forked worker makes its own
@@ -90,16 +91,18 @@ def quick_library(fn: ca.Function) -> Path | None:
     Parameters
     ----------
     fn : casadi.Function
-        An SX Function whose gcc library is not ready.
+        A Function whose gcc library is not ready (an SX graph, or an MX graph CasADi can generate
+        as C: maps of SX Functions).
 
     Returns
     -------
     pathlib.Path or None
-        Path of the library, or None where there is no quick compiler, the source is too large to
-        compile (`compiled.optimisation_flags`) or the compiler failed on it.
+        Path of the library, or None where there is no quick compiler, CasADi cannot generate the
+        Function as C, the source is too large to compile (`compiled.optimisation_flags`) or the
+        compiler failed on it.
     """
     cc = quick_compiler()
-    if cc is None or not fn.is_a("SXFunction"):
+    if cc is None:
         return None
     key = compiled.function_key(fn)
     with _lock:
@@ -118,6 +121,35 @@ def quick_library(fn: ca.Function) -> Path | None:
                 if old is not None:
                     old.unlink(missing_ok=True)
     return path
+
+
+def quick_function(fn: ca.Function) -> ca.Function | None:
+    """`fn` as CasADi's external Function of its quick library, the same object for every call while
+    the library is kept (an NLP built on it is cached by its Functions' identity).
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        An SX Function whose gcc library is not ready.
+
+    Returns
+    -------
+    casadi.Function or None
+        None where `quick_library` gives none.
+    """
+    path = quick_library(fn)
+    if path is None:
+        return None
+    with _lock:
+        known = _externals.get(str(path))
+    if known is None:
+        # finite differences only let CasADi build (never evaluate) derivatives an NLP asks for
+        known = ca.external(fn.name(), str(path), {"enable_fd": True})
+        with _lock:
+            _externals[str(path)] = known
+            while len(_externals) > MAX_QUICK:
+                _externals.popitem(last=False)
+    return known
 
 
 def _build(fn: ca.Function, cc: str, key: str) -> Path | None:

@@ -6,6 +6,7 @@ the new guesses and the new fixed values, never the previous fit's.
 """
 import os
 import time
+from collections import OrderedDict
 
 import numpy as np
 import pytest
@@ -67,9 +68,27 @@ def test_a_library_on_disk_is_loaded_not_rebuilt(cache, monkeypatch):
 def test_without_a_compiler_the_interpreter_runs_and_says_so(cache, monkeypatch):
     monkeypatch.setenv("GREYFIT_COMPILE", "always")
     monkeypatch.setenv("CC", "/nonexistent/cc")
+    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "/nonexistent/tcc")
     result = fit_model(_request())
     assert result.solver.compiled is False
     assert result.parameters["k"].value == pytest.approx(MSD_TRUTH["k"], rel=5e-3)
+    assert not list(cache.glob("*.so")) if cache.exists() else True
+
+
+@pytest.mark.skipif(compiled_mod._which("tcc") is None, reason="no tcc on this machine")
+def test_without_gcc_the_quick_compilers_code_runs_and_nothing_is_cached(cache, monkeypatch):
+    """tcc alone: its libraries serve every fit of the process (none on disk for the next one), the
+    interpreter's numbers bit for bit."""
+    from greyfit.solvers.dynamics import quick
+    monkeypatch.setattr(quick, "_quick", OrderedDict())
+    monkeypatch.setenv("GREYFIT_COMPILE", "never")
+    plain = fit_model(_request())
+    monkeypatch.setenv("GREYFIT_COMPILE", "always")
+    monkeypatch.setenv("CC", "/nonexistent/cc")
+    result = fit_model(_request())
+    assert result.solver.compiled is True
+    assert result.parameters["k"].value == plain.parameters["k"].value
+    assert result.metrics.cost == plain.metrics.cost
     assert not list(cache.glob("*.so")) if cache.exists() else True
 
 

@@ -151,3 +151,23 @@ def test_first_fits_of_several_families_on_tcc_answer_as_the_interpreter(fresh_q
     first = fit_model(request)
     assert first.solver.compiled is True and compiled_mod.building_any()
     assert _summary(first) == reference
+
+
+@needs_tcc
+def test_multiple_shooting_runs_tccs_stages_then_moves_to_gccs_between_solves(fresh_quick, monkeypatch):
+    """Multiple shooting's NLP is built on tcc's stage Functions while gcc is held (it says it ran
+    compiled), is remade on gcc's once they exist (at a solve's start), and answers as the
+    interpreted fit throughout."""
+    from greyfit.solvers.methods.shooting import structured
+    request = _request(n=4001)                       # multiple shooting
+    reference = _summary(_interpreted(monkeypatch, request))
+    first = fit_model(request)
+    assert first.solver.compiled is True and compiled_mod.building_any()
+    assert _summary(first) == reference
+    fresh_quick.touch()
+    assert compiled_mod.wait_for_builds(120)
+    solvers_before = set(map(id, (entry[1] for entry in structured._SOLVERS.values())))
+    again = fit_model(request)
+    assert again.solver.compiled is True and _summary(again) == reference
+    # the NLP of the second fit is another one: built on gcc's Functions
+    assert set(map(id, (entry[1] for entry in structured._SOLVERS.values()))) - solvers_before

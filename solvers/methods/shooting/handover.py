@@ -24,21 +24,22 @@ from typing import Callable, Optional, Protocol, TypeVar
 
 class _Solver(Protocol):
     @property
-    def compiled(self) -> bool: ...
+    def final(self) -> bool: ...   # on gcc's libraries (not the interpreter, nor the quick tier's tcc)
 
 
 S = TypeVar("S", bound=_Solver)
 
 
 def built_meanwhile(is_compiled: bool, remake: Optional[Callable[[], Optional[S]]]) -> Optional[S]:
-    """The solver made again on compiled code, if the libraries built in the background exist now.
+    """The solver made again on gcc's compiled code, if the libraries built in the background exist now.
 
     Asked before a solve begins, never during one; it never waits for a build.
 
     Parameters
     ----------
     is_compiled : bool
-        Whether the solver about to solve runs compiled code already.
+        Whether the solver about to solve runs gcc's compiled code already (its stand-in until then is
+        the interpreter, or the quick tier's tcc libraries: solvers/dynamics/quick.py).
     remake : callable or None
         Makes the solver again (`StructuredSolver.upgrade`); None where nothing is being built.
 
@@ -51,4 +52,4 @@ def built_meanwhile(is_compiled: bool, remake: Optional[Callable[[], Optional[S]
     if is_compiled or remake is None:
         return None
     better = remake()
-    return better if better is not None and better.compiled else None
+    return better if better is not None and better.final else None

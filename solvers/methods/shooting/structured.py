@@ -28,6 +28,7 @@ from dataclasses import dataclass
 import casadi as ca
 import numpy as np
 
+from greyfit.solvers.dynamics import quick
 from greyfit.solvers.dynamics.columns import Fold
 from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.dynamics.compiled import mode as compile_mode
@@ -162,8 +163,10 @@ def _single_folds(oem, samples: int) -> tuple[dict[str, Fold], bool]:
 _TRIED: dict[int, ca.Function] = {}
 
 
-def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[str, _Stage], bool]:
-    """The named stages (`_build_stages`), their blocks compiled C where it pays (`solvers.compiled`).
+def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[str, _Stage], bool, bool]:
+    """The named stages (`_build_stages`), their blocks compiled C where it pays (`solvers.compiled`),
+    and until gcc's libraries are built, the quick tier's where there is one and it pays (`quick`);
+    whether every block is gcc's, and whether every block is C (gcc's or tcc's).
 
     Libraries a structure still needs are first compiled side by side (gcc runs outside the GIL):
     a first fit of seed 000's seat model waits for the largest, not for the sum.
@@ -174,14 +177,16 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
                                  tuple(pattern[0]), tuple(pattern[1])),
                                 lambda: (lambda f: (f, _blocks(f)))(_build_stages(oem)))
 
+    def work(name: str) -> float:
+        # `compiled` weighs instructions × evaluations: a block's wrapper counts a handful of calls
+        return samples * EXPECTED_ITERATIONS * fns[name.removesuffix("_acc")].n_instructions() / \
+            max(blocks[name].n_instructions(), 1)
+
     def build(name: str) -> tuple[ca.Function, bool]:
-        single, block = fns[name.removesuffix("_acc")], blocks[name]
-        ready = loaded(block)   # every fit after the first: a dictionary lookup
+        ready = loaded(blocks[name])   # every fit after the first: a dictionary lookup
         if ready is not None:
             return ready, True
-        # `compiled` weighs instructions × evaluations: a block's wrapper counts a handful of calls
-        work = samples * EXPECTED_ITERATIONS * single.n_instructions() / max(block.n_instructions(), 1)
-        return compiled(block, work, interpret_meanwhile=True)   # handover.py: never waits for gcc
+        return compiled(blocks[name], work(name), interpret_meanwhile=True)   # handover.py: never waits for gcc
 
     new = [n for n in names if _TRIED.get(id(blocks[n])) is not blocks[n]]
     if len(new) > 1:
@@ -191,8 +196,19 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
         _TRIED.clear()
     _TRIED.update((id(blocks[n]), blocks[n]) for n in new)
     built = {name: build(name) for name in names}   # loaded by now: memory lookups
+    final = all(is_c for _, is_c in built.values())
+    waiting = [name for name, (_, is_c) in built.items() if not is_c]
+    # until gcc's are built, tcc's stand in for all of them or none (an NLP half interpreted would
+    # say neither): where their interpreted work together costs more than building them
+    single = [fns[n.removesuffix("_acc")].n_instructions() for n in waiting]   # what tcc compiles
+    if waiting and quick.pays(sum(single), sum(blocks[n].n_instructions() * work(n) for n in waiting)) \
+            and quick.quick_compiler() is not None:
+        with ThreadPoolExecutor(max_workers=len(waiting)) as pool:   # tcc runs outside the GIL
+            stand_ins = dict(zip(waiting, pool.map(lambda n: quick.quick_function(blocks[n]), waiting)))
+        if all(f is not None for f in stand_ins.values()):
+            built.update((n, (f, True)) for n, f in stand_ins.items())
     stages = {name: _Stage(fns[name.removesuffix("_acc")], fn) for name, (fn, _) in built.items()}
-    return stages, all(is_c for _, is_c in built.values())
+    return stages, final, all(is_c for _, is_c in built.values())
 
 
 def _triu_pairs(n: int) -> tuple[np.ndarray, np.ndarray]:
@@ -596,11 +612,13 @@ class StructuredSolver:
     """`LeastSquaresSolver`'s interface over a cached structured NLP."""
 
     def __init__(self, nlp: _Nlp, data: np.ndarray, problem: LeastSquaresProblem, compiled_c: bool,
-                 upgrade=None, record: np.ndarray | None = None):
-        """`data`: the NLP's parameter values; `upgrade`: makes this solver again (compiled, once the
-        libraries built meanwhile exist); `record`: the data vector with its token, for the folded
-        callbacks (`SinglePass.attach`)."""
+                 upgrade=None, record: np.ndarray | None = None, final: bool = True):
+        """`data`: the NLP's parameter values; `compiled_c`: its per-sample code is C (gcc's, or the
+        quick tier's tcc); `final`: it is gcc's; `upgrade`: makes this solver again (on gcc's code,
+        once the libraries built meanwhile exist); `record`: the data vector with its token, for the
+        folded callbacks (`SinglePass.attach`)."""
         self.nlp, self.data, self.problem, self.compiled = nlp, data, problem, compiled_c
+        self.final = final
         self.upgrade, self.record = upgrade, record
         self._attach()
 
@@ -629,9 +647,9 @@ class StructuredSolver:
         """
         from greyfit.solvers.nlp.solver import run_ipopt
 
-        better = handover.built_meanwhile(self.compiled, self.upgrade)
-        if better is not None:   # this solve and the next ones run compiled
-            self.nlp, self.compiled, self.upgrade = better.nlp, True, None
+        better = handover.built_meanwhile(self.final, self.upgrade)
+        if better is not None:   # this solve and the next ones run gcc's code
+            self.nlp, self.compiled, self.final, self.upgrade = better.nlp, True, True, None
         self._attach()   # again: other solvers of this structure may have attached theirs since
         return run_ipopt(self.nlp.solver, w0, self.problem, p=self.data, lbw=lbw, ubw=ubw)
 
@@ -722,11 +740,12 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
         cpu = o.max_cpu_time if max_cpu_time is None else max_cpu_time
         folds: dict[str, Fold] = {}
         stages: dict[str, _Stage] = {}
-        if folded:
-            folds, is_c = _single_folds(oem, samples)
+        if folded:   # the folds move from a stand-in to gcc's loops by themselves: never remade
+            folds, runs_c = _single_folds(oem, samples)
+            is_c = True
             owners = (*(fold.fn for fold in folds.values()), oem.cm.constraint)
         else:
-            stages, is_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
+            stages, is_c, runs_c = _stage_functions(oem, samples, STAGES_SINGLE if single else STAGES_MULTIPLE)
             owners = (*(st.block for st in stages.values()), oem.cm.constraint)
         penalty = problem.penalty
         # the stage Functions (and the constraint) identify the model structure, the rest shapes
@@ -752,11 +771,11 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
                 _SOLVERS[nlp_key] = (owners, nlp)
                 while len(_SOLVERS) > SOLVER_CACHE_SIZE:
                     _SOLVERS.popitem(last=False)
-        upgrade = None if is_c or folded else (lambda: make_solver(max_iter, max_cpu_time))
+        upgrade = None if is_c else (lambda: make_solver(max_iter, max_cpu_time))
         if folded:   # the token under which the callbacks find this record and cache its points
             token, record = _token_record(oem)
-            return StructuredSolver(nlp, _folded_vector(oem, token), problem, is_c, upgrade, record)
-        return StructuredSolver(nlp, _data_vector(oem), problem, is_c, upgrade)
+            return StructuredSolver(nlp, _folded_vector(oem, token), problem, runs_c, upgrade, record, final=True)
+        return StructuredSolver(nlp, _data_vector(oem), problem, runs_c, upgrade, final=is_c)
 
     def start_gram(w: np.ndarray) -> np.ndarray:
         """JᵀJ at w (scaled [θ, free x0]) by the sensitivity pass the solve's first evaluation at w

@@ -177,6 +177,23 @@ def _process_folder() -> Path:
     pid = os.getpid()
     with _lock:
         if pid not in _folder:
-            _folder[pid] = Path(tempfile.mkdtemp(prefix="greyfit-quick-"))
+            _remove_orphans()
+            _folder[pid] = Path(tempfile.mkdtemp(prefix=f"{PREFIX}{pid}-"))
             atexit.register(shutil.rmtree, _folder[pid], True)
         return _folder[pid]
+
+
+PREFIX = "greyfit-quick-"
+
+
+def _remove_orphans() -> None:
+    """Delete the quick folders of processes that are gone: a worker killed (a stalled task, the
+    out-of-memory killer) runs no exit handler, and its folder would stay in the temporary folder."""
+    for folder in Path(tempfile.gettempdir()).glob(f"{PREFIX}*-*"):
+        try:
+            owner = int(folder.name[len(PREFIX):].split("-")[0])
+            os.kill(owner, 0)   # signal 0: only asks whether the process exists
+        except ProcessLookupError:
+            shutil.rmtree(folder, ignore_errors=True)
+        except (ValueError, PermissionError, OSError):
+            continue   # not a name of ours, or another user's live process

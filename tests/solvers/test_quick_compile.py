@@ -171,3 +171,23 @@ def test_multiple_shooting_runs_tccs_stages_then_moves_to_gccs_between_solves(fr
     assert again.solver.compiled is True and _summary(again) == reference
     # the NLP of the second fit is another one: built on gcc's Functions
     assert set(map(id, (entry[1] for entry in structured._SOLVERS.values()))) - solvers_before
+
+
+def test_the_folders_of_processes_that_are_gone_are_removed(tmp_path, monkeypatch):
+    """A worker killed without its exit handlers leaves its quick folder behind: the next process
+    that makes one removes it, and leaves a live process's alone."""
+    import subprocess
+    import sys
+
+    monkeypatch.setattr(quick.tempfile, "tempdir", str(tmp_path))
+    monkeypatch.setattr(quick, "_folder", {})
+    gone = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True,
+                          text=True, check=True)
+    dead = tmp_path / f"{quick.PREFIX}{int(gone.stdout)}-abc"
+    alive = tmp_path / f"{quick.PREFIX}1-xyz"          # pid 1 is always there
+    for folder in (dead, alive):
+        folder.mkdir()
+        (folder / "lib.so").write_bytes(b"x")
+    mine = quick._process_folder()
+    assert mine.exists() and mine.parent == tmp_path
+    assert not dead.exists() and alive.exists()

@@ -6,7 +6,9 @@ gcc takes 1-7 s for a model's sensitivity kernel (the seat model's 9 800 instruc
 compiles the same generated source in ~15 ms; its code is about half as fast as gcc -O3's and five
 times faster than CasADi's interpreter (per 1 000 samples of that kernel: 6.1, 2.9 and 33 ms). A
 loop that would interpret meanwhile runs tcc's library instead, and moves to gcc's at its first call
-after gcc's build has ended (`columns.Fold`, `columns.Columns`).
+after gcc's build has ended (`columns.Fold`, `columns.Columns`); multiple shooting's NLP is built on
+tcc's stage Functions and made again on gcc's at the start of a solve once they exist
+(`structured._stage_functions`, `handover`). Without gcc, tcc's code serves every fit.
 
 The numbers do not change: tcc contracts no multiply-adds and reassociates nothing, like gcc with
 -ffp-contract=off, and calls the same libm as CasADi's interpreter, so all three give the same bits
@@ -48,6 +50,7 @@ _externals: "OrderedDict[str, ca.Function]" = OrderedDict()   # library path -> 
 _gates: dict[str, threading.Lock] = {}   # one build of a key at a time (two threads, one source file)
 _lock = threading.Lock()
 _folder: dict[int, Path] = {}   # pid -> folder: a forked worker makes its own
+PREFIX = "greyfit-quick-"       # the folders' names: PREFIX, the owner's pid, a random part
 
 
 def quick_compiler() -> str | None:
@@ -130,7 +133,7 @@ def quick_function(fn: ca.Function) -> ca.Function | None:
     Parameters
     ----------
     fn : casadi.Function
-        An SX Function whose gcc library is not ready.
+        A Function whose gcc library is not ready (as `quick_library` takes it).
 
     Returns
     -------
@@ -181,9 +184,6 @@ def _process_folder() -> Path:
             _folder[pid] = Path(tempfile.mkdtemp(prefix=f"{PREFIX}{pid}-"))
             atexit.register(shutil.rmtree, _folder[pid], True)
         return _folder[pid]
-
-
-PREFIX = "greyfit-quick-"
 
 
 def _remove_orphans() -> None:

@@ -558,7 +558,12 @@ class SinglePass:
                 bound = rec["sens"]
                 self._x0(e, rec, w, bound.args[0])
                 bound.args[5][:] = w[:self.nth]
-                _, c, g, h, r, j = bound(copy=False)   # read here; the rows kept are copied below
+                # the fold's own buffers, valid until its next call: the sums are read here, and the
+                # rows are kept as views (a copy per pass, 1 MB at 40 000 samples, was most of the
+                # pass's memory traffic): the record's next pass rewrites them and, under the same
+                # lock, replaces `_rows`, whose key then names its point; `rows_at` gives them once
+                # to `assemble_rows`, which copies what it keeps (one token is one fit's record)
+                _, c, g, h, r, j = bound(copy=False)
                 total += float(c[0])
                 v, wi = self.places[e]
                 grad[wi] += g[v]
@@ -566,7 +571,7 @@ class SinglePass:
                 hess[at] += h[keep]
                 n = self.n[e]
                 # per sample: r_k (ny), J_k (ny × nv) column-major
-                parts.append((r.reshape(n, self.ny).copy(), j.copy().reshape(n, -1, self.ny).transpose(0, 2, 1)))
+                parts.append((r.reshape(n, self.ny), j.reshape(n, -1, self.ny).transpose(0, 2, 1)))
             result = (total, grad, hess)
             self._point = (key, result)
             self._rows = (key, parts)

@@ -112,9 +112,11 @@ def quick_library(fn: ca.Function) -> Path | None:
         gate = _gates.setdefault(key, threading.Lock())
     with gate:
         with _lock:
-            if key in _quick and (_quick[key] is None or _quick[key].exists()):
-                _quick.move_to_end(key)
-                return _quick[key]
+            if key in _quick:
+                known = _quick[key]
+                if known is None or known.exists():
+                    _quick.move_to_end(key)
+                    return known
         path = _build(fn, cc, key)
         with _lock:
             _quick[key] = path

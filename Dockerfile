@@ -2,9 +2,10 @@
 FROM python:3.11-slim
 
 # gcc compiles each model's per-sample functions once (cached under /data/cache); without it greyfit
-# falls back to CasADi's interpreter, 2-3x slower on long records. tcc compiles them in milliseconds
-# for a new model's first fit while gcc builds (the seat model's first fit 0.69 -> 0.47 s)
-RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev tcc \
+# falls back to CasADi's interpreter, 2-3x slower on long records. (The Tiny C Compiler, which
+# compiles them in milliseconds for a new model's first fits while gcc builds, comes with the
+# `quick` extra below.)
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
  && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 10001 greyfit && mkdir /data && chown greyfit /data
@@ -17,7 +18,7 @@ USER greyfit
 COPY --chown=greyfit pyproject.toml README.md constraints.txt ./
 COPY --chown=greyfit scripts/install.sh scripts/stub_packages.py scripts/
 RUN python3 scripts/stub_packages.py \
- && bash scripts/install.sh report \
+ && bash scripts/install.sh report,quick \
  && .venv/bin/python -c "import matplotlib.font_manager"
 # (the last step builds matplotlib's font cache in the image: otherwise each new container's first
 # report pays for it, about a second)

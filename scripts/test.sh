@@ -3,7 +3,7 @@
 # then run the whole test suite.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-bash scripts/install.sh test,report,docs
+bash scripts/install.sh test,report,docs,quick
 # The report test opens the HTML page in a real headless browser: Chromium from the distribution,
 # installed when missing and we can (root with apt-get); otherwise that test skips and says why.
 if ! command -v chromium >/dev/null 2>&1 && command -v apt-get >/dev/null 2>&1 && [ "$(id -u)" = 0 ]; then

@@ -8,7 +8,7 @@ tmp=$(mktemp -d)
 trap 'rm -rf "$tmp"' EXIT
 "$PY" -m venv "$tmp/venv"
 "$tmp/venv/bin/python" -m pip install --quiet --disable-pip-version-check --upgrade pip
-"$tmp/venv/bin/python" -m pip install --quiet --disable-pip-version-check -e ".[test,report,postgres,dask,docs,bench]"
+"$tmp/venv/bin/python" -m pip install --quiet --disable-pip-version-check -e ".[test,report,postgres,dask,docs,bench,quick]"
 {
     sed -n '/^#/p' constraints.txt
     "$tmp/venv/bin/python" -m pip freeze --exclude-editable

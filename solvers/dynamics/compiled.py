@@ -277,6 +277,11 @@ _keys: "OrderedDict[int, tuple[ca.Function, str]]" = OrderedDict()
 # background build that generates its source apart (`_generate_apart`); dropped once it is found
 _texts: "OrderedDict[str, str]" = OrderedDict()
 MAX_TEXTS = 32
+# C sources this process has written already (the quick tier's, solvers/dynamics/quick.py: the same
+# file gcc's build would write, its driver appended), by function key: a background build takes
+# one instead of generating it again in a child interpreter (a Python process importing CasADi,
+# ~0.2 s of CPU per library)
+_sources: "OrderedDict[str, Path]" = OrderedDict()
 
 
 def function_key(fn: ca.Function) -> str:
@@ -311,6 +316,37 @@ def function_key(fn: ca.Function) -> str:
         while len(_texts) > MAX_TEXTS:
             _texts.popitem(last=False)
     return key
+
+
+def offer_source(key: str, source: Path) -> None:
+    """Offer the C source of the Function with this key (`function_key`), its driver appended, to
+    this process's gcc build of it: the build copies it rather than generating it again.
+
+    Parameters
+    ----------
+    key : str
+        The Function's key.
+    source : pathlib.Path
+        The source file; the build deletes it once copied.
+    """
+    with _lock:
+        _sources[key] = source
+        while len(_sources) > MAX_TEXTS:
+            _sources.popitem(last=False)
+
+
+def _take_source(key: str, into: Path) -> bool:
+    """Copy an offered source to `into` (and delete the offered file); False where none is."""
+    with _lock:
+        given = _sources.pop(key, None)
+    if given is None:
+        return False
+    try:
+        shutil.copyfile(given, into)
+    except OSError:
+        return False
+    given.unlink(missing_ok=True)
+    return True
 
 
 def loaded(fn: ca.Function) -> ca.Function | None:
@@ -386,6 +422,25 @@ def compiled(fn: ca.Function, evaluations: float = 0.0,
     if path is None:
         return fn, False
     return _load(fn, function_key(fn), path), True
+
+
+def built(fn: ca.Function) -> Path | None:
+    """The library of `fn` if it is on disk already (nothing is built or started).
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The interpreted Function.
+
+    Returns
+    -------
+    pathlib.Path or None
+        Its path, or None where it is missing, the mode is ``never`` or there is no compiler.
+    """
+    if mode() == "never" or compiler() is None:
+        return None
+    path = cache_dir() / f"{fn.name()}_{function_key(fn)}.so"
+    return path if path.exists() else None
 
 
 def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool = False) -> Path | None:
@@ -594,12 +649,13 @@ def _build(fn: ca.Function, library: Path, queue: bool = False, work: float = 0.
                 with _compile_slot(library.parent, work) if queue else contextlib.nullcontext(True) as turn:
                     if not turn:
                         return None
-                    if not (queue and serialised is not None and _generate_apart(serialised, source)):
-                        gen = ca.CodeGenerator(source.name, {"with_header": False})
-                        gen.add(fn)
-                        gen.generate(tmp + os.sep)
-                    with open(source, "a") as c_file:   # columns.py's loop over samples
-                        c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
+                    if not _take_source(function_key(fn), source):
+                        if not (queue and serialised is not None and _generate_apart(serialised, source)):
+                            gen = ca.CodeGenerator(source.name, {"with_header": False})
+                            gen.add(fn)
+                            gen.generate(tmp + os.sep)
+                        with open(source, "a") as c_file:   # columns.py's loop over samples
+                            c_file.write(COLUMNS_DRIVER.replace("FN", fn.name()))
                     flags = optimisation_flags(source.stat().st_size)
                     if flags is None:
                         return False

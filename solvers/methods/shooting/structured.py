@@ -30,7 +30,8 @@ import numpy as np
 
 from greyfit.solvers.dynamics import quick
 from greyfit.solvers.dynamics.columns import Fold
-from greyfit.solvers.dynamics.compiled import compiled, loaded
+from greyfit.solvers.dynamics.compiled import built as built_library
+from greyfit.solvers.dynamics.compiled import compiled, compiler, loaded
 from greyfit.solvers.dynamics.compiled import mode as compile_mode
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.methods.shooting import handover, single_pass
@@ -188,6 +189,17 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
             return ready, True
         return compiled(blocks[name], work(name), interpret_meanwhile=True)   # handover.py: never waits for gcc
 
+    # until gcc's are built, tcc's stand in for all of them or none (an NLP half interpreted would
+    # say neither), where their interpreted work together costs more than building them; built
+    # first, so that gcc's background builds take their sources (`compiled.offer_source`)
+    missing = [n for n in names if loaded(blocks[n]) is None and built_library(blocks[n]) is None]
+    single = [fns[n.removesuffix("_acc")].n_instructions() for n in missing]   # what tcc compiles
+    stand_ins: dict[str, ca.Function | None] = {}
+    if missing and (compile_mode() != "always" or compiler() is None) and quick.quick_compiler() is not None \
+            and quick.pays(sum(single), sum(blocks[n].n_instructions() * work(n) for n in missing)):
+        with ThreadPoolExecutor(max_workers=len(missing)) as pool:   # tcc runs outside the GIL
+            stand_ins = dict(zip(missing, pool.map(lambda n: quick.quick_function(blocks[n]), missing)))
+
     new = [n for n in names if _TRIED.get(id(blocks[n])) is not blocks[n]]
     if len(new) > 1:
         with ThreadPoolExecutor(max_workers=len(new)) as pool:
@@ -198,15 +210,8 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
     built = {name: build(name) for name in names}   # loaded by now: memory lookups
     final = all(is_c for _, is_c in built.values())
     waiting = [name for name, (_, is_c) in built.items() if not is_c]
-    # until gcc's are built, tcc's stand in for all of them or none (an NLP half interpreted would
-    # say neither): where their interpreted work together costs more than building them
-    single = [fns[n.removesuffix("_acc")].n_instructions() for n in waiting]   # what tcc compiles
-    if waiting and quick.pays(sum(single), sum(blocks[n].n_instructions() * work(n) for n in waiting)) \
-            and quick.quick_compiler() is not None:
-        with ThreadPoolExecutor(max_workers=len(waiting)) as pool:   # tcc runs outside the GIL
-            stand_ins = dict(zip(waiting, pool.map(lambda n: quick.quick_function(blocks[n]), waiting)))
-        if all(f is not None for f in stand_ins.values()):
-            built.update((n, (f, True)) for n, f in stand_ins.items())
+    if waiting and all(stand_ins.get(n) is not None for n in waiting):
+        built.update((n, (stand_ins[n], True)) for n in waiting)
     stages = {name: _Stage(fns[name.removesuffix("_acc")], fn) for name, (fn, _) in built.items()}
     return stages, final, all(is_c for _, is_c in built.values())
 

@@ -439,8 +439,12 @@ def built(fn: ca.Function) -> Path | None:
     """
     if mode() == "never" or compiler() is None:
         return None
-    path = cache_dir() / f"{fn.name()}_{function_key(fn)}.so"
+    path = _library_path(fn, function_key(fn))
     return path if path.exists() else None
+
+
+def _library_path(fn: ca.Function, key: str) -> Path:
+    return cache_dir() / f"{fn.name()}_{key}.so"
 
 
 def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool = False) -> Path | None:
@@ -470,7 +474,7 @@ def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool
     if how == "never" or compiler() is None:
         return None
     key = function_key(fn)
-    path = cache_dir() / f"{fn.name()}_{key}.so"
+    path = _library_path(fn, key)
     if path.exists():
         with _lock:
             _texts.pop(key, None)

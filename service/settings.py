@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import os
+import shutil
 from functools import lru_cache
 from pathlib import Path
 from typing import Literal, Optional
@@ -89,6 +90,16 @@ class Settings(BaseSettings):
     body_read_seconds: float = Field(
         default=60.0, gt=0, description="a request body must arrive within this many seconds of the request's "
                                         "start (a 64 MB body: at least ~1.1 MB/s); a slower sender gets 408")
+
+    @field_validator("quick_compiler")
+    @classmethod
+    def _quick_compiler_exists(cls, value: str) -> str:
+        # the numerics read the variable themselves; a name that finds nothing is a typo, not "off"
+        from greyfit.solvers.dynamics.quick import NOT_FOUND, OFF
+        value = value.strip()
+        if value.lower() in OFF or value == "tcc" or shutil.which(value) is not None:
+            return value
+        raise ValueError(f"{value!r} {NOT_FOUND}")
 
     @field_validator("compile", "heap", mode="before")
     @classmethod

@@ -63,7 +63,9 @@ def test_report_takes_o_for_its_directory_as_the_other_commands_do(tmp_path):
 @pytest.mark.parametrize("name, value, says", [
     ("GREYFIT_COMPILE", "nevr", "GREYFIT_COMPILE: Input should be 'auto', 'always' or 'never'"),
     ("GREYFIT_HEAP", "sytem", "GREYFIT_HEAP: Input should be 'kept' or 'system'"),
-    ("GREYFIT_WORKERS", "0", "GREYFIT_WORKERS: Input should be greater than or equal to 1")])
+    ("GREYFIT_WORKERS", "0", "GREYFIT_WORKERS: Input should be greater than or equal to 1"),
+    ("GREYFIT_QUICK_COMPILER", "/no/such/tcc",
+     "GREYFIT_QUICK_COMPILER: Value error, '/no/such/tcc' is not a program on PATH nor a path to one")])
 def test_serve_refuses_a_setting_it_does_not_know_and_names_the_variable(tmp_path, name, value, says):
     """A typo in the environment stops the service at start, naming the variable and the values it
     takes (GREYFIT_COMPILE and GREYFIT_HEAP were read by the numerics alone, which took any unknown

@@ -30,6 +30,7 @@ import subprocess
 import sysconfig
 import tempfile
 import threading
+import warnings
 from collections import OrderedDict
 from pathlib import Path
 
@@ -83,12 +84,25 @@ def find_compiler() -> str | None:
     if value.lower() in OFF:
         return None
     if value and value != "tcc":
-        return compiled._which(value)
+        named = compiled._which(value)
+        if named is None:
+            _not_found(value)
+        return named
     found = compiled._which("tcc")
     if found is not None:
         return found
     carried = _carried()
     return carried[0] if carried is not None else None
+
+
+NOT_FOUND = "is not a program on PATH nor a path to one: name a C compiler (tcc), or off"
+
+
+@functools.lru_cache(maxsize=16)
+def _not_found(value: str) -> None:
+    """Say once per value that the named quick compiler is missing (a typo would otherwise go unseen:
+    the first fits would interpret)."""
+    warnings.warn(f"GREYFIT_QUICK_COMPILER={value!r} {NOT_FOUND}; greyfit uses none", RuntimeWarning, stacklevel=4)
 
 
 @functools.lru_cache(maxsize=1)

@@ -97,9 +97,15 @@ def test_the_quick_tier_is_off_where_asked_and_without_its_compiler(fresh_quick,
     fn = _step("off")
     assert quick.quick_library(fn) is not None
     monkeypatch.setattr(quick, "_quick", OrderedDict())
-    for setting in ("off", "OFF", "none", "/nonexistent/tcc", "no-such-compiler"):
+    for setting in ("off", "OFF", "none"):
         monkeypatch.setenv("GREYFIT_QUICK_COMPILER", setting)
         assert quick.quick_compiler() is None and quick.quick_library(fn) is None
+    quick._not_found.cache_clear()   # said once per value and process
+    for typo in ("/nonexistent/tcc", "no-such-compiler"):   # named, not found: said, and none used
+        monkeypatch.setenv("GREYFIT_QUICK_COMPILER", typo)
+        with pytest.warns(RuntimeWarning, match=f"GREYFIT_QUICK_COMPILER='{typo}' is not a program"):
+            assert quick.quick_compiler() is None
+        assert quick.quick_library(fn) is None
     monkeypatch.delenv("GREYFIT_QUICK_COMPILER")
     monkeypatch.setenv("GREYFIT_COMPILE", "never")
     assert quick.quick_library(fn) is None

@@ -166,7 +166,9 @@ def rk4(rhs, x, u0, u1, p, dt, substeps, stack):
     return x
 
 
-# --- the tools: each returns fit(record) -> (free parameters, iterations) ------------------------
+# --- the tools: each returns fit(record) -> (free parameters, iterations, compiled, solve seconds) ---
+# (compiled: greyfit's solver.compiled, the vmap's compile CPU; solve seconds: greyfit's solve stage, its
+# result's solver.timings, None for the peers, whose whole fit is a solve)
 def setup_greyfit(prob: dict, method: str):
     import greyfit
     requests = [greyfit.FitRequest.model_validate(fit_request(prob, r, method)) for r in range(len(prob["y"]))]
@@ -174,7 +176,8 @@ def setup_greyfit(prob: dict, method: str):
 
     def fit(record: int):
         res = greyfit.fit(requests[record])
-        return np.array([res.parameters[k].value for k in names]), res.solver.iterations, res.solver.compiled
+        return (np.array([res.parameters[k].value for k in names]), res.solver.iterations, res.solver.compiled,
+                res.solver.timings["solve"])
     return fit
 
 
@@ -210,7 +213,7 @@ def setup_casadi(prob: dict):
 
     def fit(record: int):
         sol = solver(x0=np.ones(len(free)), p=params[record], lbx=0)
-        return np.asarray(sol["x"]).ravel() * scale, int(solver.stats()["iter_count"]), True
+        return np.asarray(sol["x"]).ravel() * scale, int(solver.stats()["iter_count"]), True, None
     return fit
 
 
@@ -253,13 +256,13 @@ def setup_jax(prob: dict, batched: bool = False):
 
         def fit_all(_record: int):
             value, steps = jax.block_until_ready(compiled(ys, ws))
-            return np.asarray(value) * scale, int(np.max(steps)), compile_cpu
+            return np.asarray(value) * scale, int(np.max(steps)), compile_cpu, None
         return fit_all
     compiled = jax.jit(solve).lower(ys[0], ws[0]).compile()
 
     def fit(record: int):
         value, steps = jax.block_until_ready(compiled(ys[record], ws[record]))
-        return np.asarray(value) * scale, int(steps), True
+        return np.asarray(value) * scale, int(steps), True, None
     return fit
 
 
@@ -268,7 +271,7 @@ def setup_casadi_loop(prob: dict):
 
     def fit_all(_record: int):
         out = [fit_one(r) for r in range(len(prob["y"]))]
-        return np.array([o[0] for o in out]), max(o[1] for o in out), True
+        return np.array([o[0] for o in out]), max(o[1] for o in out), True, None
     return fit_all
 
 
@@ -305,8 +308,8 @@ def tool_process(tool: str, path: str, cache: str, conn) -> None:
     while conn.recv() == "fit":
         record = (record + 1) % len(prob["y"])
         c0, w0 = time.process_time(), time.perf_counter()
-        value, iters, compiled = fit(record)
-        conn.send((time.perf_counter() - w0, time.process_time() - c0, value, iters, compiled, record))
+        value, iters, compiled, solve = fit(record)
+        conn.send((time.perf_counter() - w0, time.process_time() - c0, value, iters, compiled, record, solve))
     conn.send(peak_rss_mb())
 
 
@@ -365,8 +368,9 @@ class JobsRunner:
         results = self.client.get(f"/v1/jobs/{job_id}/results").json()["results"]
         names = ["c", "k"]
         values = np.array([[r["result"]["parameters"][k]["value"] for k in names] for r in results])
-        return job["finished_at"] - t0, server + workers, values, max(r["result"]["solver"]["iterations"]
-                                                                       for r in results)
+        return (job["finished_at"] - t0, server + workers, values,
+                max(r["result"]["solver"]["iterations"] for r in results),
+                sum(r["result"]["solver"]["timings"]["solve"] for r in results))
 
     def close(self) -> None:
         from tests.servers import stop_server
@@ -541,8 +545,8 @@ def run_problem(key: str, args, with_jax: bool, tmp: str) -> dict:
             rows["greyfit jobs API, 2 workers"].append(runner.fit())
         for n, (_proc, conn, _cold) in procs.items():
             conn.send("fit")
-            wall, cpu, value, iters, _compiled, _record = conn.recv()
-            rows[n].append((wall, cpu, value, iters))
+            wall, cpu, value, iters, _compiled, _record, solve = conn.recv()
+            rows[n].append((wall, cpu, value, iters, solve))
     load_after = os.getloadavg()
     peak, cold = {}, {}
     for n, (proc, conn, first) in procs.items():
@@ -568,7 +572,8 @@ def report(key: str, out: dict) -> list[str]:
              f"sensitivity {floor['sensitivity']}, JᵀJ+Jᵀr {floor['accumulate']} ops per sample) at "
              f"{floor['rate'] / 1e9:.2f} GFLOP/s = {1e3 * floor['seconds']:.3f} ms"]
     lines.append(f"  {'tool':28s} {'CPU ms':>9s} {'wall ms':>9s} {'/best peer':>10s} {'iter':>4s} "
-                 f"{'err vs truth':>12s} {'vs CasADi':>9s} {'x floor/it':>10s} {'peak MB':>8s} {'first fit s':>11s}")
+                 f"{'err vs truth':>12s} {'vs CasADi':>9s} {'x floor/it':>10s} {'peak MB':>8s} {'first fit s':>11s} "
+                 f"{'solve ms':>8s} {'solve/best peer':>15s}")
     for n, rs in rows.items():
         values = [np.atleast_2d(r[2]) for r in rs]
         err = max(float(np.median(np.max(np.abs(v / truth - 1), axis=1))) for v in values)
@@ -583,8 +588,13 @@ def report(key: str, out: dict) -> list[str]:
         if n == "JAX vmap LM" and first:
             first_txt += f"  (compile {first[2]:.1f} s CPU)"
         mem = f"{out['peak'][n]:8.0f}" if n in out["peak"] else f"{'':8s}"
+        solves = [r[4] for r in rs if r[4] is not None]
+        solve_txt = ""
+        if solves:   # greyfit's solve stage (wall), its checks apart: the peers' whole fit is a solve
+            solve = float(np.median(solves))
+            solve_txt = f" {1e3 * solve:8.1f}" + (f" {solve / min(peers):15.2f}" if peers else "")
         lines.append(f"  {n:28s} {1e3 * cpu[n]:9.1f} {1e3 * wall:9.1f} {best} {iters:4d} {err:12.2e} "
-                     f"{agree:9.1e} {per_iter / floor['seconds']:10.1f} {mem} {first_txt}")
+                     f"{agree:9.1e} {per_iter / floor['seconds']:10.1f} {mem} {first_txt:11s}{solve_txt}".rstrip())
     starts = out.get("starts")
     if starts and "greyfit default interpreted" in rows:
         warm = float(np.median([r[0] for r in rows["greyfit default interpreted"]]))
@@ -616,7 +626,9 @@ def main() -> None:
             print("\n".join(report(key, run_problem(key, args, with_jax, tmp))), flush=True)
     print("err vs truth: largest relative parameter error (problem e: median over the fits); vs CasADi: the "
           "largest relative difference from the hand-written CasADi optimum; x floor/it: CPU per iteration over "
-          "the floor of one Gauss-Newton iteration; problem e's CPU: server + workers for greyfit, all fits.")
+          "the floor of one Gauss-Newton iteration; problem e's CPU: server + workers for greyfit, all fits; "
+          "solve ms: greyfit's solve stage alone (solver.timings, wall; problem e: all fits' summed), the checks "
+          "and diagnostics apart, over the better peer's whole CPU.")
 
 
 if __name__ == "__main__":

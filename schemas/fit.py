@@ -226,6 +226,14 @@ class SolverInfo(BaseModel):
     starts_at_best: Optional[int] = Field(
         default=None, description="multistart: how many starts reached the best cost (relative 1e-6); "
         "null for a single start")
+    timings: dict[str, float] = Field(
+        default_factory=dict, description="wall time of the whole call per stage, in seconds: prepare (compile "
+        "the model, read the records, choose the method and substeps, build the problem), checks_before (the "
+        "checks at the start guess and of the inputs), solve (Ipopt and the model's compiled "
+        "functions, every start and retry), diagnostics (the Jacobian at the estimates, the residual analyses, "
+        "the covariance, profiles), checks_after (the verdict: the input reading, the step check, the "
+        "lack-of-fit screen), validation (the validation records' simulation), other; they add up to the "
+        "call's wall time. wall_time_s is the time to the result without the checks after it")
 
 
 class ResidualTest(BaseModel):

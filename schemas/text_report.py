@@ -47,6 +47,27 @@ def level_percent(level: float) -> str:
     return f"{100 * level:.4g} %"
 
 
+def timings_text(timings: dict[str, float]) -> str:
+    """A fit's wall time and its stages (`SolverInfo.timings`) on one line, the empty ones left out.
+
+    Parameters
+    ----------
+    timings : dict of str to float
+        Stage -> seconds.
+
+    Returns
+    -------
+    str
+        E.g. "48 ms: prepare 4.1, checks before 4.9, solve 28, diagnostics 3.0, checks after 8.0".
+    """
+    total = sum(timings.values())
+    unit, scale = ("s", 1.0) if total >= 1 else ("ms", 1e3)
+    parts = [f"{name.replace('_', ' ')} {scale * v:{'.2g' if scale * v < 10 else '.0f'}}"
+             for name, v in timings.items() if scale * v >= 0.05]
+    head = f"{scale * total:.3g} {unit}"
+    return head + (": " + ", ".join(parts) if parts else "")
+
+
 def _num(value: Optional[float], fmt: str = ".6g") -> str:
     return "-" if value is None else format(value, fmt)
 
@@ -75,6 +96,7 @@ def _header(result: "FitResult") -> list[str]:
               f"{INDENT}verdict:      {verdict(result)}",
               f"{INDENT}solver:       {s.return_status}, {s.iterations} iterations, {s.starts} start(s), "
               f"{s.wall_time_s:.2f} s",
+              *([f"{INDENT}time:         {timings_text(s.timings)}"] if s.timings else []),
               f"{INDENT}data points:  {m.ndata}",
               f"{INDENT}variables:    {m.nvarys} (free parameters and estimated initial states)",
               f"{INDENT}cost:         {_num(m.cost, '.6g')}",

@@ -10,7 +10,7 @@ from greyfit.schemas.discovery import DiscoveryResult
 from greyfit.schemas.fit import FitResult
 from greyfit.schemas.frequency import TransferFunctionModel
 from greyfit.schemas.model import Model
-from greyfit.schemas.text_report import converged, effective_quality, level_percent
+from greyfit.schemas.text_report import converged, effective_quality, level_percent, timings_text
 
 
 def _e(text) -> str:
@@ -39,7 +39,12 @@ def verdict_html(fit: FitResult) -> str:
     return (f'<p class="verdict quality-{quality}" data-quality="{quality}" data-converged="{flag}">'
             f"<b>{state}</b>, quality <b>{quality}</b>{reasons}<br>"
             f"{_e(fit.message)} ({_e(fit.solver.method.value)}, {fit.solver.return_status}, "
-            f"{fit.solver.iterations} iterations){_choice_html(fit)}</p>")
+            f"{fit.solver.iterations} iterations){_choice_html(fit)}{_timings_html(fit)}</p>")
+
+
+def _timings_html(fit: FitResult) -> str:
+    timings = fit.solver.timings
+    return f"<br>time: {_e(timings_text(timings))}" if timings else ""
 
 
 def _choice_html(fit: FitResult) -> str:

@@ -65,6 +65,7 @@ from greyfit.solvers.model.compiler import compile_model, guard_notes
 from greyfit.solvers.model.parameters import ParameterLayout, build_layout
 from greyfit.solvers.nlp.solver import NlpOutcome
 from greyfit.solvers.simulation.validate import validate_fit
+from greyfit.solvers.timing import stage, timed_fit
 
 __all__ = ["fit_model", "draw_starts", "Residuals"]
 
@@ -109,36 +110,47 @@ def fit_model(request: FitRequest) -> FitResult:
     """
     keep_heap()   # once per process: a fit's arrays reuse the last fit's pages (docs/deployment.md)
     online = online_method(request.method)
-    if online is not None:
-        return attach_model(online.fit(request), request.model)
-    with prepared_once():   # the solve, the checks and the screen share the records' arrays
-        return _fit_offline(request)
+    with timed_fit() as watch:
+        if online is not None:
+            with stage("solve"):
+                result = attach_model(online.fit(request), request.model)
+        else:
+            with prepared_once():   # the solve, the checks and the screen share the records' arrays
+                result = _fit_offline(request)
+    result.solver.timings = watch.report()
+    return result
 
 
 def _fit_offline(request: FitRequest) -> FitResult:
     cpu0, started = time.process_time(), time.perf_counter()
-    prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
+    with stage("prepare"):
+        prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
     result = _fit_chosen(prepared, cpu0)
     # from here on the request names the method that ran: the checks after the fit ask it
     prepared = prepared.model_copy(update={"method": result.solver.method})
-    retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
+    with stage("checks_after"):
+        retry = substeps_retry(prepared, result.model_copy(update={"preprocessing": preprocessing}))
     retry = _with_cpu_left(retry, request.options.max_cpu_time - (time.process_time() - cpu0))
     if retry is not None:   # the chosen substeps proved coarse at the estimates: once more, finer
         (prepared, preprocessing), result = retry, _refit(retry[0], result)
         result.solver.wall_time_s = time.perf_counter() - started   # the user waited for both
     given = "substeps" in request.options.model_fields_set
-    retry, late = cubic_retry(prepared, result, preprocessing, given)
+    with stage("checks_after"):
+        retry, late = cubic_retry(prepared, result, preprocessing, given)
     retry = _with_cpu_left(retry, request.options.max_cpu_time - (time.process_time() - cpu0))
     if retry is not None:   # smooth inputs read as ramps moved the estimates: once more, read as cubics
         (prepared, preprocessing), result = retry, _refit(retry[0], result)
         result.solver.wall_time_s = time.perf_counter() - started
     if prepared.validation:
-        result.validation = validate_fit(prepared, result)
+        with stage("validation"):
+            result.validation = validate_fit(prepared, result)
     result.preprocessing = preprocessing
     if preprocessing is not None and preprocessing.input_refinement:
         thin_traces(result, preprocessing.input_refinement)
     # lack of fit and input handling in the verdict; units and the model travel with the result
-    return attach_model(review_fit(prepared, result, late), request.model)
+    with stage("checks_after"):
+        result = review_fit(prepared, result, late)
+    return attach_model(result, request.model)
 
 
 def _with_cpu_left(retry, left: float):
@@ -213,32 +225,52 @@ def _fit_chosen(request: FitRequest, cpu0: float) -> FitResult:
 def _fit_prepared(request: FitRequest) -> FitResult:
     started, cpu0 = time.perf_counter(), time.process_time()
     opts = request.options
-    # prepare
-    cm = compile_model(request.model)
-    data = prepare_experiments(request.experiments, cm)
-    ext = prepare_batch(request, cm, data)   # discrete-time checks, prefilter, time-varying parameters
-    cm, data = ext.cm, ext.data
-    layout = build_layout(ext.model, [d.name for d in data])
-    if layout.size == 0:   # nothing to estimate: a simulation, reported like a fit
-        return _fixed_parameters(request, cm, data, layout, started)
-    unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
-    if unknown_w:
-        raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",
-                        f"options.output_weights.{unknown_w[0]}")
-    starts = draw_starts(layout, opts.multistart, opts.seed)
-    check_profile_names(opts.profile, list(layout.labels))
-    # build
-    built = batch_method(request.method).build(cm, data, layout, opts)
-    problem = built.problem
-    ext.attach(problem, layout)
-    if built.eep is not None:
-        built.affine_solve = ext.solve_affine
-    before = pre_fit_warnings(cm, data, layout, opts, problem, built.eep, built.oem) + guard_notes(cm)
-    # solve over the starts
-    outcome, n_starts, is_c = built.solve(starts, opts, cpu0)
+    with stage("prepare"):
+        cm = compile_model(request.model)
+        data = prepare_experiments(request.experiments, cm)
+        ext = prepare_batch(request, cm, data)   # discrete-time checks, prefilter, time-varying parameters
+        cm, data = ext.cm, ext.data
+        layout = build_layout(ext.model, [d.name for d in data])
+        if layout.size == 0:   # nothing to estimate: a simulation, reported like a fit
+            return _fixed_parameters(request, cm, data, layout, started)
+        unknown_w = sorted(set(opts.output_weights) - set(cm.outputs))
+        if unknown_w:
+            raise DataError(f"'{unknown_w[0]}' is not an output (outputs: {cm.outputs})",
+                            f"options.output_weights.{unknown_w[0]}")
+        starts = draw_starts(layout, opts.multistart, opts.seed)
+        check_profile_names(opts.profile, list(layout.labels))
+        # build (for auto, the method choice)
+        built = batch_method(request.method).build(cm, data, layout, opts)
+        problem = built.problem
+        ext.attach(problem, layout)
+        if built.eep is not None:
+            built.affine_solve = ext.solve_affine
+    with stage("checks_before"):
+        before = pre_fit_warnings(cm, data, layout, opts, problem, built.eep, built.oem) + guard_notes(cm)
+    with stage("solve"):   # over the starts
+        outcome, n_starts, is_c = built.solve(starts, opts, cpu0)
+    with stage("diagnostics"):
+        result, jp, keep, cov, channels, x0s, before = _diagnosed(
+            request, cm, data, ext, layout, built, outcome, before, n_starts, is_c, started)
+    with stage("checks_after"):
+        # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
+        size = np.maximum(np.abs(jp.values) / jp.scale, 1.0)
+        params_kept = keep & (np.arange(keep.size) < layout.size)
+        return assess_fit(result, _quality_inputs(result, outcome, request, cov, (jp.jac * size)[:, params_kept],
+                                                  jp.labels, params_kept, channels, built.oem, layout,
+                                                  outcome.w[:layout.size], x0s, before, opts))
+
+
+def _diagnosed(request: FitRequest, cm, data, ext, layout: ParameterLayout, built: BatchFit, outcome: NlpOutcome,
+               before: list, n_starts: int, is_c: bool | None, started: float):
+    """A solve's result before its verdict: estimates, covariance, residual analyses, profiles.
+
+    Returns (the result, the Jacobian at the estimates, which of its columns are free, the
+    covariance, the residual channels, the initial states, the pre-fit warnings with the
+    equation-error bias check's and the multistart agreement's added)."""
+    opts, problem = request.options, built.problem
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
         outcome.w, outcome.success = problem.initial_guess(layout.initial), False
-    # result
     theta_s = outcome.w[:layout.size]
     theta = layout.physical(theta_s)
     bounds = _at_bound(layout, theta_s)
@@ -267,15 +299,9 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     if agree is not None:
         result.solver.starts_at_best = agree.starts_at_best
         result.alternative_optima = agree.optima or None
-    # checks
     result.profile = run_profiles(problem, opts, outcome, layout, ndata, nvarys, cov)
     result = ext.finish(result, layout, theta, cov)
-    # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
-    size = np.maximum(np.abs(jp.values) / jp.scale, 1.0)
-    params_kept = keep & (np.arange(keep.size) < layout.size)
-    return assess_fit(result, _quality_inputs(result, outcome, request, cov, (jp.jac * size)[:, params_kept],
-                                              jp.labels, params_kept, channels, built.oem, layout, theta_s,
-                                              x0s, before, opts))
+    return result, jp, keep, cov, channels, x0s, before
 
 
 def _fixed_parameters(request: FitRequest, cm, data, layout: ParameterLayout, started: float) -> FitResult:

@@ -18,18 +18,20 @@ a refit cut there is `cpu_limit`, no verdict.
 from __future__ import annotations
 
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
+
+from greyfit.solvers.timing import Stopwatch
 
 PHASES = ("base_fit", "screening", "refits", "validation")
 
 
 class Clock:
+    """The discovery request's stopwatch (wall time per phase, `PHASES`) and its CPU budget."""
+
     def __init__(self, budget_s: float):
-        self.started = time.perf_counter()
+        self.watch = Stopwatch(PHASES)
         self.cpu_started = time.process_time()
         self.budget_s = budget_s
-        self.phases = {p: 0.0 for p in PHASES}
         self.exhausted = False
 
     def elapsed(self) -> float:
@@ -40,7 +42,7 @@ class Clock:
         float
             Seconds.
         """
-        return time.perf_counter() - self.started
+        return self.watch.elapsed()
 
     def cpu(self) -> float:
         """CPU time of this process since the clock was made (what the budget counts).
@@ -75,38 +77,31 @@ class Clock:
             return False
         return True
 
-    @contextmanager
     def phase(self, name: str):
-        """Context manager that adds the wall time of its block to phase `name`.
+        """Context manager that adds the wall time of its block to phase `name` (a phase inside
+        another counts for the inner one only).
 
         Parameters
         ----------
         name : str
             One of `PHASES` (another name starts a new entry).
 
-        Yields
-        ------
-        None
-            The block runs timed; its time is added even when it raises.
+        Returns
+        -------
+        contextlib.AbstractContextManager
+            The timed block's context (`Stopwatch.stage`).
         """
-        t0 = time.perf_counter()
-        try:
-            yield
-        finally:
-            self.phases[name] = self.phases.get(name, 0.0) + time.perf_counter() - t0
+        return self.watch.stage(name)
 
     def report(self) -> dict[str, float]:
-        """Seconds per phase, and the rest as "other".
+        """Seconds per phase, and the rest as "other" (`Stopwatch.report`).
 
         Returns
         -------
         dict of str to float
             Phase name to seconds (rounded to 0.1 ms), plus "other": elapsed time outside the phases.
         """
-        total = self.elapsed()
-        out = {k: round(v, 4) for k, v in self.phases.items()}
-        out["other"] = round(max(total - sum(self.phases.values()), 0.0), 4)
-        return out
+        return self.watch.report()
 
 
 CONTENDER_ITER_FACTOR = 3      # a contender's iterations: at most this many times the leader's ...

@@ -1,0 +1,71 @@
+"""Where a fit's time goes (`solver.timings`): the stopwatch's accounting on a clock the test
+drives, and a real fit's stages: every one present, the solve and the checks non-zero, the sum the
+call's wall time, the watch gone after the call."""
+import time
+
+import numpy as np
+import pytest
+
+import greyfit
+from greyfit.schemas.text_report import fit_report, timings_text
+from greyfit.solvers import timing
+from greyfit.solvers.timing import FIT_STAGES, Stopwatch
+from tests.servers import msd_request
+from tests.systems import MSD_TRUTH
+
+
+class _Ticks:
+    """perf_counter for the test: the time moves only when the test says so."""
+
+    def __init__(self):
+        self.now = 100.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def test_stopwatch_counts_a_nested_stage_for_the_inner_one_only(monkeypatch):
+    ticks = _Ticks()
+    monkeypatch.setattr(timing.time, "perf_counter", ticks)
+    watch = Stopwatch(("a", "b"))
+    ticks.now += 1.0                # outside any stage: other
+    with watch.stage("a"):
+        ticks.now += 2.0
+        with watch.stage("b"):
+            ticks.now += 3.0
+        ticks.now += 4.0
+        with pytest.raises(ValueError), watch.stage("b"):   # a stage that raises still counts
+            ticks.now += 0.5
+            raise ValueError
+    ticks.now += 0.25
+    assert watch.report() == {"a": 6.0, "b": 3.5, "other": 1.25}
+    assert sum(watch.report().values()) == watch.elapsed() == 10.75
+
+
+def test_a_fit_reports_its_stages_adding_up_to_the_call():
+    request = greyfit.FitRequest.model_validate({**msd_request(0), "method": "auto"})
+    greyfit.fit(request)   # the model's functions built: the second call is a warm fit
+    t0 = time.perf_counter()
+    result = greyfit.fit(request)
+    wall = time.perf_counter() - t0
+    timings = result.solver.timings
+    assert list(timings) == [*FIT_STAGES, "other"]
+    assert all(v >= 0 for v in timings.values())
+    assert timings["solve"] > 0 and timings["prepare"] > 0 and timings["checks_after"] > 0
+    assert timings["validation"] == 0                      # no validation record
+    # the stages are the whole call, less its few statements around the watch (a bound that
+    # a preempted machine cannot break: those statements take microseconds of a 10 ms fit)
+    assert 0.5 * wall <= sum(timings.values()) <= wall + 0.001
+    assert timings["other"] < 0.5 * sum(timings.values())   # the stages, not the glue, hold the time
+    assert timing._WATCH.get() is None                     # the fit's watch ends with the fit
+    for name, true in MSD_TRUTH.items():   # the fit the stages timed is the right one (m is fixed at its truth)
+        assert np.isclose(result.parameters[name].value, true, rtol=0.02)
+    text = fit_report(result)
+    assert "time:" in text and "solve" in text
+
+
+def test_timings_text_names_the_stages_and_leaves_the_empty_ones_out():
+    line = timings_text({"prepare": 0.0041, "checks_before": 0.0, "solve": 0.0283, "checks_after": 0.012,
+                         "other": 0.00001})
+    assert line == "44.4 ms: prepare 4.1, solve 28, checks after 12"
+    assert timings_text({"solve": 2.5, "prepare": 0.4}) == "2.9 s: solve 2.5, prepare 0.4"

@@ -430,38 +430,53 @@ int main(void) {
 """
 
 
-def measured_rate(prob: dict, sens, samples: int = 2_000_000, repeats: int = 5) -> float:
-    """FLOP/s of the per-sample sensitivity kernel, generated as C by CasADi and compiled gcc -O3,
-    looped over `samples` chained samples by a plain C driver (no CasADi machinery between samples);
-    the inputs' sines are the driver's, outside the count. Median of `repeats` runs, CPU time."""
+def floor_program(prob: dict, sens, folder: str, samples: int = 2_000_000) -> str:
+    """A program that prints the CPU seconds per sample of the per-sample sensitivity kernel,
+    generated as C by CasADi and compiled gcc -O3, looped over `samples` chained samples by a plain C
+    driver (no CasADi machinery between samples); the inputs' sines are the driver's, outside the
+    count. Returns its path (in `folder`)."""
     import casadi as ca
     theta = ", ".join(repr(float(v)) for v in prob["start"][prob["free"]])
     sizes = dict(NX=len(prob["x0"]), NF=len(prob["free"]), NU=len(prob["u"]), SZ_W=sens.sz_w(), SZ_IW=sens.sz_iw(),
                  SZ_ARG=sens.sz_arg(), SZ_RES=sens.sz_res(), SAMPLES=samples)
-    with tempfile.TemporaryDirectory() as tmp:
-        cg = ca.CodeGenerator("kernel.c")
-        cg.add(sens)
-        cg.generate(tmp + os.sep)
-        driver = DRIVER.replace("THETA", theta)
-        for k, v in sizes.items():
-            driver = driver.replace(k, str(v))
-        header = "#define casadi_real double\n#define casadi_int long long int\n"
-        Path(tmp, "driver.c").write_text(header + driver)
-        exe = os.path.join(tmp, "floor")
-        subprocess.run(["gcc", "-O3", os.path.join(tmp, "kernel.c"), os.path.join(tmp, "driver.c"), "-lm", "-o", exe],
-                       check=True)
-        per_sample = [float(subprocess.run([exe], check=True, capture_output=True, text=True).stdout.split()[0])
-                      for _ in range(repeats)]
-    return count_ops(sens) / float(np.median(per_sample))
+    cg = ca.CodeGenerator("kernel.c")
+    cg.add(sens)
+    cg.generate(folder + os.sep)
+    driver = DRIVER.replace("THETA", theta)
+    for k, v in sizes.items():
+        driver = driver.replace(k, str(v))
+    header = "#define casadi_real double\n#define casadi_int long long int\n"
+    Path(folder, "driver.c").write_text(header + driver)
+    exe = os.path.join(folder, "floor")
+    subprocess.run(["gcc", "-O3", os.path.join(folder, "kernel.c"), os.path.join(folder, "driver.c"), "-lm", "-o", exe],
+                   check=True)
+    return exe
 
 
-def arithmetic_floor(prob: dict) -> dict:
-    step, sens, accumulate = floor_kernels(prob)
-    n_step, n_sens = count_ops(step), count_ops(sens)
-    rate = measured_rate(prob, sens)
-    flops = prob["y"].shape[2] * (n_sens + accumulate)
-    return dict(step=n_step, sensitivity=n_sens - n_step, accumulate=accumulate, flops=flops, rate=rate,
-                seconds=flops / rate)
+def floor_seconds_per_sample(exe: str) -> float:
+    """One run of `floor_program`'s program: CPU seconds per sample."""
+    return float(subprocess.run([exe], check=True, capture_output=True, text=True).stdout.split()[0])
+
+
+class Floor:
+    """The arithmetic floor of one Gauss-Newton iteration: the kernels' operation count, and the rate
+    the sensitivity kernel runs at, measured once per round of the benchmark (beside the tools, so
+    the machine's drift through a run moves the floor as it moves them); the median rate counts."""
+
+    def __init__(self, prob: dict, folder: str):
+        step, sens, self.accumulate = floor_kernels(prob)
+        self.n_step, self.n_sens = count_ops(step), count_ops(sens)
+        self.flops = prob["y"].shape[2] * (self.n_sens + self.accumulate)
+        self.exe = floor_program(prob, sens, folder)
+        self.per_sample: list[float] = []
+
+    def measure(self) -> None:
+        self.per_sample.append(floor_seconds_per_sample(self.exe))
+
+    def result(self) -> dict:
+        rate = self.n_sens / float(np.median(self.per_sample))
+        return dict(step=self.n_step, sensitivity=self.n_sens - self.n_step, accumulate=self.accumulate,
+                    flops=self.flops, rate=rate, seconds=self.flops / rate, runs=len(self.per_sample))
 
 
 # --- the run ---------------------------------------------------------------------------------------
@@ -538,6 +553,9 @@ def run_problem(key: str, args, with_jax: bool, tmp: str) -> dict:
     names = tools_for(key, with_jax)
     procs = {n: start_tool(n, path, os.path.join(tmp, f"cache-{key}-{i}")) for i, n in enumerate(names)}
     runner = JobsRunner(prob) if key == "e" else None
+    floor_dir = os.path.join(tmp, f"floor-{key}")
+    os.makedirs(floor_dir, exist_ok=True)
+    floor = Floor(prob, floor_dir)
     rows: dict[str, list] = {n: [] for n in (["greyfit jobs API, 2 workers"] if runner else []) + names}
     load_before = os.getloadavg()
     for _ in range(args.repeats):   # ABAB: every tool once per round, the same order each round
@@ -547,6 +565,7 @@ def run_problem(key: str, args, with_jax: bool, tmp: str) -> dict:
             conn.send("fit")
             wall, cpu, value, iters, _compiled, _record, solve = conn.recv()
             rows[n].append((wall, cpu, value, iters, solve))
+        floor.measure()
     load_after = os.getloadavg()
     peak, cold = {}, {}
     for n, (proc, conn, first) in procs.items():
@@ -557,7 +576,7 @@ def run_problem(key: str, args, with_jax: bool, tmp: str) -> dict:
         runner.close()
     starts = cold_starts(path, tmp, args.cold) if key == "b" and args.cold else {}
     return dict(prob=prob, rows=rows, peak=peak, cold=cold, load=(load_before, load_after),
-                floor=arithmetic_floor(prob), starts=starts)
+                floor=floor.result(), starts=starts)
 
 
 def report(key: str, out: dict) -> list[str]:
@@ -570,7 +589,8 @@ def report(key: str, out: dict) -> list[str]:
     lines = [f"({key}) {TITLES[key]}: load average {out['load'][0][0]:.2f} before, {out['load'][1][0]:.2f} after; "
              f"floor {floor['flops'] / 1e6:.2f} MFLOP per Gauss-Newton iteration (step {floor['step']}, "
              f"sensitivity {floor['sensitivity']}, JᵀJ+Jᵀr {floor['accumulate']} ops per sample) at "
-             f"{floor['rate'] / 1e9:.2f} GFLOP/s = {1e3 * floor['seconds']:.3f} ms"]
+             f"{floor['rate'] / 1e9:.2f} GFLOP/s (median of {floor['runs']} runs, one per round) = "
+             f"{1e3 * floor['seconds']:.3f} ms"]
     lines.append(f"  {'tool':28s} {'CPU ms':>9s} {'wall ms':>9s} {'/best peer':>10s} {'iter':>4s} "
                  f"{'err vs truth':>12s} {'vs CasADi':>9s} {'x floor/it':>10s} {'peak MB':>8s} {'first fit s':>11s} "
                  f"{'solve ms':>8s} {'solve/best peer':>15s}")

@@ -21,6 +21,7 @@ import numpy as np
 from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.solvers.checks.lack_of_fit import negligible_residual
 from greyfit.solvers.checks.quality import noise_level
+from greyfit.solvers.data.experiments import series_array
 from greyfit.solvers.methods.registry import method_family
 
 Z = 4.0
@@ -35,7 +36,7 @@ def _bound(*terms: float) -> float:
 
 
 def _series(values) -> np.ndarray:
-    return np.array(values, dtype=float)   # None (a missing sample) becomes NaN
+    return series_array(values)   # None (a missing sample) becomes NaN
 
 
 def _warning(output: str, test: str, ratio: float, bound: float, noise: float, rmse: float, what: str,

@@ -52,10 +52,40 @@ class ExperimentData:
         return np.isfinite(self.y)
 
 
+def series_array(values) -> np.ndarray:
+    """A request's series (a list; None for a missing sample) as a float array, NaN where missing.
+
+    Within `prepared_once` each list is converted once and the array shared, read-only: a fit reads
+    a record's series for the input check, the arrays of its solve and the noise-level check, and
+    converting a 200 000-sample list costs ~5 ms each time.
+
+    Parameters
+    ----------
+    values : sequence of float or None
+        The series as received.
+
+    Returns
+    -------
+    numpy.ndarray
+        Shape (len(values),); read-only within `prepared_once`.
+    """
+    shared = _PREPARED.get()
+    if shared is None:
+        return np.array(values, dtype=float)
+    key = ("series", id(values))
+    hit = shared.get(key)
+    if hit is not None and hit[0] is values:   # the entry holds the list: its id is not reused meanwhile
+        return hit[1]
+    arr = np.array(values, dtype=float)
+    arr.flags.writeable = False
+    shared[key] = (values, arr)
+    return arr
+
+
 def _series(values, where: str, n: int, allow_missing: bool) -> np.ndarray:
     if len(values) != n:
         raise DataError(f"{len(values)} values, time has {n}; give one value per time sample", where)
-    arr = np.array(values, dtype=float)   # None becomes NaN
+    arr = series_array(values)   # None becomes NaN
     if arr.size and np.max(np.abs(arr)) <= MAX_ABS_VALUE:   # complete and in range: nothing to report
         return arr
     finite = np.isfinite(arr)
@@ -102,7 +132,7 @@ def prepare_experiment(exp: Experiment, cm: CompiledModel, index: int) -> Experi
         unknown or non-finite initial state; a derivative of an unknown state.
     """
     base = f"experiments[{index}]"
-    t = np.asarray(exp.time, dtype=float)
+    t = series_array(exp.time)
     if not np.all(np.isfinite(t)):
         i = int(np.flatnonzero(~np.isfinite(t))[0])
         raise DataError(f"time[{i}] is not a finite number", f"{base}.time")

@@ -10,6 +10,7 @@ import numpy as np
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.fit import FitOptions
 from greyfit.schemas.preprocess import ExperimentPreprocessing, Hint, PreprocessingReport
+from greyfit.solvers.data.experiments import series_array
 from greyfit.solvers.errors import DataError
 
 FIR_TAPS_PER_FACTOR = 20   # scipy.signal.decimate(ftype="fir") uses the same order, 20 q
@@ -218,7 +219,7 @@ def held_inputs(experiments: list[Experiment]) -> dict[str, tuple[bool, float]]:
     held: dict[str, tuple[bool, float]] = {}
     for exp in experiments:
         for name, values in exp.inputs.items():
-            u = np.array(values, dtype=float)   # None becomes NaN
+            u = series_array(values)   # None becomes NaN
             looks = looks_piecewise_constant(u)
             was, variation = held.get(name, (True, 0.0))
             held[name] = (was and looks, variation + _variation(u))

@@ -11,7 +11,7 @@ then on the request names the method that ran.
 from __future__ import annotations
 
 import time
-from typing import Literal
+from typing import Literal, NamedTuple
 
 import numpy as np
 
@@ -22,6 +22,7 @@ from greyfit.schemas.fit import (
     FitMetrics,
     FitRequest,
     FitResult,
+    FitWarning,
     MethodChoice,
     ParameterEstimate,
     SolverInfo,
@@ -44,10 +45,10 @@ from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.data.refine import DEFAULT_FACTOR, refine_request, thin_traces
 from greyfit.solvers.dynamics.heap import keep_heap
 from greyfit.solvers.errors import DataError
-from greyfit.solvers.inference.covariance import correlation_from, estimate_covariance
+from greyfit.solvers.inference.covariance import CovarianceEstimate, correlation_from, estimate_covariance
 from greyfit.solvers.inference.profile import check_profile_names, run_profiles
 from greyfit.solvers.inference.statistics import information_criteria
-from greyfit.solvers.methods.batch import BatchFit, Residuals
+from greyfit.solvers.methods.batch import BatchFit, Jacobian, Residuals
 from greyfit.solvers.methods.equation_error_bias import equation_error_bias_warnings
 from greyfit.solvers.methods.extensions import prepare_batch
 from greyfit.solvers.methods.fixed_fit import fixed_parameter_result
@@ -250,24 +251,33 @@ def _fit_prepared(request: FitRequest) -> FitResult:
     with stage("solve"):   # over the starts
         outcome, n_starts, is_c = built.solve(starts, opts, cpu0)
     with stage("diagnostics"):
-        result, jp, keep, cov, channels, x0s, before = _diagnosed(
-            request, cm, data, ext, layout, built, outcome, before, n_starts, is_c, started)
+        d = _diagnosed(request, cm, data, ext, layout, built, outcome, before, n_starts, is_c, started)
     with stage("checks_after"):
         # parameter columns, rescaled to a 100 % change of the estimate (at least of its initial scale)
+        jp = d.jacobian
         size = np.maximum(np.abs(jp.values) / jp.scale, 1.0)
-        params_kept = keep & (np.arange(keep.size) < layout.size)
-        return assess_fit(result, _quality_inputs(result, outcome, request, cov, (jp.jac * size)[:, params_kept],
-                                                  jp.labels, params_kept, channels, built.oem, layout,
-                                                  outcome.w[:layout.size], x0s, before, opts))
+        params_kept = d.free & (np.arange(d.free.size) < layout.size)
+        return assess_fit(d.result, _quality_inputs(d.result, outcome, request, d.covariance,
+                                                    (jp.jac * size)[:, params_kept], jp.labels, params_kept,
+                                                    d.channels, built.oem, layout, outcome.w[:layout.size],
+                                                    d.x0s, d.before, opts))
+
+
+class _Diagnosed(NamedTuple):
+    """A solve's result before its verdict, and what the verdict's checks read of it."""
+
+    result: FitResult
+    jacobian: Jacobian          # at the estimates
+    free: np.ndarray            # which of its columns are free (not at a bound)
+    covariance: CovarianceEstimate
+    channels: Residuals
+    x0s: list                   # per experiment, state -> initial value
+    before: list[FitWarning]    # the pre-fit warnings, the equation-error bias and multistart ones added
 
 
 def _diagnosed(request: FitRequest, cm, data, ext, layout: ParameterLayout, built: BatchFit, outcome: NlpOutcome,
-               before: list, n_starts: int, is_c: bool | None, started: float):
-    """A solve's result before its verdict: estimates, covariance, residual analyses, profiles.
-
-    Returns (the result, the Jacobian at the estimates, which of its columns are free, the
-    covariance, the residual channels, the initial states, the pre-fit warnings with the
-    equation-error bias check's and the multistart agreement's added)."""
+               before: list[FitWarning], n_starts: int, is_c: bool | None, started: float) -> _Diagnosed:
+    """A solve's result before its verdict: estimates, covariance, residual analyses, profiles."""
     opts, problem = request.options, built.problem
     if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
         outcome.w, outcome.success = problem.initial_guess(layout.initial), False
@@ -301,7 +311,7 @@ def _diagnosed(request: FitRequest, cm, data, ext, layout: ParameterLayout, buil
         result.alternative_optima = agree.optima or None
     result.profile = run_profiles(problem, opts, outcome, layout, ndata, nvarys, cov)
     result = ext.finish(result, layout, theta, cov)
-    return result, jp, keep, cov, channels, x0s, before
+    return _Diagnosed(result, jp, keep, cov, channels, x0s, before)
 
 
 def _fixed_parameters(request: FitRequest, cm, data, layout: ParameterLayout, started: float) -> FitResult:

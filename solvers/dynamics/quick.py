@@ -132,6 +132,23 @@ def _command(cc: str, source: Path, library: Path) -> list[str]:
             str(Path(carried[1]) / "libtcc1.a"), *libs, "-lm", "-o", str(library)]
 
 
+def goes_first(fn: ca.Function) -> bool:
+    """Whether a loop without a library should try the quick tier before asking for gcc's: not
+    where gcc's is on disk, nor where `always` builds it in the foreground now.
+
+    Parameters
+    ----------
+    fn : casadi.Function
+        The interpreted Function.
+
+    Returns
+    -------
+    bool
+        True where tcc's library would stand in while gcc's is built in the background.
+    """
+    return compiled.built(fn) is None and (compiled.mode() != "always" or compiled.compiler() is None)
+
+
 def pays(instructions: float, work: float) -> bool:
     """Whether interpreting `work` instructions (done and expected) of a Function of this size takes
     longer than building its quick library.

@@ -1,8 +1,7 @@
 """Where a fit's time goes (`solver.timings`): the stopwatch's accounting on a clock the test
-drives, and a real fit's stages: every one present, the solve and the checks non-zero, the sum the
-call's wall time, the watch gone after the call."""
-import time
-
+drives (a stage inside another counts for the inner one, the rest is "other"), and a real fit's
+stages: every one present and in order, the solve and the checks non-zero, the watch gone after the
+call. No assertion compares with the machine's clock."""
 import numpy as np
 import pytest
 
@@ -26,7 +25,7 @@ class _Ticks:
 
 def test_stopwatch_counts_a_nested_stage_for_the_inner_one_only(monkeypatch):
     ticks = _Ticks()
-    monkeypatch.setattr(timing.time, "perf_counter", ticks)
+    monkeypatch.setattr(timing, "_now", ticks)
     watch = Stopwatch(("a", "b"))
     ticks.now += 1.0                # outside any stage: other
     with watch.stage("a"):
@@ -42,21 +41,15 @@ def test_stopwatch_counts_a_nested_stage_for_the_inner_one_only(monkeypatch):
     assert sum(watch.report().values()) == watch.elapsed() == 10.75
 
 
-def test_a_fit_reports_its_stages_adding_up_to_the_call():
+def test_a_fit_reports_each_stage_it_passes_through():
     request = greyfit.FitRequest.model_validate({**msd_request(0), "method": "auto"})
     greyfit.fit(request)   # the model's functions built: the second call is a warm fit
-    t0 = time.perf_counter()
     result = greyfit.fit(request)
-    wall = time.perf_counter() - t0
     timings = result.solver.timings
     assert list(timings) == [*FIT_STAGES, "other"]
     assert all(v >= 0 for v in timings.values())
     assert timings["solve"] > 0 and timings["prepare"] > 0 and timings["checks_after"] > 0
     assert timings["validation"] == 0                      # no validation record
-    # the stages are the whole call, less its few statements around the watch (a bound that
-    # a preempted machine cannot break: those statements take microseconds of a 10 ms fit)
-    assert 0.5 * wall <= sum(timings.values()) <= wall + 0.001
-    assert timings["other"] < 0.5 * sum(timings.values())   # the stages, not the glue, hold the time
     assert timing._WATCH.get() is None                     # the fit's watch ends with the fit
     for name, true in MSD_TRUTH.items():   # the fit the stages timed is the right one (m is fixed at its truth)
         assert np.isclose(result.parameters[name].value, true, rtol=0.02)

@@ -30,8 +30,7 @@ import numpy as np
 
 from greyfit.solvers.dynamics import quick
 from greyfit.solvers.dynamics.columns import Fold
-from greyfit.solvers.dynamics.compiled import built as built_library
-from greyfit.solvers.dynamics.compiled import compiled, compiler, loaded
+from greyfit.solvers.dynamics.compiled import compiled, loaded
 from greyfit.solvers.dynamics.compiled import mode as compile_mode
 from greyfit.solvers.dynamics.integration import integrator_of
 from greyfit.solvers.methods.shooting import handover, single_pass
@@ -192,10 +191,10 @@ def _stage_functions(oem, samples: int, names: tuple[str, ...]) -> tuple[dict[st
     # until gcc's are built, tcc's stand in for all of them or none (an NLP half interpreted would
     # say neither), where their interpreted work together costs more than building them; built
     # first, so that gcc's background builds take their sources (`compiled.offer_source`)
-    missing = [n for n in names if loaded(blocks[n]) is None and built_library(blocks[n]) is None]
+    missing = [n for n in names if loaded(blocks[n]) is None and quick.goes_first(blocks[n])]
     single = [fns[n.removesuffix("_acc")].n_instructions() for n in missing]   # what tcc compiles
     stand_ins: dict[str, ca.Function | None] = {}
-    if missing and (compile_mode() != "always" or compiler() is None) and quick.quick_compiler() is not None \
+    if missing and quick.quick_compiler() is not None \
             and quick.pays(sum(single), sum(blocks[n].n_instructions() * work(n) for n in missing)):
         with ThreadPoolExecutor(max_workers=len(missing)) as pool:   # tcc runs outside the GIL
             stand_ins = dict(zip(missing, pool.map(lambda n: quick.quick_function(blocks[n]), missing)))

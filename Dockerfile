@@ -5,7 +5,9 @@ FROM python:3.11-slim
 # falls back to CasADi's interpreter, 2-3x slower on long records. (The Tiny C Compiler, which
 # compiles them in milliseconds for a new model's first fits while gcc builds, comes with the
 # `quick` extra below.)
-RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev \
+# tini runs as PID 1: it reaps the processes a killed fit worker leaves behind (its compilers), which a
+# server as PID 1 would leave as zombies, and the container ends with the server (its workers with it).
+RUN apt-get update && apt-get install -y --no-install-recommends gcc libc6-dev tini \
  && rm -rf /var/lib/apt/lists/*
 
 RUN useradd --create-home --uid 10001 greyfit && mkdir /data && chown greyfit /data
@@ -37,4 +39,5 @@ VOLUME ["/data"]
 EXPOSE 8000
 HEALTHCHECK --interval=30s --timeout=5s --start-period=20s --retries=3 \
   CMD .venv/bin/python -c "import urllib.request; urllib.request.urlopen('http://127.0.0.1:8000/healthz', timeout=4)"
+ENTRYPOINT ["/usr/bin/tini", "--"]
 CMD [".venv/bin/greyfit", "serve", "--host", "0.0.0.0", "--port", "8000"]

@@ -28,8 +28,10 @@ import signal
 import time
 from collections import deque
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any, Optional
 
+from greyfit.service.lifeline import WorkerRegistry, die_with_parent, start_process
 from greyfit.service.tasks import run_task
 
 Outcome = dict[str, Any]
@@ -57,8 +59,10 @@ def _take(msg, todo: deque, conn) -> bool:
     return True
 
 
-def _worker_main(conn, cpu_seconds: float) -> None:
+def _worker_main(conn, cpu_seconds: float, parent_pid: Optional[int] = None) -> None:
     """Loop of one local worker process: receive tasks, run each under a CPU-time limit, reply."""
+    if parent_pid is not None:
+        die_with_parent(parent_pid)   # a server killed with SIGKILL takes its workers with it
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the server, which stops us
     import greyfit.solvers.fit  # noqa: F401  (import CasADi once, not per task)
     todo: deque = deque()
@@ -147,8 +151,11 @@ class LocalWorkerPool:
     """A fixed number of worker processes; a task that overruns or crashes costs only its worker."""
 
     def __init__(self, workers: int, cpu_seconds: float, wall_seconds: float,
-                 stall_seconds: Optional[float] = 60.0):
+                 stall_seconds: Optional[float] = 60.0, registry: Optional[WorkerRegistry] = None):
         self.ctx = mp.get_context("spawn")
+        self.registry = registry
+        if registry is not None:
+            registry.sweep()   # workers a killed server on this data folder left running
         self.stall_seconds = stall_seconds
         for name, value in SINGLE_THREADED.items():   # spawned workers inherit the environment
             os.environ.setdefault(name, value)
@@ -192,9 +199,11 @@ class LocalWorkerPool:
 
     def _spawn(self) -> _Slot:
         parent, child = self.ctx.Pipe()
-        proc = self.ctx.Process(target=_worker_main, args=(child, self.cpu_seconds), daemon=True)
-        proc.start()
+        proc = self.ctx.Process(target=_worker_main, args=(child, self.cpu_seconds, os.getpid()), daemon=True)
+        start_process(proc)
         child.close()
+        if self.registry is not None:
+            self.registry.record(proc.pid)
         return _Slot(proc, parent)
 
     def capacity(self) -> int:
@@ -359,6 +368,10 @@ class LocalWorkerPool:
             slot.process.join(timeout=max(0.0, deadline - time.monotonic()))
             if slot.process.is_alive():
                 slot.process.kill()
+        for slot in self.slots:
+            slot.process.join(timeout=1)
+        if self.registry is not None:
+            self.registry.close()
 
 
 def make_executor(settings):
@@ -369,4 +382,4 @@ def make_executor(settings):
         return DaskExecutor(settings.dask_scheduler, settings.task_cpu_seconds, settings.task_wall_seconds,
                             connect_seconds=settings.dask_connect_seconds)
     return LocalWorkerPool(settings.workers, settings.task_cpu_seconds, settings.task_wall_seconds,
-                           settings.worker_stall_seconds)
+                           settings.worker_stall_seconds, WorkerRegistry(Path(settings.data_dir) / "workers"))

@@ -12,6 +12,8 @@ def test_dockerfile_installs_with_the_project_script_and_serves_as_non_root():
     assert "HEALTHCHECK" in text and "/healthz" in text
     assert 'VOLUME ["/data"]' in text
     assert '"greyfit", "serve"' in text or 'greyfit", "serve' in text
+    # an init as PID 1 reaps what a killed worker leaves, and ends the container with the server
+    assert re.search(r"apt-get install .*\btini\b", text) and 'ENTRYPOINT ["/usr/bin/tini", "--"]' in text
     # dependencies are installed before the source is copied, at the versions CI tested
     assert text.index("bash scripts/install.sh") < text.index("COPY --chown=greyfit solvers")
     assert re.search(r"^COPY .*constraints\.txt", text, re.M).start() < text.index("bash scripts/install.sh")

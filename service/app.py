@@ -14,6 +14,7 @@ from starlette.types import ASGIApp, Receive, Scope, Send
 
 from greyfit.service.admission import BodyBudget
 from greyfit.service.auth import ApiKeyGate
+from greyfit.service.clients import KeyStore
 from greyfit.service.dispatcher import Dispatcher
 from greyfit.service.executors import make_executor
 from greyfit.service.json_body import BodyParser, body_model
@@ -94,6 +95,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
         executor = make_executor(settings)
         dispatcher = Dispatcher(store, executor, settings, app.state.metrics)
         app.state.store, app.state.dispatcher = store, dispatcher
+        app.state.keys = KeyStore(store.engine)   # the named API keys (ApiKeyGate reads them)
         dispatcher.start()
         app.state.body_parser.start(body_modules)
         log.info("greyfit ready: %s executor, store %s", settings.executor, store.engine.url)

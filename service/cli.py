@@ -160,9 +160,10 @@ def _finish_compiles() -> None:
 
 
 def _extra_commands():
+    from greyfit.service.cli_keys import add_keys
     from greyfit.service.cli_service import add_batch, add_serve
     from greyfit.service.cli_workflow import add_report, add_simulate
-    return [add_serve, add_batch, add_simulate, add_report]
+    return [add_serve, add_batch, add_simulate, add_report, add_keys]
 
 
 if __name__ == "__main__":

@@ -5,6 +5,7 @@ import hmac
 
 from fastapi import HTTPException, Request
 
+from greyfit.service.clients import ANONYMOUS, Client
 from greyfit.service.settings import Settings
 
 
@@ -22,9 +23,15 @@ def carries_api_key(request: Request) -> bool:
     return scheme.lower() == "bearer" and hmac.compare_digest(token.strip().encode("latin-1"), key.encode("utf-8"))
 
 
+def client_of(request: Request) -> Client:
+    """The client the key gate (service.auth.ApiKeyGate) found for the request; ANONYMOUS without one
+    (an app built without the gate: a server without keys)."""
+    return getattr(request.state, "client", ANONYMOUS)
+
+
 def require_api_key(request: Request) -> None:
     """The key check as a dependency (service.auth.ApiKeyGate does it for the whole app, before the body)."""
-    if not request.app.state.settings.api_key:
+    if not request.app.state.settings.api_key or "client" in request.scope.get("state", {}):
         return
     if not carries_api_key(request):
         raise HTTPException(401, "missing or wrong API key: send 'Authorization: Bearer <key>'",

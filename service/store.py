@@ -55,7 +55,12 @@ jobs = Table(
     Column("cancelled", Integer, nullable=False, default=0),
     Column("created_at", Float, nullable=False),
     Column("total", Integer, nullable=False),
+    # the client (named API key) that created the job, the only one that sees it; '' for the single
+    # GREYFIT_API_KEY and for a server without keys (and for every job made before clients existed)
+    Column("client", String(64), nullable=False, default="", server_default=""),
 )
+# a client's list of its own jobs, newest first, without reading the others'
+CLIENT_INDEX = Index("ix_jobs_client", jobs.c.client, jobs.c.created_at)
 
 tasks = Table(
     "tasks", metadata,
@@ -93,6 +98,16 @@ idempotency_keys = Table(
     Column("fingerprint", String(64), nullable=False),
     Column("job_id", String(36), nullable=False),
     Column("created_at", Float, nullable=False),
+)
+
+# the named API keys (service/clients.py): a key is stored as the SHA-256 of its text (keys are 256
+# random bits: no slow hash needed); revoked keys keep their row, so a name is never given twice
+api_keys = Table(
+    "api_keys", metadata,
+    Column("name", String(64), primary_key=True),
+    Column("digest", String(64), nullable=False, unique=True),
+    Column("created_at", Float, nullable=False),
+    Column("revoked_at", Float),
 )
 
 # one row per server: readiness writes it to prove that the store accepts writes
@@ -222,6 +237,7 @@ def make_engine(url: str) -> Engine:
     metadata.create_all(engine)
     _move_requests_out_of_tasks(engine)
     _add_queue_order(engine)
+    _add_job_clients(engine)
     _compress_texts_with_lz4(engine)
     return engine
 
@@ -311,6 +327,20 @@ def _add_queue_order(engine: Engine) -> None:
         QUEUE_INDEX.create(conn)
 
 
+def _add_job_clients(engine: Engine) -> None:
+    """A store made before clients: add `jobs.client` ('' for every job: the single key's, or
+    anyone's on a server without keys) and its index, once."""
+    if "client" in {c["name"] for c in inspect(engine).get_columns("jobs")}:
+        return
+    with engine.begin() as conn:
+        if engine.dialect.name == "postgresql":
+            conn.execute(text("LOCK TABLE jobs IN ACCESS EXCLUSIVE MODE"))
+            if "client" in {c["name"] for c in inspect(conn).get_columns("jobs")}:
+                return
+        conn.execute(text("ALTER TABLE jobs ADD COLUMN client VARCHAR(64) NOT NULL DEFAULT ''"))
+        CLIENT_INDEX.create(conn)
+
+
 def _chunks(items: list, size: int) -> list[list]:
     return [items[i:i + size] for i in range(0, len(items), size)]
 
@@ -361,8 +391,8 @@ class JobStore:
                                    f"the job store does not take writes ({type(exc).__name__})") from exc
 
     def create_job(self, kind: str, requests: list[dict | str], label: Optional[str],
-                   idempotency: Optional[tuple[str, str]] = None) -> str:
-        """A job of one task per request (a dict, or its JSON text, stored as it is).
+                   idempotency: Optional[tuple[str, str]] = None, client: str = "") -> str:
+        """A job of one task per request (a dict, or its JSON text, stored as it is), `client`'s.
 
         `idempotency`: (key, fingerprint of kind, label and requests). A key already stored with the
         same fingerprint returns its job, no new one; with another, IdempotencyKeyReused."""
@@ -372,7 +402,7 @@ class JobStore:
             if existing is not None:
                 return existing
         try:
-            return self._insert_job(kind, requests, label, idempotency)
+            return self._insert_job(kind, requests, label, idempotency, client)
         except IntegrityError:
             if idempotency is None:
                 raise
@@ -392,7 +422,7 @@ class JobStore:
         return row.job_id
 
     def _insert_job(self, kind: str, requests: list[dict | str], label: Optional[str],
-                    idempotency: Optional[tuple[str, str]]) -> str:
+                    idempotency: Optional[tuple[str, str]], client: str) -> str:
         job_id = str(uuid.uuid4())
         now = time.time()
         with self.engine.begin() as conn:
@@ -400,7 +430,7 @@ class JobStore:
                 conn.execute(idempotency_keys.insert().values(key=idempotency[0], fingerprint=idempotency[1],
                                                               job_id=job_id, created_at=now))
             conn.execute(jobs.insert().values(id=job_id, label=label, kind=kind, cancelled=0,
-                                              created_at=now, total=len(requests)))
+                                              created_at=now, total=len(requests), client=client))
             conn.execute(tasks.insert(), [
                 {"job_id": job_id, "idx": i, "status": "queued", "attempts": 0, "queued_at": now}
                 for i in range(len(requests))])
@@ -409,12 +439,14 @@ class JobStore:
                 for i, r in enumerate(requests)])
         return job_id
 
-    def get_job(self, job_id: str, task_offset: int = 0, task_limit: Optional[int] = None) -> Optional[dict[str, Any]]:
+    def get_job(self, job_id: str, task_offset: int = 0, task_limit: Optional[int] = None,
+                client: Optional[str] = None) -> Optional[dict[str, Any]]:
         """A job with its task counts by status and times (`counts`, `started_at`, `finished_at`, as
         `list_jobs`) and its tasks from `task_offset`, `task_limit` of them at most (None: all; 0: none),
-        read a page at a time from the database; None if there is no such job."""
+        read a page at a time from the database; None if there is no such job (of `client`, if given)."""
+        query = _JOB if client is None else _JOB.where(jobs.c.client == client)
         with self.engine.connect() as conn:
-            job = conn.execute(_JOB, {"b_id": job_id}).mappings().first()
+            job = conn.execute(query, {"b_id": job_id}).mappings().first()
             if job is None:
                 return None
             summary = _summaries(conn, [job_id])[job_id]
@@ -423,12 +455,13 @@ class JobStore:
             rows = [] if task_limit == 0 else conn.execute(query, {"b_id": job_id}).all()
         return {"job": dict(job), **summary, "tasks": [r._asdict() for r in rows]}
 
-    def list_jobs(self, offset: int, limit: int) -> tuple[list[dict], int]:
-        """A page of jobs, newest first, each with its task counts by status (`counts`), not its tasks:
-        the page of 200 jobs of 1 000 tasks each was 73.5 MB with the tasks."""
+    def list_jobs(self, offset: int, limit: int, client: Optional[str] = None) -> tuple[list[dict], int]:
+        """A page of jobs (`client`'s only, if given), newest first, each with its task counts by status
+        (`counts`), not its tasks: the page of 200 jobs of 1 000 tasks each was 73.5 MB with the tasks."""
+        mine = (jobs.c.client == client,) if client is not None else ()
         with self.engine.connect() as conn:
-            count = conn.execute(select(func.count()).select_from(jobs)).scalar_one()
-            page = conn.execute(select(jobs).order_by(jobs.c.created_at.desc(), jobs.c.id)
+            count = conn.execute(select(func.count()).select_from(jobs).where(*mine)).scalar_one()
+            page = conn.execute(select(jobs).where(*mine).order_by(jobs.c.created_at.desc(), jobs.c.id)
                                 .offset(offset).limit(limit)).mappings().all()
             summary = _summaries(conn, [j["id"] for j in page])
         return [{"job": dict(j), **summary[j["id"]]} for j in page], count

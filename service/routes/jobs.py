@@ -11,6 +11,7 @@ from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
 
 from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, JobSummary, TaskError, TaskPublic
+from greyfit.service.deps import client_of
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
@@ -54,10 +55,12 @@ IDEMPOTENCY_KEY = re.compile(r"^[\x21-\x7e]{1,200}$")
 
 
 def idempotency_of(request: Request, kind: str, texts: list, label: Optional[str]) -> Optional[tuple[str, str]]:
-    """(key, fingerprint) of the request's Idempotency-Key header, or None without one.
+    """(key as stored, fingerprint) of the request's Idempotency-Key header, or None without one.
 
     The fingerprint covers the kind, the label and each request's JSON text: the same key with the
-    same body is the same job (a retry after a lost answer), with another body an error."""
+    same body is the same job (a retry after a lost answer), with another body an error. A key is
+    each client's own: a named client's is stored as a digest of its name and the key, so that the
+    same key sent by two clients makes two jobs, and neither learns of the other's."""
     key = request.headers.get("idempotency-key")
     if key is None:
         return None
@@ -69,6 +72,9 @@ def idempotency_of(request: Request, kind: str, texts: list, label: Optional[str
     digest = hashlib.sha256(json.dumps([kind, label]).encode())
     for text in texts:
         digest.update(b"\0" + (text if isinstance(text, str) else json.dumps(text, sort_keys=True)).encode())
+    owner = client_of(request).owner
+    if owner:   # '' (the single key, or no keys): stored as sent, as before clients
+        key = "client:" + hashlib.sha256(f"{owner}\0{key}".encode()).hexdigest()
     return key, digest.hexdigest()
 
 
@@ -84,10 +90,12 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
         check(req, settings, prefix=f"requests[{i}].")
     texts = request_texts(request, requests)
     try:
-        job_id = state.store.create_job(kind, texts, label, idempotency_of(request, kind, texts, label))
-    except IdempotencyKeyReused as exc:
-        raise HTTPException(422, f"Idempotency-Key '{exc}' was first sent with another body; a retry must "
-                            "send the same body, a new job a new key") from None
+        job_id = state.store.create_job(kind, texts, label, idempotency_of(request, kind, texts, label),
+                                        client=client_of(request).owner)
+    except IdempotencyKeyReused:
+        raise HTTPException(422, f"Idempotency-Key '{request.headers['idempotency-key'].strip().strip(chr(34))}' "
+                            "was first sent with another body; a retry must send the same body, a new job a new "
+                            "key") from None
     state.dispatcher.wake()
     return as_json(job_public(state.store.get_job(job_id)), 202, {"Location": f"/v1/jobs/{job_id}"})
 
@@ -96,12 +104,13 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
 def list_jobs(request: Request, offset: Annotated[QueryInt, Query(ge=0, le=MAX_OFFSET)] = 0,
               limit: Annotated[QueryInt, Query(ge=1, le=200)] = 20) -> Response:
     """Jobs, newest first, with paging: each job's status and progress, not its tasks (GET /v1/jobs/{id})."""
-    entries, count = request.app.state.store.list_jobs(offset, limit)
+    entries, count = request.app.state.store.list_jobs(offset, limit, client_of(request).job_filter)
     return as_json(JobsPublic(data=[job_summary(e) for e in entries], count=count))
 
 
 def _record(request: Request, job_id: str, task_offset: int = 0, task_limit: Optional[int] = None) -> dict:
-    record = request.app.state.store.get_job(job_id, task_offset, task_limit)
+    """The job (its task page) if it is the caller's; 404 if there is none, or it is another client's."""
+    record = request.app.state.store.get_job(job_id, task_offset, task_limit, client_of(request).job_filter)
     if record is None:
         raise HTTPException(404, f"no job with id '{job_id}'")
     return record

@@ -7,7 +7,7 @@ from sqlalchemy import and_, select
 
 from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.report import ReportRequest
-from greyfit.service.deps import require_api_key
+from greyfit.service.deps import client_of, require_api_key
 from greyfit.service.json_body import StrictJSONRoute
 from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
 from greyfit.service.problems import PROBLEM
@@ -59,7 +59,7 @@ async def job_report(job_id: Annotated[str, JOB_ID], request: Request,
                      index: Annotated[QueryInt, Query(ge=0, le=MAX_INDEX)] = 0) -> HTMLResponse:
     """The report page of task `index` of a finished job (its stored request supplies the data)."""
     store = request.app.state.store
-    if store.get_job(job_id, task_limit=0) is None:
+    if store.get_job(job_id, task_limit=0, client=client_of(request).job_filter) is None:   # or another's
         raise HTTPException(404, f"no job with id '{job_id}'")
     with store.engine.connect() as conn:
         row = conn.execute(select(tasks.c.status, task_requests.c.request, tasks.c.result)

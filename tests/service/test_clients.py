@@ -1,0 +1,125 @@
+"""Clients, not one key: each named key sees, lists and cancels only its own jobs (another's is a
+404, as a job that does not exist), on SQLite and PostgreSQL; a revoked key is refused at once;
+no key is ever written to a log, the metrics or an error; a store made before clients keeps its
+jobs for the single GREYFIT_API_KEY."""
+import json
+import time
+import uuid
+
+import pytest
+from fastapi.testclient import TestClient
+from sqlalchemy import text
+
+from greyfit.service.app import create_app
+from greyfit.service.cli import main as greyfit
+from greyfit.service.clients import KeyStore
+from greyfit.service.store import JobStore, make_engine
+from tests.service.conftest import make_settings, msd_request
+
+LEGACY_KEY = "the-single-legacy-key-" + uuid.uuid4().hex
+
+
+def bearer(key: str) -> dict:
+    return {"Authorization": f"Bearer {key}"}
+
+
+def old_store_with_a_job(url: str) -> str:
+    """A store as a server before clients left it (no jobs.client), holding one job."""
+    engine = make_engine(url)
+    job_id = JobStore(engine).create_job("fit", [msd_request(0, n=21)], "before clients")
+    with engine.begin() as conn:
+        if engine.dialect.name == "sqlite":
+            conn.execute(text("DROP INDEX ix_jobs_client"))
+        conn.execute(text("ALTER TABLE jobs DROP COLUMN client"))
+    engine.dispose()
+    return job_id
+
+
+CAPTURED: list[str] = []   # what was written on stdout and stderr (logs included), but the new keys
+
+
+def cli(capsys, *args: str) -> tuple[int, str]:
+    """`greyfit keys ARGS`: exit code and stdout (the rest, and what was written before, to CAPTURED)."""
+    CAPTURED.append("".join(capsys.readouterr()))
+    code = greyfit(["keys", *args])
+    out, err = capsys.readouterr()
+    CAPTURED.append(err if args[0] == "add" else out + err)
+    return code, out
+
+
+def test_two_clients_never_see_each_others_jobs(tmp_path, store_url, monkeypatch, capsys):
+    monkeypatch.setenv("GREYFIT_DATABASE_URL", store_url)
+    CAPTURED.clear()
+    old_job = old_store_with_a_job(store_url)
+    code, key_a = cli(capsys, "add", "team-a")
+    assert code == 0 and key_a.startswith("gfk_") and len(key_a.strip()) == 47
+    key_a, key_b = key_a.strip(), cli(capsys, "add", "team-b")[1].strip()
+    settings = make_settings(tmp_path, database_url=store_url, api_key=LEGACY_KEY, workers=1, log_level="DEBUG")
+    seen: list[str] = []   # every answer's text, searched for keys at the end
+    with TestClient(create_app(settings)) as http:
+        def call(method: str, path: str, key: str, **kw):
+            answer = http.request(method, path, headers={**bearer(key), **kw.pop("headers", {})}, **kw)
+            seen.append(answer.text + json.dumps(dict(answer.headers)))
+            return answer
+
+        body = {"requests": [msd_request(0, n=21)]}
+        jobs = {k: call("POST", "/v1/jobs", k, json=body).json()["id"] for k in (key_a, key_b)}
+        jobs[LEGACY_KEY] = old_job
+        for key, mine in jobs.items():
+            listed = call("GET", "/v1/jobs", key).json()
+            assert [j["id"] for j in listed["data"]] == [mine] and listed["count"] == 1
+            assert call("GET", f"/v1/jobs/{mine}", key).status_code == 200
+            for other in set(jobs.values()) - {mine}:
+                for method, path in [("GET", f"/v1/jobs/{other}"), ("GET", f"/v1/jobs/{other}/results"),
+                                     ("GET", f"/v1/jobs/{other}/report"), ("DELETE", f"/v1/jobs/{other}")]:
+                    answer = call(method, path, key)
+                    assert answer.status_code == 404, (method, path, answer.text)
+                    assert answer.json()["detail"] == f"no job with id '{other}'"   # as if there were none
+        assert call("DELETE", f"/v1/jobs/{jobs[key_b]}", key_b).status_code == 200   # its own: cancelled
+
+        # one Idempotency-Key sent by two clients: two jobs, each its sender's
+        same = {"Idempotency-Key": "retry-1"}
+        first = call("POST", "/v1/jobs", key_a, json=body, headers=same).json()["id"]
+        again = call("POST", "/v1/jobs", key_a, json=body, headers=same).json()["id"]
+        other = call("POST", "/v1/jobs", key_b, json=body, headers=same).json()["id"]
+        assert first == again != other
+
+        # revoked with the command line: refused at once, the other client unaffected
+        assert cli(capsys, "revoke", "team-b")[0] == 0
+        assert call("GET", "/v1/jobs", key_b).status_code == 401
+        assert call("GET", f"/v1/jobs/{jobs[key_a]}", key_a).status_code == 200
+        assert call("GET", "/v1/jobs", key_a + "x").status_code == 401
+        assert call("GET", "/v1/jobs", "").status_code == 401
+        metrics = call("GET", "/metrics", key_a).text
+        listing = cli(capsys, "list")[1]
+        assert "team-a\t" in listing and "team-b\t" in listing and "revoked" in listing
+    CAPTURED.append("".join(capsys.readouterr()))
+    logs = "".join(CAPTURED)
+    assert "revoked" in logs and '"level"' in logs   # the command line's lines and the server's JSON logs
+    for key in (key_a, key_b, LEGACY_KEY):
+        for where, output in [("answers", "".join(seen)), ("metrics", metrics), ("key list", listing),
+                              ("logs", logs)]:
+            assert key not in output, where
+
+
+def test_rate_limit_per_client_and_the_first_key_closes_an_open_server(tmp_path):
+    settings = make_settings(tmp_path, workers=1, rate_limit_per_minute=3)
+    with TestClient(create_app(settings)) as http:
+        assert http.get("/v1/jobs").status_code == 200          # no keys: open, as before
+        keys = KeyStore(http.app.state.store.engine)
+        key_a, key_b = keys.add("a"), keys.add("b")
+        time.sleep(1.1)   # NO_KEYS_RECHECK_SECONDS: a server that had no keys reads them again
+        assert http.get("/v1/jobs").status_code == 401
+        assert [http.get("/v1/jobs", headers=bearer(key_a)).status_code for _ in range(4)] == [200, 200, 200, 429]
+        assert http.get("/v1/jobs", headers=bearer(key_b)).status_code == 200   # its own bucket
+        keys.revoke("a")
+        keys.revoke("b")
+        # every key revoked: the server stays closed, it does not open again
+        assert [http.get("/v1/jobs", headers=h).status_code for h in (bearer(key_b), {})] == [401, 401]
+
+
+@pytest.mark.parametrize("name", ["", "a b", ".x", "x/y", "x" * 65, "é"])
+def test_key_names_are_checked(tmp_path, monkeypatch, capsys, name):
+    monkeypatch.setenv("GREYFIT_DATA_DIR", str(tmp_path))
+    code, out = cli(capsys, "add", name)
+    assert code == 2 and out == "" and "invalid key name" in CAPTURED[-1]

@@ -32,6 +32,13 @@ def slow_request() -> dict:
     return copy.deepcopy(body)
 
 
+def long_fit() -> dict:
+    """A fit of a minute or more: 100 starts of an 8001-sample output-error fit (~0.4 CPU-s each)."""
+    body = msd_request(0, n=8001)
+    body["options"] = {"multistart": 100, "substeps": 4}
+    return body
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -62,6 +69,47 @@ def start_server(data_dir: Path, port: int, workers: int = 2, log: Path | None =
         time.sleep(0.2)
     os.killpg(proc.pid, signal.SIGKILL)
     raise AssertionError("server did not become ready")
+
+
+def children_of(pid: int) -> set[int]:
+    """The live processes whose parent is `pid` (from /proc; Linux)."""
+    from greyfit.service.lifeline import start_time
+    found = set()
+    for entry in os.listdir("/proc"):
+        if entry.isdigit() and start_time(int(entry)) is not None:
+            try:
+                with open(f"/proc/{entry}/stat", "rb") as f:
+                    if int(f.read().rsplit(b")", 1)[1].split()[1]) == pid:
+                        found.add(int(entry))
+            except (OSError, IndexError):
+                pass
+    return found
+
+
+def alive(pids: set[int]) -> set[int]:
+    """Those of `pids` still running (a zombie has ended)."""
+    from greyfit.service.lifeline import start_time
+    return {p for p in pids if start_time(p) is not None}
+
+
+def wait_gone(pids: set[int], bound: float = 30.0) -> set[int]:
+    """Poll until every process of `pids` has ended or `bound` seconds passed; those left. The
+    bound is generous: it is a liveness bound, not a measure of speed."""
+    deadline = time.monotonic() + bound
+    while alive(pids) and time.monotonic() < deadline:
+        time.sleep(0.05)
+    return alive(pids)
+
+
+def wait_running(base: str, job_id: str, attempts: int, timeout: float = 120) -> list[dict]:
+    """Poll until every task of the job runs, its start acknowledged `attempts` times; the tasks."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        tasks = httpx.get(f"{base}/v1/jobs/{job_id}").json()["tasks"]
+        if all(t["status"] == "running" and t["attempts"] == attempts for t in tasks):
+            break
+        time.sleep(0.2)
+    return tasks
 
 
 def wait_until_finished(base: str, job_id: str, timeout: float = 180) -> dict:

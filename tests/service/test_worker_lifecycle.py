@@ -5,46 +5,11 @@ import os
 import signal
 import subprocess
 import sys
-import time
 
 import httpx
 
 from greyfit.service.lifeline import WorkerRegistry, start_time
-from tests.servers import free_port, msd_request, start_server, stop_server
-
-LIVENESS_BOUND_S = 30.0   # a generous bound on "gone": the kernel acts at once, the poll is what waits
-
-
-def children_of(pid: int) -> set[int]:
-    """The live processes whose parent is `pid` (from /proc)."""
-    found = set()
-    for entry in os.listdir("/proc"):
-        if entry.isdigit() and start_time(int(entry)) is not None:
-            try:
-                with open(f"/proc/{entry}/stat", "rb") as f:
-                    if int(f.read().rsplit(b")", 1)[1].split()[1]) == pid:
-                        found.add(int(entry))
-            except (OSError, IndexError):
-                pass
-    return found
-
-
-def alive(pids: set[int]) -> set[int]:
-    return {p for p in pids if start_time(p) is not None}
-
-
-def wait_gone(pids: set[int], bound: float = LIVENESS_BOUND_S) -> set[int]:
-    deadline = time.monotonic() + bound
-    while alive(pids) and time.monotonic() < deadline:
-        time.sleep(0.1)
-    return alive(pids)
-
-
-def long_fit() -> dict:
-    """A fit of a minute or more: 100 starts of an 8001-sample output-error fit (~0.4 CPU-s each)."""
-    body = msd_request(0, n=8001)
-    body["options"] = {"multistart": 100, "substeps": 4}
-    return body
+from tests.servers import children_of, free_port, long_fit, start_server, stop_server, wait_gone, wait_running
 
 
 def test_workers_of_a_killed_server_die_and_its_tasks_run_again(tmp_path):
@@ -54,12 +19,7 @@ def test_workers_of_a_killed_server_die_and_its_tasks_run_again(tmp_path):
     restarted = None
     try:
         job = httpx.post(f"{base}/v1/jobs", json={"requests": [long_fit(), long_fit()]}, timeout=60).json()
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:   # both fits acknowledged by their workers
-            tasks = httpx.get(f"{base}/v1/jobs/{job['id']}").json()["tasks"]
-            if all(t["status"] == "running" and t["attempts"] == 1 for t in tasks):
-                break
-            time.sleep(0.2)
+        wait_running(base, job["id"], attempts=1)   # both fits acknowledged by their workers
         workers = {int(line.split("-")[0]) for f in (tmp_path / "workers").glob("*.pids")
                    for line in f.read_text().split()}
         assert len(workers) == 2 and workers <= children_of(server.pid)
@@ -70,12 +30,7 @@ def test_workers_of_a_killed_server_die_and_its_tasks_run_again(tmp_path):
 
         # the job is not lost: the restarted server runs both tasks again (their second start)
         restarted = start_server(tmp_path, port, workers=2)
-        deadline = time.monotonic() + 120
-        while time.monotonic() < deadline:
-            tasks = httpx.get(f"{base}/v1/jobs/{job['id']}").json()["tasks"]
-            if all(t["status"] == "running" and t["attempts"] == 2 for t in tasks):
-                break
-            time.sleep(0.2)
+        tasks = wait_running(base, job["id"], attempts=2)
         assert [(t["status"], t["attempts"]) for t in tasks] == [("running", 2)] * 2
         assert httpx.delete(f"{base}/v1/jobs/{job['id']}").status_code == 200
     finally:

@@ -315,30 +315,32 @@ def _move_requests_out_of_tasks(engine: Engine) -> None:
 
 def _add_queue_order(engine: Engine) -> None:
     """A store made before `tasks.queued_at`: add it (from the jobs' creation times) and its index, once."""
-    if "queued_at" in {c["name"] for c in inspect(engine).get_columns("tasks")}:
-        return
-    with engine.begin() as conn:
-        if engine.dialect.name == "postgresql":
-            conn.execute(text("LOCK TABLE tasks IN ACCESS EXCLUSIVE MODE"))
-            if "queued_at" in {c["name"] for c in inspect(conn).get_columns("tasks")}:
-                return
-        conn.execute(text("ALTER TABLE tasks ADD COLUMN queued_at FLOAT"))
-        conn.execute(text("UPDATE tasks SET queued_at = (SELECT created_at FROM jobs WHERE jobs.id = tasks.job_id)"))
-        QUEUE_INDEX.create(conn)
+    _add_column_once(engine, "tasks", "queued_at", QUEUE_INDEX, (
+        "ALTER TABLE tasks ADD COLUMN queued_at FLOAT",
+        "UPDATE tasks SET queued_at = (SELECT created_at FROM jobs WHERE jobs.id = tasks.job_id)"))
 
 
 def _add_job_clients(engine: Engine) -> None:
     """A store made before clients: add `jobs.client` ('' for every job: the single key's, or
     anyone's on a server without keys) and its index, once."""
-    if "client" in {c["name"] for c in inspect(engine).get_columns("jobs")}:
+    _add_column_once(engine, "jobs", "client", CLIENT_INDEX,
+                     ("ALTER TABLE jobs ADD COLUMN client VARCHAR(64) NOT NULL DEFAULT ''",))
+
+
+def _add_column_once(engine: Engine, table: str, column: str, index: Index, statements: tuple[str, ...]) -> None:
+    """Run `statements` (which add `table.column`) and create `index`, in one transaction, unless the
+    column exists. On PostgreSQL the table is locked first, so replicas starting together migrate it
+    once (the others find it done)."""
+    if column in {c["name"] for c in inspect(engine).get_columns(table)}:
         return
     with engine.begin() as conn:
         if engine.dialect.name == "postgresql":
-            conn.execute(text("LOCK TABLE jobs IN ACCESS EXCLUSIVE MODE"))
-            if "client" in {c["name"] for c in inspect(conn).get_columns("jobs")}:
+            conn.execute(text(f"LOCK TABLE {table} IN ACCESS EXCLUSIVE MODE"))
+            if column in {c["name"] for c in inspect(conn).get_columns(table)}:
                 return
-        conn.execute(text("ALTER TABLE jobs ADD COLUMN client VARCHAR(64) NOT NULL DEFAULT ''"))
-        CLIENT_INDEX.create(conn)
+        for statement in statements:
+            conn.execute(text(statement))
+        index.create(conn)
 
 
 def _chunks(items: list, size: int) -> list[list]:

@@ -17,6 +17,7 @@ were still computing 150 s later, beside the restarted server's workers running 
 from __future__ import annotations
 
 import concurrent.futures as cf
+import contextlib
 import ctypes
 import logging
 import os
@@ -82,12 +83,17 @@ class WorkerRegistry:
         self._lock = threading.Lock()
 
     def record(self, pid: int) -> None:
-        with self._lock, open(self.path, "a") as f:
-            f.write(f"{pid}-{start_time(pid) or 0}\n")
+        """Add a worker. A full or read-only disk costs only the sweep of this worker, never its start."""
+        try:
+            with self._lock, open(self.path, "a") as f:
+                f.write(f"{pid}-{start_time(pid) or 0}\n")
+        except OSError as exc:
+            log.warning("could not register worker %d in %s (%s)", pid, self.folder, exc.strerror)
 
     def close(self) -> None:
         """A server stopping gracefully has stopped its workers: nothing to sweep."""
-        self.path.unlink(missing_ok=True)
+        with contextlib.suppress(OSError):
+            self.path.unlink(missing_ok=True)
 
     def sweep(self) -> int:
         """Kill the registered workers of servers no longer alive; how many were killed."""
@@ -106,7 +112,8 @@ class WorkerRegistry:
                         killed += 1
                     except (OSError, ValueError):
                         pass
-            file.unlink(missing_ok=True)
+            with contextlib.suppress(OSError):
+                file.unlink(missing_ok=True)
         if killed:
             log.warning("killed %d worker process(es) left running by a server that had died", killed)
         return killed

@@ -117,8 +117,13 @@ class ApiKeyGate:
         return None
 
     async def _any_named_keys(self, keys: KeyStore) -> bool:
+        """Whether the store holds named keys. A store that cannot be read leaves an open server
+        open (its synchronous fits need no store), as it was before any key existed."""
         now = time.monotonic()
         if not self._named_keys and now - self._checked > NO_KEYS_RECHECK_SECONDS:
             self._checked = now
-            self._named_keys = await to_thread.run_sync(keys.any_keys)
+            try:
+                self._named_keys = await to_thread.run_sync(keys.any_keys)
+            except Exception as exc:
+                log.warning("could not read the API keys from the job store (%s)", type(exc).__name__)
         return self._named_keys

@@ -26,7 +26,8 @@ class Settings(BaseSettings):
         default=30.0, gt=0, description="how long the Dask client waits for its scheduler, at start and after "
                                         "losing it; then it tries again in the background until it answers")
     api_key: Optional[str] = Field(default=None, description="if set, every endpoint but health "
-                                                            "requires 'Authorization: Bearer <key>'")
+                                                            "requires 'Authorization: Bearer <key>' (this key "
+                                                            "or a client's own: greyfit keys add NAME)")
     max_body_bytes: int = Field(default=64 * 1024 * 1024, ge=1024, description="larger request bodies get 413")
     max_samples_per_experiment: int = Field(default=200_000, ge=2, description="samples in one record")
     max_experiments: int = Field(default=50, ge=1, description="records in one request")

@@ -8,7 +8,7 @@ import uuid
 
 import pytest
 from fastapi.testclient import TestClient
-from sqlalchemy import text
+from sqlalchemy import create_engine, text
 
 from greyfit.service.app import create_app
 from greyfit.service.cli import main as greyfit
@@ -116,6 +116,11 @@ def test_rate_limit_per_client_and_the_first_key_closes_an_open_server(tmp_path)
         keys.revoke("b")
         # every key revoked: the server stays closed, it does not open again
         assert [http.get("/v1/jobs", headers=h).status_code for h in (bearer(key_b), {})] == [401, 401]
+        # keys that cannot be read: 503 + Retry-After, naming neither the key nor the database's text
+        http.app.state.keys = KeyStore(create_engine(f"sqlite:///{tmp_path}/no-such-folder/greyfit.db"))
+        answer = http.get("/v1/jobs", headers=bearer(key_a))
+        assert answer.status_code == 503 and answer.headers["Retry-After"] == "2"
+        assert key_a not in answer.text and "no-such-folder" not in answer.text, answer.text
 
 
 @pytest.mark.parametrize("name", ["", "a b", ".x", "x/y", "x" * 65, "é"])

@@ -6,6 +6,7 @@ import json
 import time
 import uuid
 
+import httpx
 import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
@@ -14,6 +15,7 @@ from greyfit.service.app import create_app
 from greyfit.service.cli import main as greyfit
 from greyfit.service.clients import KeyStore
 from greyfit.service.store import JobStore, make_engine
+from tests.servers import free_port, start_server, stop_server
 from tests.service.conftest import make_settings, msd_request
 
 LEGACY_KEY = "the-single-legacy-key-" + uuid.uuid4().hex
@@ -128,3 +130,28 @@ def test_key_names_are_checked(tmp_path, monkeypatch, capsys, name):
     monkeypatch.setenv("GREYFIT_DATA_DIR", str(tmp_path))
     code, out = cli(capsys, "add", name)
     assert code == 2 and out == "" and "invalid key name" in CAPTURED[-1]
+
+
+def test_a_real_server_writes_no_key_to_its_log(tmp_path):
+    """uvicorn's own lines too (the access log, errors), which a TestClient does not run."""
+    engine = make_engine(f"sqlite:///{tmp_path / 'greyfit.db'}")
+    keys = KeyStore(engine)
+    key_a, key_b = keys.add("a"), keys.add("b")
+    port, log = free_port(), tmp_path / "server.log"
+    server = start_server(tmp_path, port, workers=1, log=log, GREYFIT_API_KEY=LEGACY_KEY, GREYFIT_LOG_LEVEL="DEBUG")
+    try:
+        base = f"http://127.0.0.1:{port}"
+        job = httpx.post(f"{base}/v1/jobs", json={"requests": [msd_request(0, n=21)]}, headers=bearer(key_a)).json()
+        keys.revoke("b")
+        statuses = [httpx.get(f"{base}{path}", headers=bearer(key)).status_code for path, key in [
+            (f"/v1/jobs/{job['id']}", key_a), (f"/v1/jobs/{job['id']}", key_b), ("/v1/jobs", key_a[:-1]),
+            (f"/v1/jobs/{job['id']}", LEGACY_KEY), ("/metrics", LEGACY_KEY)]]
+        assert statuses == [200, 401, 401, 404, 200]
+        metrics = httpx.get(f"{base}/metrics", headers=bearer(key_a)).text
+    finally:
+        stop_server(server)
+        engine.dispose()
+    written = log.read_text()
+    assert "/v1/jobs" in written   # the access log was written
+    for key in (key_a, key_b, LEGACY_KEY):
+        assert key not in written and key[:-1] not in written and key not in metrics

@@ -32,7 +32,6 @@ def test_workers_of_a_killed_server_die_and_its_tasks_run_again(tmp_path):
         restarted = start_server(tmp_path, port, workers=2)
         tasks = wait_running(base, job["id"], attempts=2)
         assert [(t["status"], t["attempts"]) for t in tasks] == [("running", 2)] * 2
-        assert httpx.delete(f"{base}/v1/jobs/{job['id']}").status_code == 200
     finally:
         for proc in (server, restarted):
             if proc is not None and proc.poll() is None:

@@ -69,6 +69,8 @@ class DesignOptions(BaseModel):
                         "baseline's input where it lies on the hold grid); the best design is kept")
     max_iterations: int = Field(default=150, ge=1, le=2000, description="Ipopt iterations per start")
     substeps: int = Field(default=2, ge=1, le=50, description="RK4 steps per sample in the design's simulation")
+    seed: int = Field(default=0, ge=0, le=2**31 - 1,
+                      description="seeds the starting signals and the parameter draws (a non-negative integer)")
     rounds: int = Field(default=3, ge=1, le=10,
                         description="T-optimal only: rounds of (refit the rivals, redesign the input)")
 
@@ -121,7 +123,6 @@ class DesignRequest(BaseModel):
     baseline: Optional[Experiment] = Field(
         default=None, description="the experiment that was run: its input's predicted standard errors (or "
                                   "discrimination) are reported beside the design's")
-    seed: int = Field(default=0, ge=0, le=2**31 - 1, description="seeds the starting signals and draws")
     options: DesignOptions = Field(default_factory=DesignOptions)
 
     @model_validator(mode="after")

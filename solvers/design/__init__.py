@@ -21,7 +21,13 @@ from greyfit.solvers.design.discrimination import (
     rival_pairs,
     solve_discrimination_design,
 )
-from greyfit.solvers.design.information import check_seen, exact_criterion, solve_information_design, stderrs
+from greyfit.solvers.design.information import (
+    check_identifiable,
+    check_seen,
+    exact_criterion,
+    solve_information_design,
+    stderrs,
+)
 from greyfit.solvers.design.setup import (
     DesignSetup,
     baseline_inputs,
@@ -71,10 +77,11 @@ def _baseline_grid(setup: DesignSetup, request: DesignRequest):
 
 
 def _information_result(setup: DesignSetup, request: DesignRequest, rng: np.random.Generator) -> dict:
-    check_seen(setup, setup.signal.inputs(setup.signal.start(np.random.default_rng(request.seed))),
+    check_seen(setup, setup.signal.inputs(setup.signal.start(np.random.default_rng(request.options.seed))),
                request.options.substeps)
     solved = solve_information_design(setup, request, _starts(setup, request, rng), rng)
     U = setup.signal.inputs(solved.z)
+    check_identifiable(setup, U, request.options.substeps)
     se = stderrs(setup, U, setup.time, setup.x0, request.options.substeps)
     base = _baseline_grid(setup, request)
     se_b, objective_b = None, None
@@ -147,7 +154,7 @@ def design_experiment(request: DesignRequest) -> DesignResult:
         A request that cannot be designed for, naming the field to fix.
     """
     started = clock.perf_counter()
-    rng = np.random.default_rng(request.seed)
+    rng = np.random.default_rng(request.options.seed)
     setup = design_setup(request)
     if request.criterion == "T":
         fields = _discrimination_result(setup, request, rng)

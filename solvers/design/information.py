@@ -22,6 +22,9 @@ from greyfit.solvers.errors import DataError
 # a parameter of interest whose relative information is below this share of the largest is not
 # seen by the measured outputs under the input tried: the design cannot help it
 UNSEEN = 1e-12
+# relative information whose smallest eigenvalue is below this share of the largest: a combination of
+# parameters the outputs do not determine (a local, numerical statement of structural non-identifiability)
+SINGULAR = 1e-10
 
 
 @dataclass
@@ -155,6 +158,31 @@ def exact_criterion(setup: DesignSetup, request: DesignRequest, U: np.ndarray,
     F = information(setup.model, setup.x0 if x0 is None else x0, U, setup.time if time is None else time,
                     request.options.substeps)
     return criterion_value(request.criterion, F, _scale(setup.model), setup.interest)
+
+
+def check_identifiable(setup: DesignSetup, U: np.ndarray, substeps: int) -> None:
+    """Refuse a design whose information stays singular: the outputs fix only a combination of parameters.
+
+    Parameters
+    ----------
+    setup : DesignSetup
+        The laid-out design.
+    U : ndarray
+        The designed input (the best the criterion found: if it cannot separate them, none can locally).
+    substeps : int
+        RK4 steps per sample.
+    """
+    scale = _scale(setup.model)
+    F = information(setup.model, setup.x0, U, setup.time, substeps)
+    rel = np.diag(scale) @ F @ np.diag(scale)
+    values, vectors = np.linalg.eigh(0.5 * (rel + rel.T))
+    if values[-1] > 0 and values[0] > SINGULAR * values[-1]:
+        return
+    names = setup.model.free_names
+    weights = np.abs(vectors[:, 0])
+    involved = [names[i] for i in np.argsort(-weights) if weights[i] > 0.1]
+    raise DataError(f"the measured outputs determine only a combination of {', '.join(involved)} under any input "
+                    "the design found: fix one of them, or measure another output", "model.parameters")
 
 
 def stderrs(setup: DesignSetup, U: np.ndarray, time: np.ndarray, x0: np.ndarray, substeps: int) -> Optional[np.ndarray]:

@@ -144,6 +144,22 @@ def test_a_parameter_the_outputs_cannot_see_is_refused():
     assert info.value.field == "parameters_of_interest" and "'g'" in str(info.value)
 
 
+def test_a_combination_the_outputs_cannot_separate_is_refused():
+    """Two tanks, the lower level measured: A1 and k1 enter only as their ratio (the pole k1/A1)."""
+    tanks = {"name": "tanks", "states": ["h1", "h2"], "inputs": ["q"],
+             "parameters": [{"name": "A1", "value": 1.0, "lower": 0.1, "upper": 10},
+                            {"name": "k1", "value": 0.5, "lower": 0.05, "upper": 5},
+                            {"name": "A2", "value": 2.0, "lower": 0.1, "upper": 10},
+                            {"name": "k2", "value": 0.5, "fixed": True}],
+             "equations": {"h1": "(q - k1*h1)/A1", "h2": "(k1*h1 - k2*h2)/A2"}, "outputs": {"y": "h2"}}
+    with pytest.raises(DataError) as info:
+        design_experiment(DesignRequest.model_validate(
+            {"model": tanks, "inputs": {"q": {"lower": 0.0, "upper": 1.0}}, "outputs": {"y": 0.01},
+             "duration": 20.0, "sample_time": 0.5, "options": {"starts": 1, "max_iterations": 30}}))
+    assert info.value.field == "model.parameters"
+    assert "A1" in str(info.value) and "k1" in str(info.value) and "A2" not in str(info.value)
+
+
 @pytest.mark.parametrize("body, message", [
     ({"hold": 0.25}, "whole number of sample times"),
     ({"criterion": "T"}, "rivals"),

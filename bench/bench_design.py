@@ -3,8 +3,8 @@
 Two tables, over random systems (a new system per seed):
 
 information  Systems recorded with one step (mechanical: a mass-spring-damper; thermal: two nodes, the
-             far one measured; fluid: two tanks in series with linearised outflows, the lower level measured, the upper outflow
-             known).
+             far one measured; fluid: two tanks in series with linearised outflows, the lower level
+             measured, the upper outflow known).
              The D-optimal input of the same length and amplitude is designed; both records are simulated
              and fitted under --draws noise draws each. Per family: the median over systems of the
              worst-excited parameter's spread ratio (step / designed, Monte Carlo), the share of systems
@@ -128,7 +128,8 @@ def information_row(family: str, seeds: int, draws: int) -> tuple:
 
 def _friction_model(effect: str | None, value: float = 0.0) -> dict:
     extra = {"coulomb": " - Fc*tanh(v/0.02)", "quadratic": " - cq*v*abs(v)", None: ""}[effect]
-    pars = [{"name": "c", "value": 0.4, "lower": 0.0, "upper": 50}, {"name": "k", "value": 4.0, "lower": 0.1, "upper": 50}]
+    pars = [{"name": "c", "value": 0.4, "lower": 0.0, "upper": 50},
+            {"name": "k", "value": 4.0, "lower": 0.1, "upper": 50}]
     if effect == "coulomb":
         pars.append({"name": "Fc", "value": value, "lower": 0.0, "upper": 10})
     elif effect == "quadratic":
@@ -153,7 +154,8 @@ def discrimination_row(truth: str, seeds: int) -> tuple:
         times = [round(ts * i, 12) for i in range(n)]
         step = {"name": "step", "time": times, "inputs": {"u": [0.6] * n}, "initial_state": {"x": 0.0, "v": 0.0}}
         design = design_experiment(DesignRequest.model_validate(
-            {"model": true_model, "criterion": "T", "rivals": [{"name": rival, "model": _friction_model(rival, sizes[rival])}],
+            {"model": true_model, "criterion": "T",
+             "rivals": [{"name": rival, "model": _friction_model(rival, sizes[rival])}],
              "inputs": {"u": {"lower": -0.6, "upper": 0.6}}, "outputs": {"y": sigma}, "duration": times[-1],
              "sample_time": ts, "hold": 0.25, "options": {"starts": 1, "rounds": 2, "max_iterations": 60}}))
         for record, counter in ((step, "step"), (design.experiment.model_dump(), "design")):
@@ -186,7 +188,8 @@ def main() -> None:
             print(f"| {f} | {n} | {med:.1f} | {k}/{n} | {lo:.2f}-{hi:.2f} | {ag:.2f} [{agmin:.2f}, {agmax:.2f}] "
                   f"| {wall:.1f} |", flush=True)
     if "discrimination" in tables:
-        print("\n| truth | seeds | named on the step record | ambiguous there | named on the designed record | 95 % CI |")
+        print("\n| truth | seeds | named on the step record | ambiguous there | named on the designed record "
+              "| 95 % CI |")
         print("|---|---|---|---|---|---|")
         for truth in ("coulomb", "quadratic"):
             t, n, s, amb, d, (lo, hi) = discrimination_row(truth, args.seeds)

@@ -147,6 +147,8 @@ class DesignRequest(BaseModel):
 
 
 class PredictedParameter(BaseModel):
+    """A parameter of interest's predicted standard error with the designed input and with the baseline's."""
+
     model_config = ON_FIRST_USE
     value: float = Field(description="the value the prediction is made at")
     stderr: Optional[float] = Field(description="predicted standard error with the designed input")
@@ -155,15 +157,18 @@ class PredictedParameter(BaseModel):
 
 
 class Discrimination(BaseModel):
+    """How far a rival's best imitation of the truth stays from it, on the designed and the baseline input."""
+
     model_config = ON_FIRST_USE
-    rival: str
+    rival: str = Field(description="the rival's name: the model refitted to imitate the truth")
     truth: str = Field(description="which model generates the data in this comparison")
     divergence: float = Field(description="Σ((y_truth − y_rival)/σ)² with the rival refitted to the truth's "
                                           "outputs on the designed input: the expected rise of the rival's χ²")
     divergence_baseline: Optional[float] = Field(default=None, description="the same on the baseline's input")
     expected_delta_bic: float = Field(description="divergence + (rival's free parameters − truth's)·ln N: "
                                                   "the expected BIC in favour of the truth")
-    expected_delta_bic_baseline: Optional[float] = None
+    expected_delta_bic_baseline: Optional[float] = Field(
+        default=None, description="the same on the baseline's input, where given")
     rival_parameters: dict[str, float] = Field(description="the rival's parameters imitating the truth best")
 
 
@@ -180,22 +185,25 @@ class DesignResult(BaseModel):
     def __str__(self) -> str:
         return self.report()
 
-    criterion: Criterion
+    criterion: Criterion = Field(description="the criterion the input was designed for")
     experiment: Experiment = Field(description="the input to apply (time, inputs); outputs are to be measured")
     objective: float = Field(description="the criterion's value for the design (smaller is better for D, A, E: "
                                          "log det, trace, largest of the relative covariance; T: −divergence)")
-    objective_baseline: Optional[float] = None
+    objective_baseline: Optional[float] = Field(
+        default=None, description="the criterion's value for the baseline's input, where given")
     parameters: dict[str, PredictedParameter] = Field(
         default_factory=dict, description="per parameter of interest: predicted standard errors")
-    discrimination: list[Discrimination] = Field(default_factory=list)
+    discrimination: list[Discrimination] = Field(
+        default_factory=list, description="T: per ordered pair (truth, rival), the divergence on the design and "
+                                          "on the baseline")
     improvement: Optional[float] = Field(
         default=None, description="D, A, E: the baseline's largest predicted stderr of a parameter of interest "
                                   "divided by the design's for that parameter; T: the smallest divergence "
                                   "over the baseline's")
     status: str = Field(description="Ipopt's status for the kept start")
-    iterations: int
-    notes: list[str] = Field(default_factory=list)
-    wall_time_s: float
+    iterations: int = Field(description="Ipopt iterations of the kept start (T: over its rounds)")
+    notes: list[str] = Field(default_factory=list, description="what the prediction assumes")
+    wall_time_s: float = Field(description="wall time of the design in seconds")
 
 
 DesignJobCreate = job_create("DesignJobCreate", DesignRequest, "A batch of experiment designs.")

@@ -13,7 +13,8 @@ information  Systems recorded with one step (mechanical: a mass-spring-damper; t
 discrimination
              A mass-spring-damper with Coulomb friction (the truth) or quadratic damping, both small,
              recorded with one step; the loop (POST /v1/discover's `discover`) runs on the step record and
-             on a record of the T-optimal input designed against the rival. Per truth: how often the loop
+             on a record of the T-optimal input designed against the rivals the loop sets beside a
+             velocity law (the other friction law and a cubic power of the velocity). Per truth: how often the loop
              names the truth `identified` on each record.
 
     python bench/bench_design.py [--seeds 10] [--draws 10] [--tables information,discrimination]
@@ -127,13 +128,15 @@ def information_row(family: str, seeds: int, draws: int) -> tuple:
 
 
 def _friction_model(effect: str | None, value: float = 0.0) -> dict:
-    extra = {"coulomb": " - Fc*tanh(v/0.02)", "quadratic": " - cq*v*abs(v)", None: ""}[effect]
+    extra = {"coulomb": " - Fc*tanh(v/0.02)", "quadratic": " - cq*v*abs(v)", "cubic": " - c3*v^3", None: ""}[effect]
     pars = [{"name": "c", "value": 0.4, "lower": 0.0, "upper": 50},
             {"name": "k", "value": 4.0, "lower": 0.1, "upper": 50}]
     if effect == "coulomb":
         pars.append({"name": "Fc", "value": value, "lower": 0.0, "upper": 10})
     elif effect == "quadratic":
         pars.append({"name": "cq", "value": value, "lower": 0.0, "upper": 10})
+    elif effect == "cubic":
+        pars.append({"name": "c3", "value": value, "lower": 0.0, "upper": 10})
     return {"name": effect or "msd", "states": ["x", "v"], "inputs": ["u"], "parameters": pars,
             "equations": {"x": "v", "v": "u - c*v - k*x" + extra}, "outputs": {"y": "x"}}
 
@@ -147,15 +150,16 @@ def discrimination_row(truth: str, seeds: int) -> tuple:
     on_step, on_design, ambiguous_step = 0, 0, 0
     for seed in range(seeds):
         rng = np.random.default_rng(2000 + seed)
-        sizes = {"coulomb": rng.uniform(0.05, 0.12), "quadratic": rng.uniform(0.3, 0.6)}
+        sizes = {"coulomb": rng.uniform(0.05, 0.12), "quadratic": rng.uniform(0.3, 0.6), "cubic": 0.5}
         true_model = _friction_model(truth, sizes[truth])
-        rival = "quadratic" if truth == "coulomb" else "coulomb"
+        # the rivals the loop sets beside a velocity law: the other named friction and a power of v
+        rivals = [r for r in ("coulomb", "quadratic", "cubic") if r != truth]
         ts, n, sigma = 0.05, 241, 0.005
         times = [round(ts * i, 12) for i in range(n)]
         step = {"name": "step", "time": times, "inputs": {"u": [0.6] * n}, "initial_state": {"x": 0.0, "v": 0.0}}
         design = design_experiment(DesignRequest.model_validate(
             {"model": true_model, "criterion": "T",
-             "rivals": [{"name": rival, "model": _friction_model(rival, sizes[rival])}],
+             "rivals": [{"name": r, "model": _friction_model(r, sizes[r])} for r in rivals],
              "inputs": {"u": {"lower": -0.6, "upper": 0.6}}, "outputs": {"y": sigma}, "duration": times[-1],
              "sample_time": ts, "hold": 0.25, "options": {"starts": 1, "rounds": 2, "max_iterations": 60}}))
         for record, counter in ((step, "step"), (design.experiment.model_dump(), "design")):

@@ -16,10 +16,12 @@ from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
     from greyfit.client import Client
+    from greyfit.schemas.design import DesignRequest, DesignResult
     from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
     from greyfit.schemas.fit import FitOptions, FitRequest, FitResult
     from greyfit.schemas.frequency import FrequencyFitRequest
     from greyfit.schemas.simulate import SimulateRequest, SimulateResult
+    from greyfit.solvers.design import design_experiment as design
     from greyfit.solvers.discovery.loop import discover
     from greyfit.solvers.fit import fit_model as fit
     from greyfit.solvers.frequency.fit import fit_frequency_response as frequency_fit
@@ -31,6 +33,9 @@ _LAZY = {
     "discover": ("greyfit.solvers.discovery.loop", "discover"),
     "simulate": ("greyfit.solvers.simulation.simulate", "simulate_request"),
     "frequency_fit": ("greyfit.solvers.frequency.fit", "fit_frequency_response"),
+    "design": ("greyfit.solvers.design", "design_experiment"),
+    "DesignRequest": ("greyfit.schemas.design", "DesignRequest"),
+    "DesignResult": ("greyfit.schemas.design", "DesignResult"),
     "Client": ("greyfit.client", "Client"),
     "FitRequest": ("greyfit.schemas.fit", "FitRequest"),
     "FitResult": ("greyfit.schemas.fit", "FitResult"),
@@ -44,7 +49,7 @@ _LAZY = {
 
 __all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "FitRequest", "FitResult",
            "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
-           "FrequencyFitRequest"]
+           "FrequencyFitRequest", "design", "DesignRequest", "DesignResult"]
 
 
 def _version() -> str:

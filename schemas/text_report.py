@@ -9,6 +9,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any, Optional
 
 if TYPE_CHECKING:
+    from greyfit.schemas.design import DesignResult
     from greyfit.schemas.discovery import DiscoveryResult
     from greyfit.schemas.fit import FitResult
     from greyfit.schemas.simulate import SimulateResult
@@ -254,4 +255,28 @@ def simulate_report(result: "SimulateResult") -> str:
         rows += [[o, _num(v.fit_percent.get(o), ".2f"), _num(v.nrmse.get(o), ".4f"), _num(r, ".4g")]
                  for o, r in v.rmse.items()]
         lines += ["[[Against the measured outputs]]"] + _table(rows, {1, 2, 3})
+    return "\n".join(lines)
+
+
+def design_report(result: "DesignResult") -> str:
+    """The text report of an experiment design: the signal, predicted errors or discrimination, baseline."""
+    exp = result.experiment
+    lines = ["[[Experiment design]]", f"{INDENT}criterion: {result.criterion}-optimal",
+             f"{INDENT}samples: {len(exp.time)} over {exp.time[-1] - exp.time[0]:.6g} s",
+             f"{INDENT}objective: {_num(result.objective)} (baseline {_num(result.objective_baseline)})",
+             f"{INDENT}optimiser: {result.status}, {result.iterations} iterations, "
+             f"wall time {result.wall_time_s:.2f} s"]
+    if result.improvement is not None:
+        lines.append(f"{INDENT}improvement over the baseline: {result.improvement:.3g}x")
+    if result.parameters:
+        rows = [["parameter", "value", "stderr (design)", "stderr (baseline)"]]
+        rows += [[k, _num(v.value), _num(v.stderr, ".4g"), _num(v.stderr_baseline, ".4g")]
+                 for k, v in result.parameters.items()]
+        lines += ["[[Predicted standard errors]]"] + _table(rows, {1, 2, 3})
+    if result.discrimination:
+        rows = [["truth", "rival", "divergence", "baseline", "expected ΔBIC"]]
+        rows += [[d.truth, d.rival, _num(d.divergence, ".4g"), _num(d.divergence_baseline, ".4g"),
+                  _num(d.expected_delta_bic, ".4g")] for d in result.discrimination]
+        lines += ["[[Discrimination]]"] + _table(rows, {2, 3, 4})
+    lines += [f"{INDENT}note: {n}" for n in result.notes]
     return "\n".join(lines)

@@ -1,4 +1,4 @@
-"""`greyfit` command line: fit, discover, batch, serve, simulate, report.
+"""`greyfit` command line: fit, discover, batch, serve, simulate, report, design.
 
 Exit codes: 0 done; 1 a batch in which every request failed; 2 bad input (file, JSON, request) or a
 fit that could not be built; 3 the result's quality is one that `--fail-on` names.
@@ -160,10 +160,11 @@ def _finish_compiles() -> None:
 
 
 def _extra_commands():
+    from greyfit.service.cli_design import add_design
     from greyfit.service.cli_keys import add_keys
     from greyfit.service.cli_service import add_batch, add_serve
     from greyfit.service.cli_workflow import add_report, add_simulate
-    return [add_serve, add_batch, add_simulate, add_report, add_keys]
+    return [add_serve, add_batch, add_simulate, add_report, add_design, add_keys]
 
 
 if __name__ == "__main__":

@@ -89,3 +89,33 @@ def data_values(req: FitRequest) -> int:
         series = 1 + len(exp.inputs) + len(exp.outputs) + len(exp.derivatives)
         total += series * len(exp.time)
     return total
+
+
+def check_design_limits(req, settings: Settings, prefix: str = "") -> None:
+    """An experiment design (DesignRequest) against this server's limits, naming the field.
+
+    The design's cost grows with samples × free parameters² × starts (× draws, × rivals): the sample
+    limit is the fit's, the models' sizes and texts are checked as a fit's are.
+    """
+    models = [("model.", req.model)] if req.model is not None else []
+    models += [(f"rivals[{k}].model.", r.model) for k, r in enumerate(req.rivals)]
+    for where, model in models:
+        if len(model.parameters) > settings.max_parameters:
+            raise LimitExceeded(f"{prefix}{where}parameters", f"{len(model.parameters)} parameters, the limit "
+                                f"is {settings.max_parameters}")
+        _check_texts(_ode_texts(model), settings, f"{prefix}{where}")
+    samples = int(req.duration / req.sample_time) + 1
+    if samples > settings.max_samples_per_experiment:
+        raise LimitExceeded(f"{prefix}duration", f"{samples} samples (duration / sample_time), the limit is "
+                            f"{settings.max_samples_per_experiment}; shorten it or sample more slowly")
+    if req.baseline is not None and len(req.baseline.time) > settings.max_samples_per_experiment:
+        raise LimitExceeded(f"{prefix}baseline.time", f"{len(req.baseline.time)} samples, the limit is "
+                            f"{settings.max_samples_per_experiment}")
+
+
+def design_values(req) -> int:
+    """How many numbers a design carries and makes (the synchronous size measure): its grid and baseline."""
+    total = (int(req.duration / req.sample_time) + 1) * (1 + len(req.inputs))
+    if req.baseline is not None:
+        total += (1 + len(req.baseline.inputs) + len(req.baseline.outputs)) * len(req.baseline.time)
+    return total

@@ -35,6 +35,18 @@ def msd_simulation() -> dict:
             "options": msd.get("options", {})}
 
 
+def msd_design() -> dict:
+    """A D-optimal input for the mass-spring-damper's c and k, beside the one step that was run."""
+    msd = msd_fit()
+    time = [round(0.1 * i, 10) for i in range(101)]
+    return {"model": msd["model"], "parameters": {"c": 0.8, "k": 5.0},
+            "inputs": {"u": {"lower": -1.0, "upper": 1.0}}, "outputs": {"x": 0.01},
+            "duration": 10.0, "sample_time": 0.1, "hold": 0.5,
+            "initial_state": {"x": 0.0, "v": 0.0},
+            "baseline": {"name": "step", "time": time, "inputs": {"u": [1.0] * len(time)}},
+            "options": {"starts": 1, "max_iterations": 50}}
+
+
 def msd_job() -> dict:
     """The mass-spring-damper fit as a batch job of one request."""
     return {"requests": [msd_fit()], "label": "demo"}

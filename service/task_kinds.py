@@ -125,6 +125,17 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              job_summary="Frequency-response fits as a batch job; results at /v1/jobs/{id}/results.",
              elsewhere="Decimate the sine-test records, or submit it as a job: POST /v1/frequency-fits/jobs",
              operation="create_frequency_fit", job_operation="create_frequency_job", tag="frequency fits"),
+    TaskKind("design", "greyfit.schemas.design:DesignRequest", "greyfit.schemas.design:DesignResult",
+             "greyfit.solvers.design:design_experiment", sync_path="/v1/designs", jobs_path="/v1/designs/jobs",
+             job_body="greyfit.schemas.design:DesignJobCreate",
+             limits="greyfit.service.limits:check_design_limits", values="greyfit.service.limits:design_values",
+             example=Example("msd_design", "The input that shrinks the mass-spring-damper's intervals most "
+                             "(D-optimal), beside the single step that was run", f"{_EXAMPLES}:msd_design"),
+             summary="Design the next experiment's input: D/A/E-optimal for the parameters' intervals, or "
+                     "T-optimal to tell rival models apart.",
+             job_summary="Experiment designs as a batch job; results at /v1/jobs/{id}/results.",
+             elsewhere="Submit it as a job: POST /v1/designs/jobs",
+             operation="create_design", job_operation="create_design_job", tag="designs"),
     TaskKind("simulate", "greyfit.schemas.simulate:SimulateRequest", "greyfit.schemas.simulate:SimulateResult",
              "greyfit.solvers.simulation.simulate:simulate_request", caps_cpu=False, generate=False,
              sync_path="/v1/simulate",   # service/routes/simulate.py

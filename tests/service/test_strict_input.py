@@ -66,7 +66,8 @@ def test_a_seed_is_an_integer_on_every_route_that_takes_options(client, seed):
     """`seed: false` was taken for the integer 0; a string or a float is not an integer either."""
     routes = _routes_taking_a_seed(client.get("/openapi.json").json())
     jobs = {k.jobs_path: k.sync_path for k in KINDS.values() if k.jobs_path}
-    assert routes == {"/v1/fits", "/v1/discover", "/v1/frequency-fits", "/v1/simulate", "/v1/report", *jobs}
+    assert routes == {"/v1/fits", "/v1/discover", "/v1/frequency-fits", "/v1/simulate", "/v1/report", "/v1/designs",
+                      *jobs}
     known = openapi_examples()
 
     def example(path: str) -> dict:   # a copy: build() may hand out the example itself

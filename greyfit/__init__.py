@@ -43,8 +43,8 @@ _LAZY = {
     "FrequencyFitRequest": ("greyfit.schemas.frequency", "FrequencyFitRequest"),
 }
 
-__all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "AsyncClient", "FitRequest", "FitResult",
-           "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
+__all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "AsyncClient", "FitRequest",
+           "FitResult", "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
            "FrequencyFitRequest"]
 
 

@@ -273,7 +273,8 @@ class ExperimentTrace(BaseModel):
     simulated: dict[str, list[Optional[float]]] = Field(
         description="per output, the model's simulated output at `time` (null where not finite)")
     residuals: dict[str, list[Optional[float]]] = Field(
-        description="per output, measured minus simulated (null where a sample is missing or not finite)")
+        description="per output, simulated minus measured (the solver's residual; null where a sample is "
+                    "missing or not finite)")
 
 
 class FitWarning(BaseModel):

@@ -273,3 +273,21 @@ def test_the_discovery_page_gives_each_rejection_its_reason_and_detail(duffing_d
     page = html.unescape(summary_html(result.fit, result, result.model)).replace("<b>", "").replace("</b>", "")
     for r in result.rejected:
         assert f"{r.reason}: {r.detail}" in page
+
+
+def test_the_discovery_validation_overlay_shows_the_added_term_on_a_record_the_fit_never_saw(plt, duffing_discovery):
+    """A second Duffing record (another input) as validation: the final model follows it closer than
+    the same model without its added terms."""
+    from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.service.report_discovery import discovery_figures
+    from tests import coloured_records as cr
+    request, result = duffing_discovery
+    body = request.model_dump(mode="json", exclude_unset=True)
+    body["validation"] = [cr.duffing_record(401, 2, name="val")]
+    figures, notes = discovery_figures(plt, result, DiscoverRequest.model_validate(body))
+    assert [f.name for f in figures][-2:] == ["discovery_overlay", "discovery_validation_overlay"], notes
+    ax = plt.figures[-1].axes[0]
+    measured, without, final = (np.asarray(line.get_ydata()) for line in ax.get_lines())
+    rms = [float(np.sqrt(np.mean((y - measured) ** 2))) for y in (without, final)]
+    assert rms[1] < 0.5 * rms[0], rms
+    assert ax.get_ylabel() == "y [m]"

@@ -154,6 +154,9 @@ class NewParameter(BaseModel):
     stderr: Optional[float] = Field(default=None, description="its standard error (null without a covariance)")
     ci95: Optional[tuple[float, float]] = Field(
         default=None, description="its confidence interval (null without a covariance)")
+    unit: Optional[str] = Field(
+        default=None, description="its unit, as the equation it enters implies from the model's units "
+                                  "(null where they do not fix it)")
 
 
 class RunnerUp(BaseModel):

@@ -291,3 +291,16 @@ def test_the_discovery_validation_overlay_shows_the_added_term_on_a_record_the_f
     rms = [float(np.sqrt(np.mean((y - measured) ** 2))) for y in (without, final)]
     assert rms[1] < 0.5 * rms[0], rms
     assert ax.get_ylabel() == "y [m]"
+
+
+def test_the_added_parameter_carries_the_unit_its_equation_implies(duffing_discovery):
+    """The cubic spring added to dyd/dt = (u - ...)/m sits beside u [N]: its coefficient is in N/m^3,
+    on the step, the final fit, the final model and the page."""
+    _, result = duffing_discovery
+    step = result.steps[0]
+    assert step.effect == "cubic_stiffness"
+    name = step.parameters[0].name
+    assert step.parameters[0].unit == "N/m^3"
+    assert result.fit.parameters[name].unit == "N/m^3"
+    assert {p.name: p.unit for p in result.model.parameters}[name] == "N/m^3"
+    assert "<td>N/m^3</td>" in summary_html(result.fit, result, result.model)

@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.bench_service import POLL_SECONDS, CpuMeter, msd_bodies, serve, wait_for_builds  # noqa: E402
-from tests.servers import free_port  # noqa: E402
+from tests.servers import free_port, unix_time  # noqa: E402
 from tests.servers import stop_server as stop  # noqa: E402
 
 JSON = {"content-type": "application/json"}
@@ -114,7 +114,7 @@ class JobsApi:
         server_cpu, worker_cpu = meter.stop()
         if job["progress"]["succeeded"] != self.n:
             raise RuntimeError(f"jobs API: {job['progress']}")
-        return job["finished_at"] - t0, server_cpu + worker_cpu
+        return unix_time(job["finished_at"]) - t0, server_cpu + worker_cpu
 
     def close(self) -> None:
         self.client.close()

@@ -48,6 +48,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from bench.bench_methods import start_guess  # noqa: E402
+from tests.servers import unix_time  # noqa: E402
 from tests.systems import (  # noqa: E402
     MSD_TRUTH,
     SEAT_MASSES,
@@ -368,7 +369,7 @@ class JobsRunner:
         results = self.client.get(f"/v1/jobs/{job_id}/results").json()["results"]
         names = ["c", "k"]
         values = np.array([[r["result"]["parameters"][k]["value"] for k in names] for r in results])
-        return (job["finished_at"] - t0, server + workers, values,
+        return (unix_time(job["finished_at"]) - t0, server + workers, values,
                 max(r["result"]["solver"]["iterations"] for r in results),
                 sum(r["result"]["solver"]["timings"]["solve"] for r in results))
 

@@ -39,7 +39,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from tests.servers import free_port  # noqa: E402
+from tests.servers import free_port, unix_time  # noqa: E402
 from tests.servers import stop_server as stop  # noqa: E402
 from tests.systems import msd_experiment, msd_model, simulate_msd  # noqa: E402
 
@@ -184,7 +184,7 @@ def throughput(workers: int, n: int, body: bytes) -> tuple[float, float, float]:
                 while (job := client.get(f"/v1/jobs/{job_id}").json())["status"] in ("queued", "running"):
                     time.sleep(POLL_SECONDS)
                 server_cpu, worker_cpu = meter.stop()
-                elapsed = job["finished_at"] - t0
+                elapsed = unix_time(job["finished_at"]) - t0
                 assert job["progress"]["succeeded"] == n, job["progress"]
         finally:
             stop(proc)

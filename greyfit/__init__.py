@@ -7,7 +7,7 @@ The public face of the library::
     print(result.params["k"].value)
 
 `fit`, `discover`, `simulate` and `frequency_fit` take the same requests as the HTTP service's
-routes and return the same results; `Client` calls a running service. The numerics load on first
+routes and return the same results; `Client` (and `AsyncClient`) call a running service. The numerics load on first
 use, so `from greyfit import Client` does not import CasADi.
 """
 from __future__ import annotations
@@ -15,7 +15,7 @@ from __future__ import annotations
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
-    from greyfit.client import Client
+    from greyfit.client import AsyncClient, Client
     from greyfit.schemas.design import DesignRequest, DesignResult
     from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
     from greyfit.schemas.fit import FitOptions, FitRequest, FitResult
@@ -37,6 +37,7 @@ _LAZY = {
     "DesignRequest": ("greyfit.schemas.design", "DesignRequest"),
     "DesignResult": ("greyfit.schemas.design", "DesignResult"),
     "Client": ("greyfit.client", "Client"),
+    "AsyncClient": ("greyfit.client", "AsyncClient"),
     "FitRequest": ("greyfit.schemas.fit", "FitRequest"),
     "FitResult": ("greyfit.schemas.fit", "FitResult"),
     "FitOptions": ("greyfit.schemas.fit", "FitOptions"),
@@ -47,8 +48,8 @@ _LAZY = {
     "FrequencyFitRequest": ("greyfit.schemas.frequency", "FrequencyFitRequest"),
 }
 
-__all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "FitRequest", "FitResult",
-           "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
+__all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "AsyncClient", "FitRequest",
+           "FitResult", "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
            "FrequencyFitRequest", "design", "DesignRequest", "DesignResult"]
 
 

@@ -23,12 +23,13 @@ class CustomCandidate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    equation: Name
-    term: Expression
-    parameter: Name
-    value: float = 0.0
-    lower: Optional[float] = None
-    upper: Optional[float] = None
+    equation: Name = Field(description="the state whose equation the term enters")
+    term: Expression = Field(
+        description="the term added to that equation, an expression in states, inputs and `parameter`")
+    parameter: Name = Field(description="the new parameter's name (it must not clash with the model's names)")
+    value: float = Field(default=0.0, description="the new parameter's start value")
+    lower: Optional[float] = Field(default=None, description="its lower bound (null: unbounded)")
+    upper: Optional[float] = Field(default=None, description="its upper bound (null: unbounded)")
 
 
 class DiscoveryOptions(BaseModel):
@@ -68,25 +69,31 @@ class DiscoverRequest(FitRequest):
     """A fit request plus `discovery`: fit, find the effect the model lacks, add it, refit."""
     model_config = ON_FIRST_USE
 
-    discovery: DiscoveryOptions = Field(default_factory=DiscoveryOptions)
+    discovery: DiscoveryOptions = Field(
+        default_factory=DiscoveryOptions,
+        description="the discovery options: effects to screen, terms to add, refit budget")
 
 
 class ValidationSummary(BaseModel):
     model_config = ON_FIRST_USE
-    rmse: dict[str, float]
-    fit_percent: dict[str, float]
-    nrmse: dict[str, float]
+    rmse: dict[str, float] = Field(description="root-mean-square error per output on the validation records")
+    fit_percent: dict[str, float] = Field(description="fit % per output on the validation records: 100 (1 - NRMSE)")
+    nrmse: dict[str, float] = Field(
+        description="normalised RMSE per output on the validation records: |y - ŷ| / |y - mean(y)|")
 
 
 class FitSummary(BaseModel):
     model_config = ON_FIRST_USE
-    success: bool = True
-    status: str = "success"
-    rmse: dict[str, Optional[float]]
-    fit_percent: dict[str, Optional[float]]
+    success: bool = Field(default=True, description="whether the fit converged")
+    status: str = Field(
+        default="success", description="the fit's status: success or failed (or a more specific failure)")
+    rmse: dict[str, Optional[float]] = Field(
+        description="root-mean-square error per output on the estimation records (null where not finite)")
+    fit_percent: dict[str, Optional[float]] = Field(
+        description="fit % per output: 100 (1 - NRMSE) (null for a constant measured signal)")
     cost: Optional[float] = Field(description="null when the fit is not finite")
-    aic: Optional[float]
-    bic: Optional[float]
+    aic: Optional[float] = Field(description="Akaike's information criterion (null when the fit is not finite)")
+    bic: Optional[float] = Field(description="Bayesian information criterion (null when the fit is not finite)")
     white: dict[str, bool] = Field(description="residual whiteness test passed, per output")
     validation: Optional[ValidationSummary] = Field(
         default=None, description="simulation on the validation experiments (not used to fit)")
@@ -94,13 +101,14 @@ class FitSummary(BaseModel):
 
 class CandidateScore(BaseModel):
     model_config = ON_FIRST_USE
-    effect: str
+    effect: str = Field(description="the effect's name in the library (e.g. cubic_stiffness)")
     equation: str = Field(description="the state equations the term enters, or 'output y' for the output path")
-    term: str
-    explained_variance: float
-    bic_drop: float
-    p_value: float
-    significant: bool
+    term: str = Field(description="the term the effect adds, as an expression")
+    explained_variance: float = Field(description="fraction of the residual variance the term explains at screening")
+    bic_drop: float = Field(
+        description="BIC of the residual regression without the term minus with it (positive: better)")
+    p_value: float = Field(description="the term's p-value at screening (F test of the residual regression)")
+    significant: bool = Field(description="whether the p-value is below the screen's Bonferroni level")
     scored_on: Literal["equations", "outputs", "refit"] = Field(
         description="equation residuals of measured states, output residuals through the sensitivities, or "
                     "'refit': the linearisation at this fit is blind to it (e.g. |h| where the fitted h keeps "
@@ -112,15 +120,18 @@ class CandidateScore(BaseModel):
 
 class Evidence(BaseModel):
     model_config = ON_FIRST_USE
-    scored_on: Literal["equations", "outputs", "refit"] = "equations"
+    scored_on: Literal["equations", "outputs", "refit"] = Field(
+        default="equations", description="what the screen scored the term on: equation residuals, output residuals, or"
+                                         " only a refit")
     explained_variance: float = Field(description="fraction of the residual variance (equations or outputs) "
                                                   "the term explains at screening")
-    screening_bic_drop: float
-    p_value: float
-    bic_before: float
-    bic_after: float
-    bic_drop: float
-    t_value: Optional[float]
+    screening_bic_drop: float = Field(description="the BIC drop of the term at screening")
+    p_value: float = Field(description="the term's p-value at screening")
+    bic_before: float = Field(description="BIC of the fit before the term was added")
+    bic_after: float = Field(description="BIC of the refit with the term")
+    bic_drop: float = Field(description="bic_before - bic_after (positive: the refit is better)")
+    t_value: Optional[float] = Field(
+        description="the new parameter's estimate over its standard error (null without a standard error)")
     refit_p_value: Optional[float] = Field(
         default=None,
         description="likelihood-ratio test of the refit against the model before, both output residuals "
@@ -129,7 +140,8 @@ class Evidence(BaseModel):
                     "equation_error")
     noise_model_order: Optional[int] = Field(
         default=None, description="order of that AR noise model (BIC; 0: the residual is white)")
-    residual_correlation_before: float
+    residual_correlation_before: float = Field(
+        description="correlation of the term with the output residual before the refit")
     residual_correlation_after: Optional[float] = Field(
         default=None, description="the same correlation with the refitted model's output residual; null where "
                                   "it is not defined (scored on states, or a constant residual or column)")
@@ -137,19 +149,23 @@ class Evidence(BaseModel):
 
 class NewParameter(BaseModel):
     model_config = ON_FIRST_USE
-    name: str
-    value: float
-    stderr: Optional[float] = None
-    ci95: Optional[tuple[float, float]] = None
+    name: str = Field(description="the added parameter's name")
+    value: float = Field(description="its estimate")
+    stderr: Optional[float] = Field(default=None, description="its standard error (null without a covariance)")
+    ci95: Optional[tuple[float, float]] = Field(
+        default=None, description="its confidence interval (null without a covariance)")
+    unit: Optional[str] = Field(
+        default=None, description="its unit, as the equation it enters implies from the model's units "
+                                  "(null where they do not fix it)")
 
 
 class RunnerUp(BaseModel):
     """A contender of the chosen effect, refitted against it on the same data."""
     model_config = ON_FIRST_USE
 
-    effect: str
-    equation: str
-    term: str
+    effect: str = Field(description="the contender's effect name")
+    equation: str = Field(description="the state equation its term enters")
+    term: str = Field(description="the term it adds")
     delta_bic: Optional[float] = Field(
         description="its BIC minus the chosen one's, both output residuals whitened by one AR noise model "
                     "(coloured noise is not evidence), also when a gate rejected it after its refit converged; "
@@ -161,13 +177,13 @@ class RunnerUp(BaseModel):
 
 class DiscoveryStep(BaseModel):
     model_config = ON_FIRST_USE
-    effect: str
-    equation: str
-    term: str
-    description: str
-    parameters: list[NewParameter]
-    evidence: Evidence
-    after: FitSummary
+    effect: str = Field(description="the effect added (its name in the library)")
+    equation: str = Field(description="the state equation (or output) the term entered")
+    term: str = Field(description="the term added, as an expression")
+    description: str = Field(description="the effect in words (e.g. cubic (hardening or softening) stiffness on x)")
+    parameters: list[NewParameter] = Field(description="the parameters the term added, with their estimates")
+    evidence: Evidence = Field(description="why it was kept: screening score, refit BIC and likelihood-ratio test")
+    after: FitSummary = Field(description="the fit with this term (and those before it)")
     record_specific: bool = Field(default=False, description="a change in time found in this record "
                                                              "(step, drift): it does not carry over to new data")
     verdict: Literal["identified", "ambiguous", "approximates"] = Field(
@@ -187,9 +203,9 @@ class DiscoveryStep(BaseModel):
 
 class RejectedCandidate(BaseModel):
     model_config = ON_FIRST_USE
-    effect: str
-    equation: str
-    term: str
+    effect: str = Field(description="the candidate's effect name")
+    equation: str = Field(description="the state equation its term would enter")
+    term: str = Field(description="the term it would add")
     reason: Literal["evidence", "validation", "cpu_limit", "solver_failed", "refit_error", "superseded",
                     "parsimony", "shape"] = Field(
         description="evidence: the refit did not confirm it (BIC, t-value); validation: it made the "
@@ -203,7 +219,7 @@ class RejectedCandidate(BaseModel):
                     "shape: the learned disturbance depends on more than the present value of any one variable "
                     "(e.g. a hysteresis) and the law removes too little of the residual's excess over the noise "
                     "to be more than a stand-in")
-    detail: str
+    detail: str = Field(description="the reason in words, with the numbers that decided it")
 
 
 class DiscoveryResult(BaseModel):
@@ -218,10 +234,10 @@ class DiscoveryResult(BaseModel):
     def __str__(self) -> str:
         return self.report()
 
-    conclusion: str
-    before: FitSummary
-    after: FitSummary
-    steps: list[DiscoveryStep]
+    conclusion: str = Field(description="one sentence: what was added, or why nothing was")
+    before: FitSummary = Field(description="the declared model's fit")
+    after: FitSummary = Field(description="the final model's fit")
+    steps: list[DiscoveryStep] = Field(description="the effects added, in order, each with its evidence")
     rejected: list[RejectedCandidate] = Field(default_factory=list,
                                               description="candidates refitted and not kept, with the reason")
     screened: list[CandidateScore] = Field(description="the best-scoring candidates of the first round")
@@ -232,7 +248,7 @@ class DiscoveryResult(BaseModel):
         default_factory=dict, description="per experiment, input series the augmented model needs "
                                           "(an input delayed by whole samples); send them with the data")
     fit: FitResult = Field(description="the final fit")
-    wall_time_s: float
+    wall_time_s: float = Field(description="wall time of the whole discovery, in seconds")
     timings: dict[str, float] = Field(
         default_factory=dict,
         description="wall time per phase in seconds: base_fit, screening, refits (confirming and width "
@@ -309,13 +325,15 @@ class Unexplained(BaseModel):
 
     outputs: list[str] = Field(description="outputs whose residual stays above the noise")
     residual_to_noise: dict[str, float] = Field(description="final RMS residual over the estimated noise level")
-    noise_level: dict[str, float]
+    noise_level: dict[str, float] = Field(description="the estimated noise level per output")
     shape_share: float = Field(description="share of the final residual's sum of squares the learned shape holds")
     equation: str = Field(description="where the learned shape enters (the most likely disturbance)")
-    variable: Optional[str] = None
+    variable: Optional[str] = Field(
+        default=None, description="the variable a smooth function of which explains most of the shape (null: none "
+                                  "does)")
     share_explained: Optional[float] = Field(default=None, description="share of the shape a smooth function of "
                                                                        "`variable` explains")
-    message: str
+    message: str = Field(description="what is left unexplained, in words")
     shape: Discrepancy = Field(description="the disturbance learned at the final fit")
 
 

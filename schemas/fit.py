@@ -162,14 +162,16 @@ class FitRequest(BaseModel):
 
 
 class ParameterEstimate(BaseModel):
-    value: float
-    stderr: Optional[float] = None
+    value: float = Field(description="the estimate (or the fixed value)")
+    stderr: Optional[float] = Field(
+        default=None, description="standard error (1 sigma); null without a covariance or for a fixed parameter")
     ci95: Optional[tuple[float, float]] = Field(
         default=None, description="confidence interval at the result's `confidence_level` (95 % unless "
         "options.confidence_level says otherwise; the name is kept for compatibility)")
-    fixed: bool = False
-    at_bound: Optional[Literal["lower", "upper"]] = None
-    initial: float
+    fixed: bool = Field(default=False, description="true when the parameter was held at its value")
+    at_bound: Optional[Literal["lower", "upper"]] = Field(
+        default=None, description="the bound the estimate ended at (lower or upper), else null")
+    initial: float = Field(description="the start value the fit began from")
     experiment: Optional[str] = Field(default=None, description="set for per_experiment copies")
     stderr_classical: Optional[float] = Field(
         default=None, description="sigma^2 (J^T J)^-1 standard error; equals stderr unless the "
@@ -178,22 +180,23 @@ class ParameterEstimate(BaseModel):
 
 
 class CovariancePublic(BaseModel):
-    names: list[str]
-    matrix: list[list[float]]
+    names: list[str] = Field(description="the estimated variables, in the order of the matrix's rows and columns")
+    matrix: list[list[float]] = Field(description="the symmetric matrix, row by row")
 
 
 class FitMetrics(BaseModel):
     """Null where undefined: a failed simulation, or a constant measured signal (fit %)."""
 
     cost: Optional[float] = Field(description="0.5 * sum of weighted squared residuals")
-    ndata: int
-    nfree: int
-    nvarys: int
-    rmse: dict[str, Optional[float]]
+    ndata: int = Field(description="number of measured samples fitted (all outputs, all records)")
+    nfree: int = Field(description="degrees of freedom: ndata - nvarys")
+    nvarys: int = Field(description="number of estimated variables (free parameters and estimated initial states)")
+    rmse: dict[str, Optional[float]] = Field(
+        description="root-mean-square error per output (null where the simulation failed)")
     fit_percent: dict[str, Optional[float]] = Field(
         description="NRMSE fit as MATLAB compare: 100(1-|y-ŷ|/|y-mean(y)|)")
-    aic: Optional[float] = None
-    bic: Optional[float] = None
+    aic: Optional[float] = Field(default=None, description="Akaike's information criterion, n ln(RSS/n) + 2k")
+    bic: Optional[float] = Field(default=None, description="Bayesian information criterion, n ln(RSS/n) + k ln(n)")
 
 
 class MethodChoice(BaseModel):
@@ -213,12 +216,15 @@ class SolverInfo(BaseModel):
     method_choice: Optional[MethodChoice] = Field(
         default=None, description="set when the request's method was auto: which method ran and why; "
         "null when the request named the method")
-    iterations: int
-    wall_time_s: float
-    return_status: str
-    starts: int = 1
-    derivative_filter: Optional[str] = None
-    linear_in_parameters: Optional[bool] = None
+    iterations: int = Field(description="Ipopt iterations of the best start")
+    wall_time_s: float = Field(description="wall time to the result in seconds, without the checks after the solve")
+    return_status: str = Field(description="the solver's own status (e.g. Solve_Succeeded)")
+    starts: int = Field(default=1, description="number of starts (multistart)")
+    derivative_filter: Optional[str] = Field(
+        default=None, description="equation error: how the state derivatives were estimated from the data")
+    linear_in_parameters: Optional[bool] = Field(
+        default=None, description="equation error: whether the problem was linear in the parameters (solved in one "
+                                  "step)")
     compiled: Optional[bool] = Field(
         default=None, description="whether the per-sample model functions ran as compiled C (true: gcc's "
         "library, or on a new model's first fits the Tiny C Compiler's until gcc's is built) or in CasADi's "
@@ -239,38 +245,44 @@ class SolverInfo(BaseModel):
 class ResidualTest(BaseModel):
     """Whiteness (autocorrelation) or independence (cross-correlation with an input) test."""
 
-    max_abs: float
+    max_abs: float = Field(description="the largest |correlation| over the lags tested")
     bound: float = Field(description="per-lag band z/sqrt(N), z Šidák-corrected for the number of lags "
                                      "tested (3.54 for 25 lags at level 0.01); passed = max_abs <= bound")
-    lags: int
-    passed: bool
+    lags: int = Field(description="number of lags tested")
+    passed: bool = Field(
+        description="whether every lag is inside the family-wise band (white, or independent of the input)")
     p_value: Optional[float] = Field(None, description="family-wise p-value of max_abs (white residual: uniform)")
     level: float = Field(0.01, description="family-wise false-alarm rate of the test on a white residual")
 
 
 class ResidualAnalysis(BaseModel):
-    output: str
-    rmse: Optional[float]
-    fit_percent: Optional[float]
-    autocorrelation: list[float]
-    whiteness: ResidualTest
-    cross_correlation: dict[str, list[float]] = Field(default_factory=dict)
-    independence: dict[str, ResidualTest] = Field(default_factory=dict)
+    output: str = Field(description="the output's name")
+    rmse: Optional[float] = Field(description="root-mean-square residual (null where not finite)")
+    fit_percent: Optional[float] = Field(description="fit %: 100 (1 - NRMSE) (null for a constant measured signal)")
+    autocorrelation: list[float] = Field(description="the residual's autocorrelation at lags 0, 1, ...")
+    whiteness: ResidualTest = Field(description="the whiteness test of the autocorrelation")
+    cross_correlation: dict[str, list[float]] = Field(
+        description="per input, the residual's cross-correlation with it at lags 0, 1, ...", default_factory=dict)
+    independence: dict[str, ResidualTest] = Field(
+        description="per input, the independence test of that cross-correlation", default_factory=dict)
 
 
 class ExperimentTrace(BaseModel):
-    name: str
-    time: list[float]
-    simulated: dict[str, list[Optional[float]]]
-    residuals: dict[str, list[Optional[float]]]
+    name: str = Field(description="the record's name")
+    time: list[float] = Field(description="sample times [s]")
+    simulated: dict[str, list[Optional[float]]] = Field(
+        description="per output, the model's simulated output at `time` (null where not finite)")
+    residuals: dict[str, list[Optional[float]]] = Field(
+        description="per output, simulated minus measured (the solver's residual; null where a sample is "
+                    "missing or not finite)")
 
 
 class FitWarning(BaseModel):
     """Something the user should know about the result; `code` is stable (README lists them)."""
 
-    code: str
-    message: str
-    detail: dict[str, Any] = Field(default_factory=dict)
+    code: str = Field(description="a stable machine-readable code (docs/trust.md lists them)")
+    message: str = Field(description="what the warning means and what to do, in words")
+    detail: dict[str, Any] = Field(description="the numbers behind it", default_factory=dict)
 
 
 class ProfileInterval(BaseModel):
@@ -279,12 +291,13 @@ class ProfileInterval(BaseModel):
     lower: Optional[float] = Field(description="null: the cost stays below `threshold` up to a bound "
                                    "or the step limit (the data do not bound the parameter there), or the "
                                    "profile was not computed (its CPU limit ran out; `note` says which)")
-    upper: Optional[float]
+    upper: Optional[float] = Field(description="the interval's upper end; null as for `lower`")
     values: list[float] = Field(description="the parameter values visited, ascending")
     costs: list[Optional[float]] = Field(description="the re-optimised cost at each value")
     threshold: Optional[float] = Field(description="cost + ½ t²(ν) σ²: the interval is where the profile "
                                        "stays below it")
-    note: Optional[str] = None
+    note: Optional[str] = Field(
+        default=None, description="why the profile is incomplete (a bound, the step limit, its CPU limit), else null")
     noise_adjustment: Optional[float] = Field(
         default=None, description="coloured residual (HAC covariance reported): the factor var_HAC/"
         "var_classical the threshold's ½t²σ² was scaled by; null: white residual, threshold unscaled")
@@ -313,27 +326,37 @@ class AlternativeOptimum(BaseModel):
 class FitResult(BaseModel):
     """Outcome of one fit; `success: false` is a result, not an error."""
 
-    success: bool
-    status: str
-    message: str
-    parameters: dict[str, ParameterEstimate]
+    success: bool = Field(description="whether the solver converged (see `quality` for whether to trust the answer)")
+    status: str = Field(
+        description="success, or failed (or a more specific failure); see `quality` for whether to trust the answer")
+    message: str = Field(description="the solver's outcome in words")
+    parameters: dict[str, ParameterEstimate] = Field(
+        description="every parameter by name: estimate, standard error, interval, unit, initial value")
     confidence_level: float = Field(
         default=0.95, gt=0, lt=1,
         description="level of the parameters' confidence intervals (`ci95`): the request's "
         "options.confidence_level (0.95 where a result written by an older version does not say)")
-    covariance: Optional[CovariancePublic] = None
-    covariance_note: Optional[str] = None
-    correlation: Optional[CovariancePublic] = None
-    initial_states: dict[str, dict[str, float]]
-    metrics: FitMetrics
-    solver: SolverInfo
-    residual_analysis: list[ResidualAnalysis] = Field(default_factory=list)
-    traces: Optional[list[ExperimentTrace]] = None
+    covariance: Optional[CovariancePublic] = Field(
+        default=None, description="covariance of the estimated variables; null when it is not available (see "
+                                  "covariance_note)")
+    covariance_note: Optional[str] = Field(
+        default=None, description="why there is no covariance (e.g. which combination is not identifiable), else null")
+    correlation: Optional[CovariancePublic] = Field(
+        default=None, description="correlation matrix of the estimated variables (null without a covariance)")
+    initial_states: dict[str, dict[str, float]] = Field(
+        description="per record, the initial state used (estimated or given)")
+    metrics: FitMetrics = Field(description="data points, variables, cost, RMSE and fit % per output, AIC and BIC")
+    solver: SolverInfo = Field(description="method, iterations, status, starts and timings of the solve")
+    residual_analysis: list[ResidualAnalysis] = Field(
+        description="per output, the residual's whiteness and independence tests", default_factory=list)
+    traces: Optional[list[ExperimentTrace]] = Field(
+        default=None, description="per record, simulated outputs and residuals (with options.return_traces), else null")
     validation: Optional[ValidationResult] = Field(
         default=None, description="simulation metrics on the request's validation records")
     preprocessing: Optional[PreprocessingReport] = Field(
         default=None, description="what each experiment's `preprocess` did, and hints about the data")
-    frequency_response: Optional[FrequencyResponseResult] = None
+    frequency_response: Optional[FrequencyResponseResult] = Field(
+        default=None, description="frequency fits: measured and fitted responses and the loops' stability; else null")
     warnings: list[FitWarning] = Field(
         default_factory=list, description="checks before and after the fit; codes in the README")
     quality: Literal["good", "suspect", "failed"] = Field(

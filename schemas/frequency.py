@@ -24,8 +24,11 @@ class Polynomials(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    num: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
-    den: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
+    num: Coefficients = Field(
+        min_length=1, max_length=MAX_DEGREE + 1,
+        description="numerator coefficients, descending powers of s (expressions in the parameters)")
+    den: Coefficients = Field(
+        description="denominator coefficients, descending powers of s", min_length=1, max_length=MAX_DEGREE + 1)
 
 
 class Feedback(BaseModel):
@@ -45,14 +48,21 @@ class TransferFunctionModel(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["transfer_function"] = "transfer_function"
-    name: Name = "plant"
-    parameters: list[Parameter] = Field(min_length=1, max_length=MAX_PARAMETERS)
-    constants: dict[Name, float] = Field(default_factory=dict)
-    numerator: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
-    denominator: Coefficients = Field(min_length=1, max_length=MAX_DEGREE + 1)
-    constraints: list[Expression] = Field(default_factory=list, max_length=MAX_PARAMETERS)
-    feedback: Optional[Feedback] = None
+    kind: Literal["transfer_function"] = Field(
+        default="transfer_function", description="transfer_function: G(s) = numerator / denominator")
+    name: Name = Field(default="plant", description="the model's name")
+    parameters: list[Parameter] = Field(
+        description="the parameters, with start values, bounds and units", min_length=1, max_length=MAX_PARAMETERS)
+    constants: dict[Name, float] = Field(description="named constants the coefficients may use", default_factory=dict)
+    numerator: Coefficients = Field(
+        min_length=1, max_length=MAX_DEGREE + 1,
+        description="numerator coefficients, descending powers of s (expressions in the parameters)")
+    denominator: Coefficients = Field(
+        description="denominator coefficients, descending powers of s", min_length=1, max_length=MAX_DEGREE + 1)
+    constraints: list[Expression] = Field(
+        description="expressions that must stay >= 0 at the estimates", default_factory=list, max_length=MAX_PARAMETERS)
+    feedback: Optional[Feedback] = Field(
+        default=None, description="the controller and loop the plant was measured in (null: open loop)")
 
     @model_validator(mode="after")
     def _names_are_consistent(self) -> "TransferFunctionModel":
@@ -84,7 +94,8 @@ class OperatingPoint(BaseModel):
 
     inputs: dict[Name, float] = Field(default_factory=dict, description="u0: a value for every model input")
     states: dict[Name, float] = Field(default_factory=dict, description="x0 (given) or the search start (solve)")
-    equilibrium: Literal["solve", "given"] = "solve"
+    equilibrium: Literal["solve", "given"] = Field(
+        default="solve", description="solve: find the equilibrium at the given inputs; given: use the states as given")
 
 
 class LinearisedOdeModel(Model):
@@ -94,11 +105,13 @@ class LinearisedOdeModel(Model):
     parameters; `input` and `output` pick the channel the data measure (default: the only one).
     """
 
-    kind: Literal["linearised_ode"] = "linearised_ode"
-    operating_point: OperatingPoint
+    kind: Literal["linearised_ode"] = Field(
+        default="linearised_ode", description="linearised_ode: an ODE model linearised at an operating point")
+    operating_point: OperatingPoint = Field(description="where the model is linearised")
     input: Optional[Name] = Field(default=None, description="the input the response is to")
     output: Optional[Name] = Field(default=None, description="the output measured")
-    feedback: Optional[Feedback] = None
+    feedback: Optional[Feedback] = Field(
+        default=None, description="the controller and loop the plant was measured in (null: open loop)")
 
 
 def _model_kind(value) -> str:
@@ -120,10 +133,11 @@ class SineTest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", defer_build=True)
 
-    omega: Union[float, list[float]]
-    time: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
-    input: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
-    output: list[float] = Field(min_length=3, max_length=MAX_SAMPLES)
+    omega: Union[float, list[float]] = Field(
+        description="the test's angular frequency [rad/s] (or several, for a multisine)")
+    time: list[float] = Field(description="sample times [s]", min_length=3, max_length=MAX_SAMPLES)
+    input: list[float] = Field(description="the input measured at `time`", min_length=3, max_length=MAX_SAMPLES)
+    output: list[float] = Field(description="the output measured at `time`", min_length=3, max_length=MAX_SAMPLES)
     settle_time: float = Field(default=0.0, ge=0, description="samples before this time are ignored")
 
 
@@ -132,15 +146,24 @@ class FrequencyData(BaseModel):
 
     model_config = ConfigDict(extra="forbid", defer_build=True)
 
-    name: Name = "data"
+    name: Name = Field(default="data", description="the data set's name")
     omega: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES,
                                          description="angular frequencies in rad/s, increasing")
-    real: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
-    imag: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
-    gain: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
+    real: Optional[list[float]] = Field(
+        default=None, max_length=MAX_SAMPLES,
+        description="real part of the measured response at each frequency (with `imag`)")
+    imag: Optional[list[float]] = Field(
+        default=None, max_length=MAX_SAMPLES,
+        description="imaginary part of the measured response at each frequency (with `real`)")
+    gain: Optional[list[float]] = Field(
+        default=None, max_length=MAX_SAMPLES,
+        description="measured magnitude at each frequency (with `phase_deg`), linear")
     gain_unit: Literal["abs", "dB"] = Field(default="abs", description="gain as |G| or 20 log10 |G|")
-    phase_deg: Optional[list[float]] = Field(default=None, max_length=MAX_SAMPLES)
-    sine_tests: Optional[list[SineTest]] = Field(default=None, max_length=10_000)
+    phase_deg: Optional[list[float]] = Field(
+        description="measured phase at each frequency [deg] (with `gain`)", default=None, max_length=MAX_SAMPLES)
+    sine_tests: Optional[list[SineTest]] = Field(
+        default=None, max_length=10_000,
+        description="time records of sine tests, one per frequency, from which the response is estimated")
     constants: dict[Name, FiniteFloat] = Field(
         default_factory=dict, description="values of model constants for this data set (e.g. Kp, Ki)")
 
@@ -189,44 +212,48 @@ class FrequencyFitRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid", defer_build=True)
 
-    model: FrequencyModel
-    data: list[FrequencyData] = Field(min_length=1, max_length=MAX_EXPERIMENTS)
-    options: FrequencyFitOptions = Field(default_factory=FrequencyFitOptions)
+    model: FrequencyModel = Field(
+        description="a transfer function or a linearised ODE model, with its feedback loop if any")
+    data: list[FrequencyData] = Field(
+        min_length=1, max_length=MAX_EXPERIMENTS,
+        description="the measured frequency responses, one data set per loop setting")
+    options: FrequencyFitOptions = Field(
+        description="cost, weighting, stability handling, solver options", default_factory=FrequencyFitOptions)
 
 
 class LoopStability(BaseModel):
     """Poles of one fitted closed loop (the data set's, or one of `also_stable_with`)."""
 
-    setting: str
-    poles_real: list[float]
-    poles_imag: list[float]
+    setting: str = Field(description="the loop setting (the data set's name, or the controller of also_stable_with)")
+    poles_real: list[float] = Field(description="real parts of the closed loop's poles")
+    poles_imag: list[float] = Field(description="imaginary parts of the closed loop's poles")
     max_real_part: Optional[float] = Field(
         description="null (and no poles, no Routh column) where the fitted loop's coefficients are not finite")
-    stable: bool
-    routh_first_column: list[float]
+    stable: bool = Field(description="whether every pole has a negative real part")
+    routh_first_column: list[float] = Field(description="the first column of the Routh array (all positive: stable)")
 
 
 class DataSetResponse(BaseModel):
     """Measured and fitted response of one data set, for Bode and Nyquist plots."""
 
-    name: str
-    omega: list[float]
-    measured_real: list[float]
-    measured_imag: list[float]
-    fitted_real: list[float]
-    fitted_imag: list[float]
-    zeros_real: list[float]
-    zeros_imag: list[float]
+    name: str = Field(description="the data set's name")
+    omega: list[float] = Field(description="the frequencies [rad/s]")
+    measured_real: list[float] = Field(description="real part of the measured response")
+    measured_imag: list[float] = Field(description="imaginary part of the measured response")
+    fitted_real: list[float] = Field(description="real part of the fitted model's response")
+    fitted_imag: list[float] = Field(description="imaginary part of the fitted model's response")
+    zeros_real: list[float] = Field(description="real parts of the fitted closed loop's zeros")
+    zeros_imag: list[float] = Field(description="imaginary parts of the fitted closed loop's zeros")
     numerator: list[float] = Field(description="fitted closed-loop numerator, descending powers of s")
-    denominator: list[float]
+    denominator: list[float] = Field(description="fitted closed-loop denominator, descending powers of s")
 
 
 class FrequencyResponseResult(BaseModel):
-    data: list[DataSetResponse]
-    loops: list[LoopStability]
+    data: list[DataSetResponse] = Field(description="per data set, the measured and fitted responses")
+    loops: list[LoopStability] = Field(description="per fitted closed loop, its poles and stability")
     stable: bool = Field(description="every fitted closed loop has all poles in the open left half plane")
-    cost_kind: str
-    stability_handling: str
+    cost_kind: str = Field(description="options.cost of the fit: relative_complex, complex, log or log1p_abs_error")
+    stability_handling: str = Field(description="options.stability of the fit: routh, penalty, check or none")
     levy_start: Optional[dict[str, float]] = Field(
         default=None, description="parameters of the linearised (Levy / Sanathanan-Koerner) start")
     operating_point: Optional[dict[str, float]] = Field(

@@ -1,6 +1,7 @@
 """Batch jobs: one job holds several requests, each a task with its own status and result."""
 from __future__ import annotations
 
+from datetime import datetime
 from typing import Any, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, create_model
@@ -27,8 +28,10 @@ def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> typ
         name, __config__=ConfigDict(extra="forbid", defer_build=True),
         __doc__=doc or f"A batch of {request_schema.__name__}s.",
         __module__=request_schema.__module__,
-        requests=(list[request_schema], Field(min_length=1)),  # type: ignore[valid-type]
-        label=(Optional[str], Field(default=None, max_length=200, pattern=LABEL_PATTERN)))
+        requests=(list[request_schema], Field(  # type: ignore[valid-type]
+            min_length=1, description=f"the {request_schema.__name__}s to run, each a task of the job")),
+        label=(Optional[str], Field(default=None, max_length=200, pattern=LABEL_PATTERN,
+                                    description="a name for the job, shown in the job list")))
     return model
 
 
@@ -36,63 +39,70 @@ def job_create(name: str, request_schema: type[BaseModel], doc: str = "") -> typ
 
 class TaskError(BaseModel):
     model_config = ON_FIRST_USE
-    type: str
-    field: Optional[str] = None
-    detail: str
-    errors: Optional[list[dict[str, Any]]] = None
+    type: str = Field(description="the error's kind (e.g. ValidationError, ModelDefinitionError, Timeout, WorkerLost)")
+    field: Optional[str] = Field(default=None, description="the request's field at fault, where there is one")
+    detail: str = Field(description="what went wrong and the fix, in words")
+    errors: Optional[list[dict[str, Any]]] = Field(default=None, description="validation errors, each {loc, msg}")
 
 
 class TaskPublic(BaseModel):
     model_config = ON_FIRST_USE
-    index: int
-    status: TaskStatus
-    attempts: int
-    started_at: Optional[float] = None
-    finished_at: Optional[float] = None
-    error: Optional[TaskError] = None
+    index: int = Field(description="the request's position in the job (0-based)")
+    status: TaskStatus = Field(description="queued, running, succeeded, failed or cancelled")
+    attempts: int = Field(description="how often a worker has started it (a lost worker's task is retried)")
+    started_at: Optional[datetime] = Field(
+        default=None, description="when its last attempt started (RFC 3339, UTC); null while queued")
+    finished_at: Optional[datetime] = Field(
+        default=None, description="when it finished (RFC 3339, UTC); null until then")
+    error: Optional[TaskError] = Field(default=None, description="why it failed, else null")
 
 
 class JobProgress(BaseModel):
     model_config = ON_FIRST_USE
-    done: int
-    total: int
-    succeeded: int
-    failed: int
+    done: int = Field(description="tasks finished (succeeded, failed or cancelled)")
+    total: int = Field(description="tasks in the job")
+    succeeded: int = Field(description="tasks that succeeded")
+    failed: int = Field(description="tasks that failed")
 
 
 class JobSummary(BaseModel):
     """A job in the job list: its status and progress, without its tasks (GET /v1/jobs/{id} has them)."""
     model_config = ON_FIRST_USE
-    id: str
+    id: str = Field(description="the job's id")
     kind: str = Field(description="the task kind (service/task_kinds.py lists them; OpenAPI gives the enum)")
-    label: Optional[str] = None
-    status: JobStatus
-    progress: JobProgress
-    created_at: float
-    started_at: Optional[float] = None
-    finished_at: Optional[float] = None
+    label: Optional[str] = Field(default=None, description="the label it was created with, else null")
+    status: JobStatus = Field(
+        description="queued, running, succeeded (at least one task did), failed (none did) or cancelled")
+    progress: JobProgress = Field(description="counts of the job's tasks")
+    created_at: datetime = Field(description="when the job was created (RFC 3339, UTC)")
+    started_at: Optional[datetime] = Field(
+        default=None, description="when its first task started (RFC 3339, UTC); null while queued")
+    finished_at: Optional[datetime] = Field(
+        default=None, description="when its last task finished (RFC 3339, UTC); null until then")
 
 
 class JobPublic(JobSummary):
-    tasks: list[TaskPublic]
+    tasks: list[TaskPublic] = Field(description="every task of the job, in request order")
 
 
 class JobsPublic(BaseModel):
     model_config = ON_FIRST_USE
-    data: list[JobSummary]
-    count: int
+    data: list[JobSummary] = Field(description="the jobs of this page, newest first")
+    count: int = Field(description="the number of all jobs")
 
 
 class TaskResult(BaseModel):
     model_config = ON_FIRST_USE
-    index: int
-    status: TaskStatus
-    result: Optional[dict[str, Any]] = None
-    error: Optional[TaskError] = None
+    index: int = Field(description="the request's position in the job (0-based)")
+    status: TaskStatus = Field(description="queued, running, succeeded, failed or cancelled")
+    result: Optional[dict[str, Any]] = Field(
+        default=None, description="the result (FitResult or DiscoveryResult, by the job's kind) once succeeded, else "
+                                  "null")
+    error: Optional[TaskError] = Field(default=None, description="why it failed, else null")
 
 
 class JobResults(BaseModel):
     model_config = ON_FIRST_USE
-    id: str
-    status: JobStatus
-    results: list[TaskResult]
+    id: str = Field(description="the job's id")
+    status: JobStatus = Field(description="the job's status")
+    results: list[TaskResult] = Field(description="one entry per request, in request order")

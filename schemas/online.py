@@ -35,12 +35,12 @@ class ArxTemplate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["arx"] = "arx"
-    na: int = Field(ge=1, le=20)
-    nb: int = Field(ge=1, le=20)
+    kind: Literal["arx"] = Field(default="arx", description="arx: A(q) y = B(q) u + e")
+    na: int = Field(description="order of A (past outputs)", ge=1, le=20)
+    nb: int = Field(description="order of B (past inputs)", ge=1, le=20)
     nk: int = Field(default=1, ge=1, le=50, description="input delay in samples (>= 1)")
-    output: _Name = "y"
-    input: _Name = "u"
+    output: _Name = Field(default="y", description="the output's name")
+    input: _Name = Field(default="u", description="the input's name")
 
 
 def expand_arx_template(data: dict) -> dict:
@@ -100,13 +100,13 @@ class ArmaxTemplate(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["armax"] = "armax"
-    na: int = Field(ge=1, le=20)
-    nb: int = Field(ge=1, le=20)
-    nc: int = Field(ge=1, le=20)
+    kind: Literal["armax"] = Field(default="armax", description="armax: A(q) y = B(q) u + C(q) e")
+    na: int = Field(description="order of A (past outputs)", ge=1, le=20)
+    nb: int = Field(description="order of B (past inputs)", ge=1, le=20)
+    nc: int = Field(description="order of C (past noise)", ge=1, le=20)
     nk: int = Field(default=1, ge=1, le=50, description="input delay in samples (>= 1)")
-    output: _Name = "y"
-    input: _Name = "u"
+    output: _Name = Field(default="y", description="the output's name")
+    input: _Name = Field(default="u", description="the input's name")
 
 
 def template_kind(value) -> str:
@@ -164,10 +164,15 @@ class TimeVarying(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    kind: Literal["piecewise_constant", "piecewise_linear"] = "piecewise_constant"
-    knots: Optional[list[float]] = Field(default=None, min_length=2, max_length=2000)
-    segments: Optional[int] = Field(default=None, ge=1, le=2000)
-    regularization: Literal["total_variation", "none"] = "total_variation"
+    kind: Literal["piecewise_constant", "piecewise_linear"] = Field(
+        default="piecewise_constant", description="piecewise_constant or piecewise_linear in time")
+    knots: Optional[list[float]] = Field(
+        default=None, min_length=2, max_length=2000,
+        description="the times [s] where the pieces meet (or give `segments`)")
+    segments: Optional[int] = Field(
+        description="number of equal pieces over the record (or give `knots`)", default=None, ge=1, le=2000)
+    regularization: Literal["total_variation", "none"] = Field(
+        default="total_variation", description="total_variation: penalise changes between pieces; none")
     weight: float = Field(default=1e-3, ge=0, le=1e6,
                           description="total-variation weight per data residual row")
 
@@ -246,9 +251,10 @@ class ExcitationReport(BaseModel):
 
     window_samples: int = Field(description="effective memory: 1/(1-λ), or the record")
     input_order: dict[str, int] = Field(description="PE order of each input over the window")
-    regressor_rank: int
-    regressor_size: int
-    regressor_condition: Optional[float] = None
+    regressor_rank: int = Field(description="rank of the regressor matrix over the window")
+    regressor_size: int = Field(description="number of regressors (columns)")
+    regressor_condition: Optional[float] = Field(
+        default=None, description="condition number of the regressor matrix (null where singular)")
     persistently_exciting: bool = Field(description="the regressor has full rank over the window and, for "
                                         "models linear in states and inputs, the inputs' PE order reaches "
                                         "required_order")
@@ -263,9 +269,10 @@ class ExcitationReport(BaseModel):
 class ParameterTrajectory(BaseModel):
     """θ(t) with a ±2σ band: from an online estimator or a declared time-varying parameter."""
 
-    estimator: str
-    time: list[float]
-    values: dict[str, list[Optional[float]]]
+    estimator: str = Field(description="the estimator (rls, mras, time_varying, ...)")
+    time: list[float] = Field(description="sample times [s]")
+    values: dict[str, list[Optional[float]]] = Field(
+        description="per parameter, its estimate at each time (null when unknown)")
     lower: dict[str, list[Optional[float]]] = Field(description="value − 2σ (null when unknown)")
     upper: dict[str, list[Optional[float]]] = Field(description="value + 2σ (null when unknown)")
     coefficients: Optional[dict[str, list[Optional[float]]]] = Field(
@@ -273,8 +280,10 @@ class ParameterTrajectory(BaseModel):
                                   "parameters are mapped from them")
     mapping: Optional[dict[str, str]] = Field(
         default=None, description="coefficient -> its expression in the physical parameters")
-    excitation: Optional[ExcitationReport] = None
-    note: Optional[str] = None
+    excitation: Optional[ExcitationReport] = Field(
+        default=None, description="persistent excitation over the estimator's window")
+    note: Optional[str] = Field(
+        default=None, description="a remark on the trajectory (e.g. the estimator's warm-up), else null")
     outside_bounds: Optional[dict[str, list[bool]]] = Field(
         default=None, description="online estimators, per parameter with declared bounds and per sample of "
                                   "`time`: true where the estimate is outside them (no physical pre-image, "

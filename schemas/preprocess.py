@@ -30,26 +30,29 @@ class Preprocess(BaseModel):
 class Hint(BaseModel):
     """Advice about the data or the options (the fit ran as requested)."""
 
-    code: str
-    message: str
-    detail: dict = Field(default_factory=dict)
+    code: str = Field(description="a stable machine-readable code")
+    message: str = Field(description="the hint in words")
+    detail: dict = Field(description="the numbers behind it", default_factory=dict)
 
 
 class ExperimentPreprocessing(BaseModel):
-    name: str
-    samples_in: int
-    samples_out: int
-    window: Optional[tuple[float, float]] = None
-    detrend: Optional[str] = None
+    name: str = Field(description="the record's name")
+    samples_in: int = Field(description="samples in the record as sent")
+    samples_out: int = Field(description="samples fitted after windowing and decimation")
+    window: Optional[tuple[float, float]] = Field(default=None, description="the time window kept [s], else null")
+    detrend: Optional[str] = Field(default=None, description="what was removed: mean or linear, else null")
     removed_trend: dict[str, list[float]] = Field(
         default_factory=dict, description="per series: [mean] or [intercept at the first sample, slope]")
-    decimate: Optional[int] = None
-    anti_alias_filter: Optional[str] = None
+    decimate: Optional[int] = Field(default=None, description="the decimation factor, else null")
+    anti_alias_filter: Optional[str] = Field(
+        default=None, description="the low-pass applied before decimating, else null")
 
 
 class PreprocessingReport(BaseModel):
-    experiments: list[ExperimentPreprocessing] = Field(default_factory=list)
-    hints: list[Hint] = Field(default_factory=list)
+    experiments: list[ExperimentPreprocessing] = Field(
+        description="per record, what preprocessing did to it", default_factory=list)
+    hints: list[Hint] = Field(
+        description="suggestions about the data (e.g. a sample rate far above the dynamics)", default_factory=list)
     input_interpolation: dict[str, Literal["foh", "zoh", "cubic"]] = Field(
         default_factory=dict, description="per input, how it was taken between samples: held (zoh), "
         "linear (foh) or a cubic through the samples (cubic); chosen from the data when "
@@ -61,4 +64,4 @@ class PreprocessingReport(BaseModel):
     substeps: Optional[int] = Field(
         default=None, description="RK4 steps per sample interval chosen from the model's fastest mode "
         "along the simulation at the initial guess (options.substeps not given)")
-    substeps_note: Optional[str] = None
+    substeps_note: Optional[str] = Field(default=None, description="how the integrator substeps were chosen, else null")

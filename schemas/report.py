@@ -48,9 +48,10 @@ class ReportRequest(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
 
-    result: AnyResult
-    request: Optional[AnyRequest] = None
-    title: Optional[str] = Field(default=None, max_length=200)
+    result: AnyResult = Field(description="a FitResult (time-domain or frequency) or DiscoveryResult")
+    request: Optional[AnyRequest] = Field(
+        default=None, description="the request of that result: its records are simulated again for the compare figures")
+    title: Optional[str] = Field(description="the page's title", default=None, max_length=200)
 
 
 class ReportPublic(BaseModel):

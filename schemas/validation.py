@@ -17,7 +17,7 @@ InitialStateSource = Literal[
 class OutputMetrics(BaseModel):
     """Per output, over the measured (non-null) samples."""
 
-    rmse: dict[str, float] = Field(default_factory=dict)
+    rmse: dict[str, float] = Field(default_factory=dict, description="root-mean-square error per output")
     fit_percent: dict[str, float] = Field(
         default_factory=dict, description="MATLAB compare: 100 (1 - |y - ŷ| / |y - mean(y)|)")
     nrmse: dict[str, float] = Field(
@@ -25,14 +25,16 @@ class OutputMetrics(BaseModel):
 
 
 class ExperimentValidation(OutputMetrics):
-    name: str
-    initial_state: dict[str, float]
-    initial_state_source: InitialStateSource
+    name: str = Field(description="the validation record's name")
+    initial_state: dict[str, float] = Field(description="the initial state used")
+    initial_state_source: InitialStateSource = Field(
+        description="experiment (its own initial_state), provided, contiguous (where the estimation record ended) or "
+                    "estimated")
     estimated_states: list[str] = Field(
         default_factory=list, description="states fitted on the leading window (source 'estimated')")
     estimate_window: Optional[int] = Field(
         default=None, description="samples of the leading window the free initial states were fitted on")
-    note: Optional[str] = None
+    note: Optional[str] = Field(default=None, description="a remark on this record, else null")
     time: Optional[list[float]] = Field(default=None, description="with simulated, when return_traces")
     simulated: Optional[dict[str, list[Optional[float]]]] = Field(
         default=None, description="simulated outputs on the record's time grid, when return_traces")
@@ -41,4 +43,4 @@ class ExperimentValidation(OutputMetrics):
 class ValidationResult(OutputMetrics):
     """Simulation metrics on records (pooled over experiments), and per experiment."""
 
-    experiments: list[ExperimentValidation]
+    experiments: list[ExperimentValidation] = Field(description="per validation record, its metrics and initial state")

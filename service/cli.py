@@ -1,19 +1,26 @@
 """`greyfit` command line: fit, discover, batch, serve, simulate, report, design.
 
 Exit codes: 0 done; 1 a batch in which every request failed; 2 bad input (file, JSON, request) or a
-fit that could not be built; 3 the result's quality is one that `--fail-on` names.
+fit that could not be built; 3 the result's quality is one that `--fail-on` names; 130 interrupted
+(Ctrl-C); 141 the reader of stdout left (a pipe closed).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
+import os
+import signal
 import sys
 from pathlib import Path
+from typing import NoReturn
 
 from pydantic import ValidationError
 
 EXIT_BAD_INPUT = 2
 EXIT_QUALITY = 3
+EXIT_INTERRUPTED = 130
+EXIT_BROKEN_PIPE = 141   # 128 + SIGPIPE, what a shell reports for a writer whose reader left
 FAIL_ON = {"failed": ("failed",), "suspect": ("suspect", "failed")}
 
 
@@ -128,10 +135,48 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    """The command line; `argv` None: this process is the program (the `greyfit` script, `python -m`),
+    which then ends at once with the code (`_leave`); a list: a call from Python, which gets it back."""
+    code = _main(argv)
+    if argv is None:
+        _leave(code)
+    return code
+
+
+def _main(argv: list[str] | None) -> int:
+    try:
+        code = _run(argv)
+        sys.stdout.flush()   # here, not at exit: a reader that has left is answered below
+        return code
+    except KeyboardInterrupt:
+        return _interrupted()
+    except BrokenPipeError:
+        # the reader of stdout has gone (`| head`): stdout to /dev/null, so that the flush at exit
+        # does not raise again (the Python documentation's advice for SIGPIPE)
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        _stop_compiles()
+        return EXIT_BROKEN_PIPE
+
+
+def _leave(code: int) -> NoReturn:
+    """Exit once the exit handlers have run and the output is flushed, without the interpreter's
+    teardown: freeing a fit's CasADi objects one by one took 1.3-2.2 s after the answer was printed
+    (measured on the README's first fit), time in which the command looked hung. Nothing is lost:
+    files are written and closed by then, and temporary folders are removed by exit handlers."""
+    import atexit
+    atexit._run_exitfuncs()
+    for stream in (sys.stdout, sys.stderr):
+        with contextlib.suppress(OSError, ValueError):
+            stream.flush()
+    os._exit(code)
+
+
+def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
     from greyfit.solvers.errors import FitError
+    code = EXIT_BAD_INPUT
     try:
-        return args.func(args)
+        code = args.func(args)
     except FileNotFoundError as exc:
         print(f"greyfit: no such file: {exc.filename}", file=sys.stderr)
     except json.JSONDecodeError as exc:
@@ -144,19 +189,43 @@ def main(argv: list[str] | None = None) -> int:
             print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
     except FitError as exc:
         print(f"greyfit: {type(exc).__name__}: {exc}", file=sys.stderr)
-    finally:
-        _finish_compiles()
-    return EXIT_BAD_INPUT
+    _hand_over_compiles(getattr(args, "quiet", False))   # not after Ctrl-C: `_interrupted` stops them
+    return code
 
 
-def _finish_compiles() -> None:
-    """A fit of a new model structure ran interpreted while gcc built its libraries in the
-    background: let the builds end (the answer is printed already) so that the next command finds
-    them in the disk cache (`GREYFIT_CACHE_DIR`, default ~/.cache/greyfit) instead of starting over."""
+def _interrupted() -> int:
+    """Ctrl-C: one line, no traceback, exit 130 (128 + SIGINT, as a shell reports it); the builds
+    begun in the background are stopped and their temporary files removed."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)   # a second Ctrl-C does not interrupt the clean-up
+    print(f"{chr(10) if sys.stderr.isatty() else ''}greyfit: interrupted", file=sys.stderr)   # after a progress line
+    _stop_compiles()
+    return EXIT_INTERRUPTED
+
+
+def _stop_compiles() -> None:
+    """End the builds begun in the background (compilers killed, temporary folders removed)."""
     compiled = sys.modules.get("greyfit.solvers.dynamics.compiled")
-    if compiled is not None and compiled.building_any():
-        sys.stdout.flush()
-        compiled.wait_for_builds(compiled.COMPILE_TIMEOUT_S)
+    if compiled is not None:
+        compiled.abandon_builds(1.0)
+
+
+def _hand_over_compiles(quiet: bool) -> None:
+    """A fit of a new model structure ran interpreted (or on tcc's code) while gcc built its
+    libraries in the background: the answer is printed, so the builds go on in a detached process
+    (solvers/dynamics/detached.py) that leaves them in the disk cache (`GREYFIT_CACHE_DIR`, default
+    ~/.cache/greyfit) for the next command, and this one exits at once (it used to wait for them,
+    up to two minutes, saying nothing)."""
+    compiled = sys.modules.get("greyfit.solvers.dynamics.compiled")
+    if compiled is None or not compiled.building_any():
+        return
+    sys.stdout.flush()
+    from greyfit.solvers.dynamics.detached import hand_over
+    handed = hand_over()
+    if handed is not None and not quiet:
+        pid, count = handed
+        print(f"greyfit: {count} compiled-code build{'s' if count != 1 else ''} of this model go on in a "
+              f"detached process (pid {pid}); the next run of this model finds them in the cache",
+              file=sys.stderr)
 
 
 def _extra_commands():

@@ -2,9 +2,9 @@
 
 FastAPI documents only the success and a 422 of its own shape; this adds, to every operation, the
 problem+json answers the middleware and handlers give (400, 401, 404, 408, 413, 415, 422, 429, 500,
-503, and 501 and 504 for synchronous fits) and the bearer security scheme, and real example requests
-(service/openapi_examples.py) where FastAPI would generate junk, so "Try it out" sends a fit that
-works.
+503, and 501 and 504 for synchronous fits) and the bearer security scheme, real example requests and
+answers (service/openapi_examples.py) where FastAPI would generate junk, so "Try it out" sends a fit
+that works, and operationIds written by hand.
 
 `/docs` (Swagger UI) and `/redoc` (ReDoc) load their scripts from `service/static/`, served by the
 service itself: FastAPI's defaults load them from a CDN and stay blank on a machine without network.
@@ -19,7 +19,7 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.responses import HTMLResponse
 from fastapi.staticfiles import StaticFiles
 
-from greyfit.service.openapi_examples import add_examples
+from greyfit.service.openapi_examples import add_answer_examples, add_examples
 from greyfit.service.problems import PROBLEM, Problem
 from greyfit.service.settings import Settings
 from greyfit.service.task_kinds import JOB_KINDS, KINDS
@@ -49,6 +49,27 @@ IDEMPOTENCY_HEADER = {
     "schema": {"type": "string", "minLength": 1, "maxLength": 200, "pattern": "^[\\x21-\\x7e]+$"},
     "description": "makes a retry safe: the same key with the same body returns the job made the first time "
                    "(never a second one); with another body, 422"}
+
+# written by hand: client generators name their methods after these (FastAPI's own are
+# `create_fit_v1_fits_post`); tests/service/test_openapi_descriptions.py checks every operation has one
+OPERATION_IDS = {
+    ("get", "/healthz"): "get_health",
+    ("get", "/readyz"): "get_readiness",
+    ("get", "/metrics"): "get_metrics",
+    ("post", "/v1/fits"): "create_fit",
+    ("post", "/v1/jobs"): "create_fit_job",
+    ("post", "/v1/discover"): "create_discovery",
+    ("post", "/v1/discover/jobs"): "create_discovery_job",
+    ("post", "/v1/frequency-fits"): "create_frequency_fit",
+    ("post", "/v1/frequency-fits/jobs"): "create_frequency_fit_job",
+    ("post", "/v1/simulate"): "create_simulation",
+    ("post", "/v1/report"): "create_report",
+    ("get", "/v1/jobs"): "list_jobs",
+    ("get", "/v1/jobs/{job_id}"): "get_job",
+    ("delete", "/v1/jobs/{job_id}"): "cancel_job",
+    ("get", "/v1/jobs/{job_id}/results"): "get_job_results",
+    ("get", "/v1/jobs/{job_id}/report"): "get_job_report",
+}
 
 STATIC = Path(__file__).resolve().parent / "static"
 STATIC_URL = "/static"
@@ -90,7 +111,9 @@ def describe(app: FastAPI, settings: Settings) -> dict:
                 op.setdefault("parameters", []).append(IDEMPOTENCY_HEADER)
             for code in sorted(set(codes)):
                 responses[code] = _problem_response(ANSWERS[code], code in ("429", "503"))
+            op["operationId"] = OPERATION_IDS.get((method, path), op.get("operationId"))
     add_examples(spec)
+    add_answer_examples(spec)
     return spec
 
 

@@ -1,10 +1,12 @@
-"""Example request bodies for the OpenAPI description: real requests that work as sent.
+"""Example request bodies and answers for the OpenAPI description: real requests that work as sent.
 
 FastAPI would generate an example from the schema alone (a state named "X1upTr6t…"), which "Try it
 out" cannot send. These come from the repository's examples (copies shipped in
 service/static/examples; tests/service/test_offline_docs.py keeps them equal), so each UI offers a
 request that validates and converges. Each task kind names its example on its entry in
-service/task_kinds.py; the builders are here.
+service/task_kinds.py; the builders are here. The answers' examples are real too: the result of the
+example fit (service/static/examples/msd_result.json, kept equal to a fresh fit by
+tests/service/test_openapi_descriptions.py), a job of it, the probes' answers and a 422.
 """
 from __future__ import annotations
 
@@ -82,3 +84,65 @@ def add_examples(spec: dict) -> None:
         components[example.name] = {"summary": example.summary, "value": example.build()}
         ref = {"$ref": f"#/components/examples/{example.name}"}
         body["content"]["application/json"]["examples"] = {example.name: ref}
+
+
+JOB_ID = "5f0c2a4e-8d1b-4c6f-9a57-0e3b7d21c9aa"
+WHEN = ("2026-12-07T15:50:37.592000Z", "2026-12-07T15:50:37.640000Z", "2026-12-07T15:50:38.012000Z")
+
+
+def msd_result() -> dict:
+    """The FitResult of the example fit (`greyfit fit examples/msd_request.json`)."""
+    return example_request("msd_result.json")
+
+
+def msd_job_record(finished: bool = True) -> dict:
+    """The example job (one fit) as GET /v1/jobs/{id} answers it, finished or just created."""
+    done = 1 if finished else 0
+    task = {"index": 0, "status": "succeeded" if finished else "queued", "attempts": done,
+            "started_at": WHEN[1] if finished else None, "finished_at": WHEN[2] if finished else None,
+            "error": None}
+    return {"id": JOB_ID, "kind": "fit", "label": "demo", "status": task["status"],
+            "progress": {"done": done, "total": 1, "succeeded": done, "failed": 0},
+            "created_at": WHEN[0], "started_at": task["started_at"], "finished_at": task["finished_at"],
+            "tasks": [task]}
+
+
+def invalid_request() -> dict:
+    """A 422: a misspelt field and a string where a number belongs."""
+    errors = [{"loc": "metod", "msg": "unknown field 'metod': did you mean 'method'?"},
+              {"loc": "experiments[0].time[3]",
+               "msg": "Input should be a valid number: a JSON number is expected, not a string or true/false "
+                      "(write 500, not \"500\")"}]
+    return {"type": "https://greyfit.dev/problems/validation-error", "title": "Invalid request", "status": 422,
+            "detail": "; ".join(f"{e['loc']}: {e['msg']}" for e in errors), "request_id": "3c1f7d0e9b2a4e61",
+            "errors": errors}
+
+
+def answer_examples() -> dict[tuple[str, str, str], dict]:
+    """(method, path, status) -> an example answer body."""
+    job = msd_job_record()
+    summary = {k: v for k, v in job.items() if k != "tasks"}
+    out = {("get", "/healthz", "200"): {"status": "ok"},
+           ("get", "/readyz", "200"): {"status": "ready", "executor": "local"},
+           ("get", "/v1/jobs", "200"): {"data": [summary], "count": 1},
+           ("get", "/v1/jobs/{job_id}", "200"): job,
+           ("delete", "/v1/jobs/{job_id}", "200"): job,
+           ("get", "/v1/jobs/{job_id}/results", "200"): {
+               "id": JOB_ID, "status": "succeeded",
+               "results": [{"index": 0, "status": "succeeded", "result": msd_result(), "error": None}]},
+           ("post", "/v1/fits", "200"): msd_result()}
+    for kind in KINDS.values():
+        if kind.jobs_path is not None:
+            out[("post", kind.jobs_path, "202")] = {**msd_job_record(finished=False), "kind": kind.name}
+    return out
+
+
+def add_answer_examples(spec: dict) -> None:
+    """An example on each answer listed in `answer_examples`, and on every 422."""
+    invalid, examples_by_answer = invalid_request(), answer_examples()
+    for path, ops in spec["paths"].items():
+        for method, op in ops.items():
+            for status, answer in op.get("responses", {}).items():
+                example = examples_by_answer.get((method, path, status)) if status != "422" else invalid
+                for media in (answer.get("content") or {}).values() if example is not None else ():
+                    media["example"] = example

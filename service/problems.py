@@ -26,16 +26,16 @@ TYPE_BASE = "https://greyfit.dev/problems/"
 
 class ProblemError(BaseModel):
     loc: str = Field(description="where in the request: experiments[0].outputs.x, equations.v, body")
-    msg: str
+    msg: str = Field(description="what is wrong there and the fix")
 
 
 class Problem(BaseModel):
     """application/problem+json (RFC 9457): every error this service answers."""
 
-    type: str
-    title: str
-    status: int
-    detail: str
+    type: str = Field(description="a URI naming the kind of problem (RFC 9457)")
+    title: str = Field(description="the kind of problem, in words")
+    status: int = Field(description="the HTTP status code")
+    detail: str = Field(description="what went wrong and what to do, in words")
     errors: Optional[list[ProblemError]] = Field(default=None, description="validation errors, by location")
     request_id: Optional[str] = Field(default=None, description="the id of the request (also its X-Request-ID "
                                       "header), which the server's log lines about it carry")

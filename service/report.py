@@ -1,10 +1,11 @@
 """Figures and one self-contained HTML page for a fit or discovery result (matplotlib, Agg).
 
 compare (measured vs simulated, estimation and validation), resid (residual autocorrelation and
-input cross-correlation with the family-wise 99 % band), estimates with confidence intervals, the
-correlation matrix; for a frequency fit Bode and Nyquist (`report_frequency`); for discovery the
-model before/after the added terms and the discrepancy d against its variable. The tables (verdict,
-estimates, metrics, warnings, equations) are in `report_html`.
+input cross-correlation with the family-wise 99 % band; the residual against time and the profile
+curves are in `report_residuals`), estimates with confidence intervals, the correlation matrix; for
+a frequency fit Bode and Nyquist (`report_frequency`); for discovery the model before/after the
+added terms and the discrepancy d against its variable. The tables (verdict, estimates, metrics,
+warnings, equations) are in `report_html`.
 """
 from __future__ import annotations
 
@@ -293,6 +294,7 @@ def _time_domain_figures(plt, report: Report, fit: FitResult, request, model, sv
     time_request = request if isinstance(request, FitRequest) else None
     if time_request is not None and not isinstance(model, Model):
         time_request = None   # nothing to simulate the records with
+    from greyfit.service.report_residuals import residual_time_figure
     est, val = estimation_series(fit, time_request, model)
     units = dict(model.units) if isinstance(model, Model) else {}
     if est:
@@ -301,6 +303,10 @@ def _time_domain_figures(plt, report: Report, fit: FitResult, request, model, sv
         report.notes.append("no measured-vs-simulated figure: give the request, or fit with return_traces")
     if val:
         report.figures.append(compare_figure(plt, val, "validation", svg, report.notes, units))
+    records = [("estimation", r) for r in est] + [("validation", r) for r in val]
+    figure = residual_time_figure(plt, records, svg, report.notes, units)
+    if figure is not None:
+        report.figures.append(figure)
 
 
 def build_report(req: ReportRequest, svg: bool = False) -> Report:
@@ -318,7 +324,8 @@ def build_report(req: ReportRequest, svg: bool = False) -> Report:
             e.model_copy(update={"inputs": {**e.inputs, **result.added_inputs.get(e.name, {})}})
             for e in request.experiments]})
     _time_domain_figures(plt, report, fit, request, model, svg)
-    for make in (residual_figure, parameter_figure, correlation_figure):
+    from greyfit.service.report_residuals import profile_figure
+    for make in (residual_figure, parameter_figure, profile_figure, correlation_figure):
         figure = make(plt, fit, svg, report.notes)
         if figure is not None:
             report.figures.append(figure)

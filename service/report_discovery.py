@@ -1,5 +1,7 @@
 """Discovery figures of the report: metrics before/after, the overlay of the model with and
-without the added terms, and the discrepancy dᵢ against the variable it depends on most."""
+without the added terms (on the first estimation record and, where the request has them, the first
+validation record: records the fit never saw), and the discrepancy dᵢ against the variable it
+depends on most."""
 from __future__ import annotations
 
 import numpy as np
@@ -47,35 +49,39 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
         return figs, notes
     from greyfit.solvers.data.preprocess import prepare_request
     prepared, _ = prepare_request(request)
-    experiments = []
-    for exp in prepared.experiments:
-        extra = result.added_inputs.get(exp.name, {})
-        experiments.append(exp.model_copy(update={"inputs": {**exp.inputs, **extra}}))
     params = {k: v.value for k, v in result.fit.parameters.items()}
-    after = _simulated_series(result.model, params, experiments, prepared.options, result.fit.initial_states)
     added = {p.name for s in result.steps for p in s.parameters}
     without = {k: (0.0 if k.split("[", 1)[0] in added else v) for k, v in params.items()}
-    before = _simulated_series(result.model, without, experiments, prepared.options, result.fit.initial_states)
-    rec_a, rec_b = after[0], before[0]
-    outputs = _shown(list(rec_a.measured), MAX_OUTPUTS, "outputs", "discovery overlay", notes)
+    kinds = [("estimation", prepared.experiments, result.fit.initial_states)]
+    if prepared.validation:   # initial states estimated on each record's leading window, as validation does
+        kinds.append(("validation", prepared.validation, {}))
+    for kind, records, x0 in kinds:
+        experiments = [exp.model_copy(update={"inputs": {**exp.inputs, **result.added_inputs.get(exp.name, {})}})
+                       for exp in records[:1]]
+        after = _simulated_series(result.model, params, experiments, prepared.options, x0)[0]
+        before = _simulated_series(result.model, without, experiments, prepared.options, x0)[0]
+        figs.append(_overlay(plt, kind, after, before, terms, units, svg, notes))
+    return figs, notes
+
+
+def _overlay(plt, kind: str, after, before, terms: str, units: dict, svg: bool, notes: list[str]) -> Figure:
+    """One record's measured outputs under the final model with and without the added terms."""
+    outputs = _shown(list(after.measured), MAX_OUTPUTS, "outputs", f"discovery overlay ({kind})", notes)
     fig, axes = plt.subplots(len(outputs), 1, figsize=(9, 2.4 * len(outputs) + 0.6), squeeze=False, sharex=True)
     for r, out in enumerate(outputs):
         ax = axes[r][0]
         # as in the compare figure: the measured line wide and light under the two models
-        ax.plot(rec_a.time, rec_a.measured[out], label="measured", **MEASURED_LINE)
-        ax.plot(rec_b.time, rec_b.simulated[out], color="C1", lw=SIMULATED_LW, zorder=2,
+        ax.plot(after.time, after.measured[out], label="measured", **MEASURED_LINE)
+        ax.plot(before.time, before.simulated[out], color="C1", lw=SIMULATED_LW, zorder=2,
                 label="without the added terms")
-        ax.plot(rec_a.time, rec_a.simulated[out], color="C0", lw=SIMULATED_LW, zorder=3,
+        ax.plot(after.time, after.simulated[out], color="C0", lw=SIMULATED_LW, zorder=3,
                 label="with " + _short(terms, 100))
         ax.set_ylabel(_with_unit(_short(out), units, out))
         ax.legend(fontsize=7, frameon=False, loc="upper right")
     axes[-1][0].set_xlabel(_with_unit("t", units, "t"))
     fig.tight_layout()
-    figs.append(_save(plt, fig, "discovery_overlay", f"{rec_a.name}: the final model with and without the added terms",
-                      svg))
-    return figs, notes
-
-
+    name = "discovery_overlay" if kind == "estimation" else "discovery_validation_overlay"
+    return _save(plt, fig, name, f"{after.name} ({kind}): the final model with and without the added terms", svg)
 
 
 def _pooled(series: dict) -> np.ndarray:

@@ -140,7 +140,8 @@ def discovery_html(result: DiscoveryResult) -> str:
         return eq if eq.startswith("output") else f"d{eq}/dt"
     steps = "".join(f"<li>+ {_e(s.effect)} in {_e(where(s.equation))}: <code>{_e(s.term)}</code> "
                     f"(BIC −{s.evidence.bic_drop:.0f})</li>" for s in result.steps) or "<li>nothing added</li>"
-    rejected = "".join(f"<li>{_e(r.effect)} (<code>{_e(r.term)}</code>): {_e(r.reason)}</li>" for r in result.rejected)
+    rejected = "".join(f"<li>{_e(r.effect)} (<code>{_e(r.term)}</code>): <b>{_e(r.reason)}</b>: {_e(r.detail)}</li>"
+                       for r in result.rejected)
     return (f"<h2>Discovery</h2><p>{_e(result.conclusion)}</p><ul class='steps'>{steps}</ul>"
             + (f"<p>not kept:</p><ul>{rejected}</ul>" if rejected else "") + _before_after(result))
 

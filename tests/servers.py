@@ -9,6 +9,7 @@ import subprocess
 import sys
 import threading
 import time
+from datetime import datetime
 from pathlib import Path
 
 import httpx
@@ -120,6 +121,11 @@ def wait_until_finished(base: str, job_id: str, timeout: float = 180) -> dict:
             return job
         time.sleep(0.2)
     raise AssertionError(f"job {job_id} did not finish in {timeout} s: {job}")
+
+
+def unix_time(stamp: str) -> float:
+    """A job record's RFC 3339 timestamp (`finished_at`, ...) as Unix time, to set beside time.time()."""
+    return datetime.fromisoformat(stamp.replace("Z", "+00:00")).timestamp()
 
 
 def stop_server(server: subprocess.Popen) -> None:

@@ -1,5 +1,6 @@
 from fastapi import APIRouter, Request
 
+from greyfit.schemas.health import Health, Readiness
 from greyfit.service.deps import carries_api_key
 from greyfit.service.problems import Problem, problem
 from greyfit.service.store import StoreUnavailable
@@ -7,13 +8,14 @@ from greyfit.service.store import StoreUnavailable
 router = APIRouter(tags=["health"])
 
 
-@router.get("/healthz")
+@router.get("/healthz", response_model=Health)
 def healthz() -> dict:
     """Liveness: the process answers."""
     return {"status": "ok"}
 
 
-@router.get("/readyz", responses={503: {"model": Problem, "description": "not ready: the detail says why"}})
+@router.get("/readyz", response_model=Readiness,
+            responses={503: {"model": Problem, "description": "not ready: the detail says why"}})
 def readyz(request: Request):
     """Readiness: the job store takes a write and the dispatcher runs."""
     state = request.app.state

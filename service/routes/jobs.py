@@ -4,6 +4,7 @@ workers wrote them."""
 import hashlib
 import json
 import re
+from datetime import datetime, timezone
 from typing import Annotated, Any, Callable, Optional
 
 from fastapi import APIRouter, HTTPException, Path, Query, Request, Response
@@ -34,15 +35,20 @@ def job_summary(entry: dict[str, Any]) -> JobSummary:
         id=job["id"], kind=job["kind"], label=job["label"], status=status_of_counts(bool(job["cancelled"]), counts),
         progress=JobProgress(done=done, total=job["total"], succeeded=counts.get("succeeded", 0),
                              failed=counts.get("failed", 0)),
-        created_at=job["created_at"], started_at=entry["started_at"],
-        finished_at=entry["finished_at"] if done == job["total"] else None)
+        created_at=utc(job["created_at"]), started_at=utc(entry["started_at"]),
+        finished_at=utc(entry["finished_at"]) if done == job["total"] else None)
+
+
+def utc(stamp: Optional[float]) -> Optional[datetime]:
+    """The store's Unix time as the RFC 3339 timestamp the public schema has (UTC)."""
+    return None if stamp is None else datetime.fromtimestamp(stamp, timezone.utc)
 
 
 def job_public(record: dict[str, Any]) -> JobPublic:
     """A job's summary with the tasks `store.get_job` read (all of them, or a page)."""
     return JobPublic(**dict(job_summary(record)), tasks=[
-        TaskPublic(index=r["idx"], status=r["status"], attempts=r["attempts"], started_at=r["started_at"],
-                   finished_at=r["finished_at"], error=json.loads(r["error"]) if r["error"] else None)
+        TaskPublic(index=r["idx"], status=r["status"], attempts=r["attempts"], started_at=utc(r["started_at"]),
+                   finished_at=utc(r["finished_at"]), error=json.loads(r["error"]) if r["error"] else None)
         for r in record["tasks"]])
 
 

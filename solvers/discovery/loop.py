@@ -48,7 +48,14 @@ from greyfit.solvers.discovery.ground import solid_ground
 from greyfit.solvers.discovery.leftover import leftover_at
 from greyfit.solvers.discovery.screening import Screening
 from greyfit.solvers.discovery.shape import shape_at
-from greyfit.solvers.discovery.summary import added_inputs, public_scores, steps_conclusion, summarize, validate
+from greyfit.solvers.discovery.summary import (
+    added_inputs,
+    public_scores,
+    steps_conclusion,
+    summarize,
+    validate,
+    with_units,
+)
 from greyfit.solvers.errors import ModelDefinitionError
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.model.expressions import compile_expression
@@ -153,11 +160,12 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
     notes += [left_note] if left_note and left_note not in notes else []
     conclusion += f"; {unexplained.message}" if unexplained else ""
     tell("done", conclusion, opts.max_refits - state.refits_left)
+    model, fit, steps = with_units(state.model, state.fit, state.steps)
     return DiscoveryResult(unexplained=unexplained, discrepancy=shape.public if shape else None,
                            conclusion=conclusion, before=before, after=summarize(state.fit, state.validation),
-                           steps=state.steps, added_inputs=added_inputs(request, state.request),
-                           rejected=state.rejected, screened=screened_first, notes=notes, model=state.model,
-                           fit=state.fit, wall_time_s=clock.elapsed(), timings=clock.report(),
+                           steps=steps, added_inputs=added_inputs(request, state.request),
+                           rejected=state.rejected, screened=screened_first, notes=notes, model=model,
+                           fit=fit, wall_time_s=clock.elapsed(), timings=clock.report(),
                            budget_exhausted=clock.exhausted,
                            ambiguous=any(s.verdict == "ambiguous" for s in state.steps))
 

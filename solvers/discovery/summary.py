@@ -3,7 +3,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, FitSummary, ValidationSummary
+from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryStep, FitSummary, ValidationSummary
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.effects import Candidate
@@ -200,3 +200,37 @@ def mean_nrmse(v: ValidationSummary | None) -> float | None:
     """
     vals = [x for x in (v.nrmse.values() if v is not None else []) if x is not None and np.isfinite(x)]
     return float(np.mean(vals)) if vals else None
+
+
+def with_units(model: Model, fit: FitResult,
+               steps: list[DiscoveryStep]) -> tuple[Model, FitResult, list[DiscoveryStep]]:
+    """The final model, fit and steps with a unit on each added parameter that its equation fixes
+    (`solvers.model.units`): an added parameter declares none, and the report showed it bare.
+
+    Parameters
+    ----------
+    model : Model
+        The augmented model.
+    fit : FitResult
+        Its fit.
+    steps : list of DiscoveryStep
+        The steps that added the parameters.
+
+    Returns
+    -------
+    (Model, FitResult, list of DiscoveryStep)
+        Copies with the units set (the same objects where none was found).
+    """
+    from greyfit.solvers.model.units import parameter_units
+    units = parameter_units(model)
+    if not units:
+        return model, fit, steps
+    model = model.model_copy(update={"parameters": [
+        p.model_copy(update={"unit": units[p.name]}) if p.name in units else p for p in model.parameters]})
+    estimates = {k: e.model_copy(update={"unit": units[k.split("[", 1)[0]]}) if e.unit is None and
+                 k.split("[", 1)[0] in units else e for k, e in fit.parameters.items()}
+    fit = fit.model_copy(update={"parameters": estimates,
+                                 "model": model if isinstance(fit.model, Model) else fit.model})
+    steps = [s.model_copy(update={"parameters": [p.model_copy(update={"unit": units.get(p.name, p.unit)})
+                                                 for p in s.parameters]}) for s in steps]
+    return model, fit, steps

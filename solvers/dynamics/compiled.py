@@ -168,6 +168,11 @@ _memory: dict[str, ca.Function] = {}   # insertion order is recency: a hit moves
 _pending: set[str] = set()                      # keys compiled in the background now
 _failed: dict[str, tuple[int, float]] = {}       # key -> (failures, monotonic time of the next try)
 _ended = [0]   # background builds ended in this process: a loop on a stand-in library looks again when it moves
+# key -> (Function, library, expected work) of each background build running here: what
+# `hand_over_builds` gives a detached process when this one exits before they end
+_building: dict[str, tuple[ca.Function, Path, float]] = {}
+# set by `abandon_builds`: a build waiting for a slot or a lock gives up, none starts a compiler
+_abandon = threading.Event()
 _lock = threading.Lock()
 # the compilers and source generators running for this process's builds, each the leader of its
 # own process group: ended when the process exits (`_end_children`)
@@ -486,11 +491,12 @@ def library(fn: ca.Function, evaluations: float = 0.0, interpret_meanwhile: bool
     with _lock:
         failed = _failed.get(key)
         start = key not in _pending and (failed is None or time.monotonic() >= failed[1])
+        serialised = _texts.pop(key, None)
+        work = fn.n_instructions() * max(float(evaluations), 1.0) if start else 0.0
         if start:
             _pending.add(key)
-        serialised = _texts.pop(key, None)
+            _building[key] = (fn, path, work)
     if start:   # the next fit of this model structure will find it
-        work = fn.n_instructions() * max(float(evaluations), 1.0)
         threading.Thread(target=_build_in_background, args=(fn, path, key, work, serialised), daemon=True).start()
     return None
 
@@ -565,6 +571,32 @@ def wait_for_builds(timeout: float) -> bool:
         time.sleep(0.05)
 
 
+def abandon_builds(timeout: float) -> list[tuple[ca.Function, Path, float]]:
+    """Stop this process's background builds: those waiting for a compile slot or a lock give up,
+    running compilers are killed, none starts; each build's thread then removes its temporary
+    folder. For a process about to exit (the CLI, once its answer is printed).
+
+    Parameters
+    ----------
+    timeout : float
+        Longest wait, in seconds, for the builds' threads to end (the C source of a Function
+        generated in this process cannot be stopped: it takes ~0.1 s).
+
+    Returns
+    -------
+    list of (casadi.Function, pathlib.Path, float)
+        The Function, library path and expected work of each build whose library is not on disk.
+    """
+    with _lock:
+        builds = list(_building.values())
+    _abandon.set()
+    with _turn:
+        _turn.notify_all()
+    _end_children()
+    wait_for_builds(timeout)
+    return [build for build in builds if not build[1].exists()]
+
+
 def _build_in_background(fn: ca.Function, path: Path, key: str, work: float = 0.0,
                          serialised: str | None = None) -> None:
     ok: bool | None = False
@@ -578,6 +610,7 @@ def _settle(key: str, ok: bool | None) -> None:
     """`ok` None: the build never had its turn at the compiler (not a failure: asked again next time)."""
     with _lock:
         _pending.discard(key)
+        _building.pop(key, None)
         _ended[0] += 1
         if ok is None:
             return
@@ -749,7 +782,10 @@ def _run_compiler(command: list[str]) -> bool:
 @contextlib.contextmanager
 def _child(command: list[str], stdin: int | None = None) -> Iterator[subprocess.Popen]:
     """`command` in a session of its own, registered while it runs; its whole group is killed when
-    the block raises (a time limit) and when this process exits first (`_end_children`)."""
+    the block raises (a time limit) and when this process exits first (`_end_children`); none
+    starts once the builds are abandoned (`abandon_builds`)."""
+    if _abandon.is_set():
+        raise OSError("the background builds were abandoned")
     proc = subprocess.Popen(command, stdin=stdin, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
                             text=stdin is not None, start_new_session=True)
     with _lock:
@@ -828,7 +864,7 @@ def _compile_slot(folder: Path, work: float = 0.0) -> Iterator[bool]:
         heapq.heappush(_waiting, ticket)
     try:
         deadline = time.monotonic() + SLOT_WAIT_S
-        while held is None and time.monotonic() < deadline:
+        while held is None and time.monotonic() < deadline and not _abandon.is_set():
             with _turn:
                 first = _waiting[0] == ticket
             if first:
@@ -875,6 +911,8 @@ def _build_lock(library: Path):
                 fcntl.flock(handle, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 break
             except BlockingIOError:
+                if _abandon.is_set():   # the process is leaving: this build is handed over
+                    raise OSError("abandoned") from None
                 if time.monotonic() > deadline:
                     break
                 time.sleep(0.02)

@@ -217,3 +217,90 @@ def test_the_discovery_overlay_keeps_the_measured_line_visible_and_its_axes_carr
     light = int((np.abs(rgb - 0.72).max(axis=2) < 0.03).sum())
     blue = int((np.abs(rgb - np.array((0.12, 0.47, 0.71))).max(axis=2) < 0.08).sum())
     assert blue > 300 and light > blue, (light, blue)   # the measured line shows beside the final model's
+
+
+def test_the_residual_against_time_is_measured_minus_simulated_per_output(plt):
+    """The figure beside the correlations (SITB's resid): its lines are the fit's own residuals,
+    re-simulated from the request, with the sign y - ŷ."""
+    from greyfit.service.report import estimation_series
+    from greyfit.service.report_residuals import residual_time_figure
+    body = json.loads(json.dumps(EXAMPLE))
+    body.setdefault("options", {})["return_traces"] = True
+    result = fit_model(FitRequest.model_validate(body))
+    est, _ = estimation_series(result, FitRequest.model_validate(body), result.model)
+    figure = residual_time_figure(plt, [("estimation", r) for r in est], units=dict(result.model.units))
+    assert figure.name == "residuals_time"
+    axes = plt.figures[-1].axes
+    assert [ax.get_ylabel() for ax in axes] == ["e(v) [m/s]", "e(x) [m]"] and axes[-1].get_xlabel() == "t [s]"
+    for ax, out in zip(axes, ("v", "x")):
+        line = ax.get_lines()[-1]
+        solver = np.array(result.traces[0].residuals[out], dtype=float)   # simulated - measured
+        assert np.allclose(line.get_ydata(), -solver, atol=1e-9)
+        rms = float(np.sqrt(np.mean(solver ** 2)))
+        assert rms == pytest.approx(result.metrics.rmse[out], rel=1e-9)
+
+
+def test_the_profile_curves_cross_the_threshold_at_the_interval_ends(plt):
+    from greyfit.service.report_residuals import profile_figure
+    body = json.loads(json.dumps(EXAMPLE))
+    body.setdefault("options", {})["profile"] = ["c"]
+    result = fit_model(FitRequest.model_validate(body))
+    profile = result.profile["c"]
+    figure = profile_figure(plt, result)
+    assert figure.name == "profiles"
+    ax = plt.figures[-1].axes[0]
+    assert ax.get_xlabel() == "c [N s/m]"
+    curve = ax.get_lines()[0]
+    values, costs = np.asarray(curve.get_xdata()), np.asarray(curve.get_ydata())
+    assert np.allclose(values, profile.values)
+    ends = sorted(float(line.get_xdata()[0]) for line in ax.get_lines()[2:4])
+    assert ends == pytest.approx([profile.lower, profile.upper])
+    # the interval holds the estimate, and the profile is below the threshold inside it
+    inside = (values > profile.lower) & (values < profile.upper)
+    assert profile.lower < result.parameters["c"].value < profile.upper
+    assert inside.any() and (costs[inside] <= profile.threshold * (1 + 1e-9)).all()
+
+
+def test_the_discovery_page_gives_each_rejection_its_reason_and_detail(duffing_discovery):
+    """It said "evidence" alone; the result's detail (the numbers that decided) is on the page now."""
+    import html
+
+    from greyfit.schemas.discovery import RejectedCandidate
+    _, result = duffing_discovery
+    rejected = RejectedCandidate(effect="coulomb_friction", equation="yd", term="Fc*tanh(yd/0.01)", reason="evidence",
+                                 detail="the refit lowered BIC by 1.3 only (t = 0.8)")
+    result = result.model_copy(update={"rejected": [*result.rejected, rejected]})
+    page = html.unescape(summary_html(result.fit, result, result.model)).replace("<b>", "").replace("</b>", "")
+    for r in result.rejected:
+        assert f"{r.reason}: {r.detail}" in page
+
+
+def test_the_discovery_validation_overlay_shows_the_added_term_on_a_record_the_fit_never_saw(plt, duffing_discovery):
+    """A second Duffing record (another input) as validation: the final model follows it closer than
+    the same model without its added terms."""
+    from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.service.report_discovery import discovery_figures
+    from tests import coloured_records as cr
+    request, result = duffing_discovery
+    body = request.model_dump(mode="json", exclude_unset=True)
+    body["validation"] = [cr.duffing_record(401, 2, name="val")]
+    figures, notes = discovery_figures(plt, result, DiscoverRequest.model_validate(body))
+    assert [f.name for f in figures][-2:] == ["discovery_overlay", "discovery_validation_overlay"], notes
+    ax = plt.figures[-1].axes[0]
+    measured, without, final = (np.asarray(line.get_ydata()) for line in ax.get_lines())
+    rms = [float(np.sqrt(np.mean((y - measured) ** 2))) for y in (without, final)]
+    assert rms[1] < 0.5 * rms[0], rms
+    assert ax.get_ylabel() == "y [m]"
+
+
+def test_the_added_parameter_carries_the_unit_its_equation_implies(duffing_discovery):
+    """The cubic spring added to dyd/dt = (u - ...)/m sits beside u [N]: its coefficient is in N/m^3,
+    on the step, the final fit, the final model and the page."""
+    _, result = duffing_discovery
+    step = result.steps[0]
+    assert step.effect == "cubic_stiffness"
+    name = step.parameters[0].name
+    assert step.parameters[0].unit == "N/m^3"
+    assert result.fit.parameters[name].unit == "N/m^3"
+    assert {p.name: p.unit for p in result.model.parameters}[name] == "N/m^3"
+    assert "<td>N/m^3</td>" in summary_html(result.fit, result, result.model)

@@ -123,7 +123,8 @@ class DesignRequest(BaseModel):
     baseline: Optional[Experiment] = Field(
         default=None, description="the experiment that was run: its input's predicted standard errors (or "
                                   "discrimination) are reported beside the design's")
-    options: DesignOptions = Field(default_factory=DesignOptions)
+    options: DesignOptions = Field(default_factory=DesignOptions,
+                                   description="the optimiser's starts, iterations, seed and simulation steps")
 
     @model_validator(mode="after")
     def _consistent(self) -> "DesignRequest":

@@ -56,12 +56,6 @@ OPERATION_IDS = {
     ("get", "/healthz"): "get_health",
     ("get", "/readyz"): "get_readiness",
     ("get", "/metrics"): "get_metrics",
-    ("post", "/v1/fits"): "create_fit",
-    ("post", "/v1/jobs"): "create_fit_job",
-    ("post", "/v1/discover"): "create_discovery",
-    ("post", "/v1/discover/jobs"): "create_discovery_job",
-    ("post", "/v1/frequency-fits"): "create_frequency_fit",
-    ("post", "/v1/frequency-fits/jobs"): "create_frequency_fit_job",
     ("post", "/v1/simulate"): "create_simulation",
     ("post", "/v1/report"): "create_report",
     ("get", "/v1/jobs"): "list_jobs",
@@ -69,6 +63,9 @@ OPERATION_IDS = {
     ("delete", "/v1/jobs/{job_id}"): "cancel_job",
     ("get", "/v1/jobs/{job_id}/results"): "get_job_results",
     ("get", "/v1/jobs/{job_id}/report"): "get_job_report",
+    # the generated routes of the task kinds: the names their entries give
+    **{("post", k.sync_path): k.operation for k in KINDS.values() if k.generate and k.sync_path},
+    **{("post", k.jobs_path): k.job_operation for k in KINDS.values() if k.jobs_path},
 }
 
 STATIC = Path(__file__).resolve().parent / "static"

@@ -31,8 +31,10 @@ class Parameter(ParameterSchema):
 
     def __init__(self, name: str, value: float, lower: Optional[float] = None, upper: Optional[float] = None,
                  unit: Optional[str] = None, **fields: Any):
-        given = {"lower": lower, "upper": upper, "unit": unit}
-        super().__init__(name=name, value=value, **{k: v for k, v in given.items() if v is not None}, **fields)
+        given: dict[str, Any] = {"lower": lower, "upper": upper, "unit": unit}
+        # the bounds and unit left out stay unset (not null), as in a request written by hand
+        fields.update({k: v for k, v in given.items() if v is not None})
+        super().__init__(name=name, value=value, **fields)
 
 
 ModelLike = Union[Model, dict, Any]

@@ -78,7 +78,7 @@ def _parsed(field: str, text: str) -> Any:
     try:
         return loads_strict(text)
     except ValueError as exc:
-        _refuse((field,), f"not valid JSON: {exc}", "json_invalid")
+        _refuse((field,), f"not valid JSON: {exc}")
 
 
 def _validated(schema: type[BaseModel], value: Any, *where: str) -> Any:
@@ -89,5 +89,5 @@ def _validated(schema: type[BaseModel], value: Any, *where: str) -> Any:
         raise RequestValidationError([{**e, "loc": (*where, *e["loc"])} for e in exc.errors()]) from None
 
 
-def _refuse(loc: tuple, msg: str, kind: str = "value_error") -> None:
-    raise RequestValidationError([{"type": kind, "loc": loc, "msg": msg}])
+def _refuse(loc: tuple, msg: str) -> None:
+    raise RequestValidationError([{"type": "value_error", "loc": loc, "msg": msg}])

@@ -86,10 +86,11 @@ def read_table(path: str | Path, label: Optional[str] = None) -> Table:
             return _read_mat(path, label)
         pd = _library("pandas", f"{suffix} files")
         if suffix in (".csv", ".txt"):
-            # round_trip: the numbers exactly as written (the default parser may miss the last digit)
-            frame = pd.read_csv(path, sep=None if suffix == ".txt" else ",", engine="python" if suffix == ".txt"
-                                else "c", float_precision=None if suffix == ".txt" else "round_trip",
-                                skip_blank_lines=False, skipinitialspace=True)
+            # the numbers exactly as written: pandas 3 parses so by default, pandas 2 when asked (its default
+            # parser may miss the last digit); a .txt's separator (commas, tabs, spaces) is sniffed
+            exact = {} if int(pd.__version__.split(".")[0]) >= 3 else {"float_precision": "round_trip"}
+            how = {"sep": None, "engine": "python"} if suffix == ".txt" else {"sep": ",", **exact}
+            frame = pd.read_csv(path, skip_blank_lines=False, skipinitialspace=True, **how)
             return Table(label, _frame_columns(frame), csv=True)
         _library("pyarrow", "Parquet files")
         return Table(label, _frame_columns(pd.read_parquet(path)))

@@ -26,7 +26,8 @@ from tests.service.conftest import make_settings, msd_request, wait_for_job
 METHODS = {"GET", "POST", "PUT", "PATCH", "DELETE"}
 NOT_INTEGERS = ["1.0", " 1", "1 ", "+1", "1_0", "1e1", "\u0663", "0x1", "true"]
 # the synchronous routes answer from a worker without the job store (the job report reads it)
-NO_STORE = (set(SYNC_PATHS) - {"/v1/jobs/{job_id}/report"}) | {"/healthz"}
+# (POST /v1/fits/files is a synchronous fit too, from a multipart form: the store is not asked)
+NO_STORE = (set(SYNC_PATHS) - {"/v1/jobs/{job_id}/report"}) | {"/healthz", "/v1/fits/files"}
 
 
 @pytest.fixture(scope="module")

@@ -64,7 +64,8 @@ async def _read_uploads(folder: str, field: str, uploads: list[UploadFile], mode
     paths, labels = [], []
     for i, upload in enumerate(uploads):
         label = Path(upload.filename or f"{field}{i}").name
-        path = Path(folder) / f"{field}{i}{Path(label).suffix.lower()}"
+        # stored under a name of ours: the user's (any characters) only names the file in messages
+        path = Path(folder) / f"{field}{i}"
         with open(path, "wb") as out:
             while chunk := await upload.read(UPLOAD_CHUNK):
                 out.write(chunk)

@@ -15,6 +15,7 @@ from pathlib import Path
 from typing import Any, Optional, Sequence
 
 import numpy as np
+from pydantic import ValidationError
 
 from greyfit.schemas.experiment import Experiment
 from greyfit.schemas.files import TIME_UNITS, FileColumns
@@ -76,7 +77,7 @@ def read_table(path: str | Path, label: Optional[str] = None) -> Table:
     """
     path = Path(path)
     label = label or str(path)
-    suffix = path.suffix.lower()
+    suffix = Path(label).suffix.lower()   # the user's name for the file says its kind
     if suffix not in SUFFIXES:
         raise DataFileError(f"{label}: unknown kind of file '{suffix}'; greyfit reads {', '.join(SUFFIXES)}")
     if not path.is_file():
@@ -97,8 +98,8 @@ def read_table(path: str | Path, label: Optional[str] = None) -> Table:
     except DataFileError:
         raise
     except Exception as exc:   # the library's own words for a file it cannot read: one line
-        raise DataFileError(f"{label}: cannot be read as {suffix} ({type(exc).__name__}: "
-                            f"{str(exc).splitlines()[0] if str(exc) else 'no detail'})") from None
+        said = (str(exc).splitlines() or ["no detail"])[0].replace(str(path), label)   # not where it is stored
+        raise DataFileError(f"{label}: cannot be read as {suffix} ({type(exc).__name__}: {said})") from None
 
 
 def table_from_dataframe(frame: Any, label: str = "DataFrame") -> Table:
@@ -163,6 +164,8 @@ def numeric_column(table: Table, column: str, complete: bool) -> np.ndarray:
         A cell that is not a number, not finite, or missing where `complete`; the row is named.
     """
     raw = table.columns[column]
+    if raw.size == 0:
+        return np.zeros(0)
     if raw.dtype.kind in "mM":   # datetimes, time deltas: seconds since the first sample
         values = (raw - raw[0]) / np.timedelta64(1, "ns") * 1e-9
     elif raw.dtype.kind in "fiub":
@@ -238,8 +241,13 @@ def record_from_table(table: Table, inputs: Sequence[str], outputs: Sequence[str
                 raise DataFileError(f"{table.where(column)}: {values.size} values, time has {n}")
             values = values * spec.scale.get(model_name, 1.0)
             series[group][model_name] = [None if v != v else v for v in values.tolist()]
-    return Experiment(name=name, time=time.tolist(), inputs=series["inputs"], outputs=series["outputs"],
-                      preprocess=spec.preprocess(float(time[0]), float(time[-1])))
+    try:
+        return Experiment(name=name, time=time.tolist(), inputs=series["inputs"], outputs=series["outputs"],
+                          preprocess=spec.preprocess(float(time[0]), float(time[-1])))
+    except ValidationError as exc:   # e.g. more samples than a record may hold
+        first = exc.errors()[0]
+        where = ".".join(str(p) for p in first["loc"][:2])
+        raise DataFileError(f"{table.label}: {where}: {first['msg']}") from None
 
 
 def _check_names(inputs: Sequence[str], outputs: Sequence[str], spec: FileColumns) -> None:
@@ -253,6 +261,8 @@ def _time(table: Table, spec: FileColumns) -> np.ndarray:
     """The time grid in seconds: the time column, or i / sample_rate; strictly increasing."""
     if spec.sample_rate is not None:
         rows = max((v.size for v in table.columns.values()), default=0)
+        if rows < 2:
+            raise DataFileError(f"{table.label}: {rows} row(s); a record needs at least 2")
         return np.arange(rows) / spec.sample_rate
     wanted = [spec.time] if spec.time is not None else list(TIME_NAMES)
     found = [c for c in (find_column(table, w) for w in wanted) if c is not None]

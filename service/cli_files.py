@@ -75,6 +75,9 @@ def attach_files(body: Any, args, require_outputs: bool = True) -> Any:
     """The request with its records read from --data (and --validation) files; unchanged without them."""
     data, validation = args.data, getattr(args, "validation", [])
     if not data and not validation:
+        given = [option for option, value in _given(args).items() if value]
+        if given:
+            raise DataFileError(f"{given[0]} says how --data files are read, and no --data file is given")
         return body
     if not isinstance(body, dict):
         return body   # the schema names what is wrong
@@ -98,6 +101,12 @@ def attach_files(body: Any, args, require_outputs: bool = True) -> Any:
     if problems:
         raise DataFileError("\n".join(dict.fromkeys(problems)))
     return body
+
+
+def _given(args) -> dict[str, Any]:
+    return {"--time": args.time, "--sample-rate": args.sample_rate, "--time-unit": args.time_unit,
+            "--map": args.map, "--scale": args.scale, "--from": args.t_from is not None,
+            "--to": args.t_to is not None, "--decimate": args.decimate, "--remove-means": args.remove_means}
 
 
 def _model(body: dict) -> Optional[Any]:

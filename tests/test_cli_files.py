@@ -59,5 +59,7 @@ def test_records_given_twice_and_a_malformed_option_are_refused(capsys):
     assert code == 2 and "give the records one way" in err
     code, err = cli(capsys, "simulate", str(MODEL), "--data", str(CSV), "--map", "u")
     assert code == 2 and "--map 'u': write NAME=VALUE" in err
+    code, err = cli(capsys, "fit", str(EXAMPLE), "--time", "time_s")
+    assert code == 2 and "--time says how --data files are read, and no --data file is given" in err
     code, err = cli(capsys, "discover", str(MODEL), "--data", str(CSV), "--from", "3", "--to", "1")
     assert code == 2 and "--time/--sample-rate/--from/--to: the segment from 3.0 to 1.0 s is empty" in err

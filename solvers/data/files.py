@@ -108,8 +108,9 @@ def table_from_dataframe(frame: Any, label: str = "DataFrame") -> Table:
 
 
 def _frame_columns(frame: Any) -> dict[str, np.ndarray]:
-    if getattr(frame.index, "name", None) is not None:
-        frame = frame.reset_index()
+    index = frame.index
+    if index.name is not None or index.dtype.kind in "mM":   # a named or a time index is a column
+        frame = frame.reset_index(names=index.name if index.name is not None else "time")
     return {str(name).strip(): frame[name].to_numpy() for name in frame.columns}
 
 
@@ -139,8 +140,11 @@ def _mat_vectors(columns: dict[str, np.ndarray], prefix: str, content: dict) -> 
 
 
 def _h5_vector(columns: dict[str, np.ndarray], name: str, obj: Any, h5py: Any) -> None:
-    # MATLAB writes an N-vector as an (1, N) or (N, 1) dataset; strings and references are skipped
-    if isinstance(obj, h5py.Dataset) and obj.dtype.kind in "fiu" and obj.ndim == 2 and 1 in obj.shape:
+    # MATLAB writes an N-vector as an (1, N) or (N, 1) dataset; text (uint16 with MATLAB_class char) and
+    # the #refs# group of cell arrays are not signals
+    if name.startswith("#") or obj.attrs.get("MATLAB_class") in (b"char", "char"):
+        return
+    if isinstance(obj, h5py.Dataset) and obj.dtype.kind in "fiub" and obj.ndim == 2 and 1 in obj.shape:
         columns[name.replace("/", ".")] = np.asarray(obj[()]).ravel()
 
 
@@ -225,22 +229,8 @@ def record_from_table(table: Table, inputs: Sequence[str], outputs: Sequence[str
     """
     _check_names(inputs, outputs, spec)
     time = _time(table, spec)
-    n = time.size
-    series: dict[str, dict[str, list]] = {"inputs": {}, "outputs": {}}
-    for group, names in (("inputs", inputs), ("outputs", outputs)):
-        for model_name in names:
-            wanted = spec.columns.get(model_name, model_name)
-            column = find_column(table, wanted)
-            if column is None:
-                if group == "outputs" and not require_outputs and model_name not in spec.columns:
-                    continue
-                raise DataFileError(_not_found(table, wanted, f"model {group[:-1]} {model_name}",
-                                               f"map it with --map {model_name}=COLUMN (`columns`)"))
-            values = numeric_column(table, column, complete=group == "inputs")
-            if values.size != n:
-                raise DataFileError(f"{table.where(column)}: {values.size} values, time has {n}")
-            values = values * spec.scale.get(model_name, 1.0)
-            series[group][model_name] = [None if v != v else v for v in values.tolist()]
+    series = {"inputs": _series(table, inputs, "input", spec, time.size, required=True),
+              "outputs": _series(table, outputs, "output", spec, time.size, required=require_outputs)}
     try:
         return Experiment(name=name, time=time.tolist(), inputs=series["inputs"], outputs=series["outputs"],
                           preprocess=spec.preprocess(float(time[0]), float(time[-1])))
@@ -248,6 +238,26 @@ def record_from_table(table: Table, inputs: Sequence[str], outputs: Sequence[str
         first = exc.errors()[0]
         where = ".".join(str(p) for p in first["loc"][:2])
         raise DataFileError(f"{table.label}: {where}: {first['msg']}") from None
+
+
+def _series(table: Table, names: Sequence[str], kind: str, spec: FileColumns, n: int,
+            required: bool) -> dict[str, list]:
+    """The model's inputs (complete) or outputs (a missing sample is None) found in the table, scaled."""
+    out = {}
+    for model_name in names:
+        wanted = spec.columns.get(model_name, model_name)
+        column = find_column(table, wanted)
+        if column is None:
+            if not required and model_name not in spec.columns:
+                continue
+            raise DataFileError(_not_found(table, wanted, f"model {kind} {model_name}",
+                                           f"map it with --map {model_name}=COLUMN (`columns`)"))
+        values = numeric_column(table, column, complete=kind == "input")
+        if values.size != n:
+            raise DataFileError(f"{table.where(column)}: {values.size} values, time has {n}")
+        values = values * spec.scale.get(model_name, 1.0)
+        out[model_name] = [None if v != v else v for v in values.tolist()]   # NaN: a missing sample
+    return out
 
 
 def _check_names(inputs: Sequence[str], outputs: Sequence[str], spec: FileColumns) -> None:

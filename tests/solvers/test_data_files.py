@@ -65,6 +65,8 @@ def test_a_dataframe_with_a_time_index_units_in_headers_and_a_sample_rate():
     same_numbers(Experiment.from_dataframe(frame, MODEL))
     by_rate = Experiment.from_dataframe(frame.reset_index(drop=True), MODEL, sample_rate=20.0)
     assert np.allclose(by_rate.time, RECORD["time"], atol=1e-12) and by_rate.outputs == RECORD["outputs"]
+    logged = frame.set_axis(pd.to_datetime("2026-12-07 09:00") + pd.to_timedelta(c["t"], unit="s"))  # a logger's clock
+    assert np.allclose(Experiment.from_dataframe(logged, MODEL).time, RECORD["time"], atol=1e-9)
 
 
 def test_segment_decimation_and_means_are_the_records_preprocess_and_said_in_the_result():

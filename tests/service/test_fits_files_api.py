@@ -1,5 +1,6 @@
-"""POST /v1/fits/files: the README's request without records and examples/msd.csv as a multipart form
-give the JSON request's estimates to the last digit; a bad file or option is a 422 naming it."""
+"""POST /v1/fits/files (and /v1/discover/files): the README's request without records and examples/msd.csv
+as a multipart form give the JSON request's estimates to the last digit; a bad file or option is a 422
+naming it."""
 from pathlib import Path
 
 from tests.service.conftest import EXAMPLE, assert_problem
@@ -39,3 +40,15 @@ def test_bad_options_and_requests_are_422s_naming_the_field(client):
                    "give the records as files")
     assert_problem(upload(client, request='{"model": {"states": ["x"]}}'), 422, "request.model.equations")
     assert_problem(upload(client, columns="{"), 422, "columns", "not valid JSON")
+
+
+def test_discovery_takes_files_too(client):
+    found = client.post("/v1/discover/files", data={"request": MODEL}, files=[("data", ("msd.csv", CSV, "text/csv"))])
+    assert found.status_code == 200, found.text
+    result = found.json()
+    assert result["steps"] == []    # the model is complete: nothing is added
+    fitted = result["fit"]["parameters"]
+    assert abs(fitted["k"]["value"] - 5.0) < 3 * fitted["k"]["stderr"]   # made with k = 5 N/m
+    assert_problem(client.post("/v1/discover/files", data={"request": MODEL},
+                               files=[("data", ("bad.mat", b"not a mat file", "application/octet-stream"))]),
+                   422, "bad.mat: cannot be read as .mat")

@@ -20,7 +20,7 @@ USER greyfit
 COPY --chown=greyfit pyproject.toml README.md constraints.txt ./
 COPY --chown=greyfit scripts/install.sh scripts/stub_packages.py scripts/
 RUN python3 scripts/stub_packages.py \
- && bash scripts/install.sh report,quick \
+ && bash scripts/install.sh report,quick,files \
  && .venv/bin/python -c "import matplotlib.font_manager"
 # (the last step builds matplotlib's font cache in the image: otherwise each new container's first
 # report pays for it, about a second)

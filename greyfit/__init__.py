@@ -1,35 +1,51 @@
 """greyfit: fit the physical parameters of ODE models to measured data (CasADi + Ipopt).
 
-The public face of the library::
+A model built in Python and fitted to a record (here the step response of a first-order lag with
+gain 2 and time constant 0.5 s; `Experiment.from_csv`, `from_parquet`, `from_mat` and
+`from_dataframe` read measured ones by the model's names)::
 
-    import greyfit
-    result = greyfit.fit(greyfit.FitRequest.model_validate(request_dict))
-    print(result.params["k"].value)
+    >>> import numpy as np
+    >>> import greyfit
+    >>> model = greyfit.Model(states=["x"], inputs=["u"], equations={"x": "(K*u - x)/tau"},
+    ...                       parameters=[greyfit.Parameter("K", 1.0, lower=0),
+    ...                                   greyfit.Parameter("tau", 2.0, lower=0.01, unit="s")])
+    >>> t = np.linspace(0.0, 3.0, 61)
+    >>> record = greyfit.Experiment(time=t, inputs={"u": np.ones_like(t)},
+    ...                             outputs={"x": 2.0 * (1.0 - np.exp(-t / 0.5))}, initial_state={"x": 0.0})
+    >>> result = greyfit.fit(model=model, experiments=[record])
+    >>> print(f"K = {result.parameters['K'].value:.3f}, tau = {result.parameters['tau'].value:.3f} s")
+    K = 2.000, tau = 0.500 s
+    >>> later = result.simulate(greyfit.Experiment(time=t, inputs={"u": 0.5 * np.ones_like(t)},
+    ...                                            initial_state={"x": 0.0}))
+    >>> print(f"{later.experiments[0].outputs['x'][-1]:.3f}")
+    0.998
 
-`fit`, `discover`, `simulate` and `frequency_fit` take the same requests as the HTTP service's
-routes and return the same results; `Client` (and `AsyncClient`) call a running service. The numerics load on first
-use, so `from greyfit import Client` does not import CasADi.
+`fit` also takes a `FitRequest` or its dict; `discover`, `simulate`, `frequency_fit` and `design` take the
+same requests as the HTTP service's routes and return the same results; `Client` (and `AsyncClient`)
+call a running service. The numerics load on first use, so `from greyfit import Client` does not
+import CasADi.
 """
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Any
 
 if TYPE_CHECKING:
+    from greyfit.building import Experiment, Model, Parameter
     from greyfit.client import AsyncClient, Client
+    from greyfit.fitting import FitResult, fit
     from greyfit.schemas.design import DesignRequest, DesignResult
     from greyfit.schemas.discovery import DiscoverRequest, DiscoveryResult
-    from greyfit.schemas.fit import FitOptions, FitRequest, FitResult
+    from greyfit.schemas.fit import FitOptions, FitRequest
     from greyfit.schemas.frequency import FrequencyFitRequest
     from greyfit.schemas.simulate import SimulateRequest, SimulateResult
     from greyfit.solvers.design import design_experiment as design
     from greyfit.solvers.discovery.loop import discover
-    from greyfit.solvers.fit import fit_model as fit
     from greyfit.solvers.frequency.fit import fit_frequency_response as frequency_fit
     from greyfit.solvers.simulation.simulate import simulate_request as simulate
 
 # name -> (module, attribute): resolved on first access (PEP 562), so importing greyfit is cheap
 _LAZY = {
-    "fit": ("greyfit.solvers.fit", "fit_model"),
+    "fit": ("greyfit.fitting", "fit"),
     "discover": ("greyfit.solvers.discovery.loop", "discover"),
     "simulate": ("greyfit.solvers.simulation.simulate", "simulate_request"),
     "frequency_fit": ("greyfit.solvers.frequency.fit", "fit_frequency_response"),
@@ -39,7 +55,10 @@ _LAZY = {
     "Client": ("greyfit.client", "Client"),
     "AsyncClient": ("greyfit.client", "AsyncClient"),
     "FitRequest": ("greyfit.schemas.fit", "FitRequest"),
-    "FitResult": ("greyfit.schemas.fit", "FitResult"),
+    "FitResult": ("greyfit.fitting", "FitResult"),
+    "Model": ("greyfit.building", "Model"),
+    "Parameter": ("greyfit.building", "Parameter"),
+    "Experiment": ("greyfit.building", "Experiment"),
     "FitOptions": ("greyfit.schemas.fit", "FitOptions"),
     "DiscoverRequest": ("greyfit.schemas.discovery", "DiscoverRequest"),
     "DiscoveryResult": ("greyfit.schemas.discovery", "DiscoveryResult"),
@@ -50,7 +69,8 @@ _LAZY = {
 
 __all__ = ["__version__", "fit", "discover", "simulate", "frequency_fit", "Client", "AsyncClient", "FitRequest",
            "FitResult", "FitOptions", "DiscoverRequest", "DiscoveryResult", "SimulateRequest", "SimulateResult",
-           "FrequencyFitRequest", "design", "DesignRequest", "DesignResult"]
+           "FrequencyFitRequest", "design", "DesignRequest", "DesignResult", "Model", "Parameter",
+           "Experiment"]
 
 
 def _version() -> str:

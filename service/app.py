@@ -22,6 +22,7 @@ from greyfit.service.logs import REQUEST_ID, configure_logging
 from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import install_docs, install_openapi
 from greyfit.service.problems import install_handlers, route_methods
+from greyfit.service.routes import files as file_routes
 from greyfit.service.routes import health, jobs, ops
 from greyfit.service.routes import report as report_routes
 from greyfit.service.routes import simulate as simulate_routes
@@ -113,7 +114,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
     app.state.metrics = Metrics()
     app.state.body_parser = BodyParser(settings.body_parser_processes, settings.retry_after_seconds)
     install_handlers(app)
-    routers = (health.router, *task_routers(), jobs.router, ops.router, simulate_routes.router,
+    routers = (health.router, *task_routers(), file_routes.router, jobs.router, ops.router, simulate_routes.router,
                report_routes.router)
     for router in routers:
         app.include_router(router)

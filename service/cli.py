@@ -57,9 +57,10 @@ def quality_exit(fit, args) -> int:
 
 def cmd_fit(args) -> int:
     from greyfit.schemas import FitRequest
+    from greyfit.service.cli_files import attach_files
     from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.fit import fit_model
-    body = _read_json(args.request)
+    body = attach_files(_read_json(args.request), args)
     if isinstance(body, dict) and isinstance(body.get("model"), dict) and \
             body["model"].get("kind") in ("transfer_function", "linearised_ode"):   # a frequency-response fit
         from greyfit.schemas.frequency import FrequencyFitRequest
@@ -73,10 +74,11 @@ def cmd_fit(args) -> int:
 
 def cmd_discover(args) -> int:
     from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.service.cli_files import attach_files
     from greyfit.service.cli_progress import DiscoveryProgress
     from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.discovery import discover
-    request = validate_strict(DiscoverRequest, _read_json(args.request))
+    request = validate_strict(DiscoverRequest, attach_files(_read_json(args.request), args))
     progress = DiscoveryProgress(sys.stderr, quiet=args.quiet)
     result = discover(request, progress=progress)
     progress.close()
@@ -111,6 +113,7 @@ class _Version(argparse.Action):
 
 
 def build_parser() -> argparse.ArgumentParser:
+    from greyfit.service.cli_files import add_file_options
     from greyfit.service.cli_suggest import SuggestingArgumentParser  # "did you mean" for options
     parser = SuggestingArgumentParser(prog="greyfit", description=__doc__,
                                       formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -119,14 +122,17 @@ def build_parser() -> argparse.ArgumentParser:
     p_fit = sub.add_parser("fit", help="fit one request; result JSON (or --summary) on stdout",
                            description="Fit one FitRequest (or a FrequencyFitRequest: model kind transfer_function "
                                        "or linearised_ode) and print the FitResult.")
-    p_fit.add_argument("request", help="the request JSON file, or - for stdin")
+    p_fit.add_argument("request", help="the request JSON file, or - for stdin (without experiments with --data)")
     add_output_options(p_fit, "fit")
+    add_file_options(p_fit)
     p_fit.set_defaults(func=cmd_fit)
     p_disc = sub.add_parser("discover", help="fit, find missing effects, refit; result JSON (or --summary) on stdout",
                             description="Run a DiscoverRequest: fit the declared model, screen the effect library "
                                         "on its residual, confirm by refits. Progress goes to stderr.")
-    p_disc.add_argument("request", help="the DiscoverRequest JSON file, or - for stdin")
+    p_disc.add_argument("request", help="the DiscoverRequest JSON file, or - for stdin (without experiments "
+                                        "with --data)")
     add_output_options(p_disc, "discovery and its final fit")
+    add_file_options(p_disc)
     p_disc.add_argument("-q", "--quiet", action="store_true", help="no progress lines on stderr")
     p_disc.set_defaults(func=cmd_discover)
     for extra in _extra_commands():
@@ -173,7 +179,7 @@ def _leave(code: int) -> NoReturn:
 
 def _run(argv: list[str] | None) -> int:
     args = build_parser().parse_args(argv)
-    from greyfit.solvers.errors import FitError
+    from greyfit.solvers.errors import DataFileError, FitError
     code = EXIT_BAD_INPUT
     try:
         code = args.func(args)
@@ -187,6 +193,9 @@ def _run(argv: list[str] | None) -> int:
             print(f"greyfit: invalid setting in the environment:\n{lines}", file=sys.stderr)
         else:
             print(f"greyfit: invalid request:\n{_validation_message(exc)}", file=sys.stderr)
+    except DataFileError as exc:   # one line per bad file, naming the file, the column and the row
+        for line in str(exc).splitlines():
+            print(f"greyfit: {line}", file=sys.stderr)
     except FitError as exc:
         print(f"greyfit: {type(exc).__name__}: {exc}", file=sys.stderr)
     _hand_over_compiles(getattr(args, "quiet", False))   # not after Ctrl-C: `_interrupted` stops them

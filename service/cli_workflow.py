@@ -15,14 +15,15 @@ def _read(path: str) -> dict:
 
 def simulate_body(args) -> dict:
     """The SimulateRequest: the file as it is, or with --result, its records and the result's model."""
+    from greyfit.service.cli_files import attach_files
     body = _read(args.request)
     if not args.result:
-        return body
+        return attach_files(body, args, require_outputs=False)
     if not isinstance(body, dict):
         return body   # the schema names what is wrong
     body = {k: v for k, v in body.items() if k in SIMULATE_KEYS}
     body["fit_result"] = _read(args.result)
-    return body
+    return attach_files(body, args, require_outputs=False)
 
 
 def cmd_simulate(args) -> int:
@@ -55,6 +56,7 @@ def cmd_report(args) -> int:
 
 def add_simulate(sub) -> None:
     from greyfit.service.cli import add_output_options
+    from greyfit.service.cli_files import add_file_options
     p = sub.add_parser("simulate", help="simulate a model on experiments; result JSON (or --summary) on stdout",
                        description="Simulate a SimulateRequest; or, with --result, the records of any request "
                                    "file (its experiments) with the model and estimates a fit result carries.")
@@ -64,6 +66,7 @@ def add_simulate(sub) -> None:
                    help="a FitResult or DiscoveryResult JSON: its model, estimates and initial states are used "
                         "(the request then needs only the records)")
     add_output_options(p, "simulation", fail_on=False)
+    add_file_options(p, validation=False)
     p.set_defaults(func=cmd_simulate)
 
 

@@ -25,6 +25,8 @@ _TYPE_HINTS = {
     "int_type": "a JSON integer is expected, not a string, true/false or 2.0 (write 3, not \"3\")",
     "bool_type": "true or false is expected (not a string, not 0/1)",
     "string_type": "a JSON string is expected: put the value in double quotes",
+    "finite_number": "NaN and Infinity are refused on every path (the library, the command line, each route, "
+                     "the client); write null for a missing output sample, or trim the record",
 }
 
 

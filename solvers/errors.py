@@ -20,3 +20,11 @@ class DataError(FitError):
 
 class CovarianceUnavailable(FitError):
     """The information matrix is singular or indefinite; the note says which combination."""
+
+
+class DataFileError(DataError):
+    """A measurement file that cannot be read as a record: the message is one line naming the file,
+    the column and the row."""
+
+    def __init__(self, message: str):
+        super().__init__(message)

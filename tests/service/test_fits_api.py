@@ -85,12 +85,12 @@ def test_wrong_types_name_the_location(client, example):
     assert "experiments[0].time" in locs and "options.max_iter" in locs
 
 
-def test_nan_in_data_is_a_data_error(client, example):
+def test_nan_in_data_is_refused_at_the_sample(client, example):
     text = json.dumps(example)
     x = example["experiments"][0]["outputs"]["x"]
     text = text.replace(json.dumps(x), json.dumps(x[:4] + ["__NAN__"] + x[5:])).replace('"__NAN__"', "NaN")
     resp = client.post("/v1/fits", content=text, headers={"content-type": "application/json"})
-    assert_problem(resp, 422, "experiments[0].outputs.x", "index 4")
+    assert_problem(resp, 422, "experiments[0].outputs.x[4]", "finite number")
 
 
 def test_length_mismatch_is_a_data_error(client, example):

@@ -19,6 +19,7 @@ from sqlalchemy import create_engine
 from greyfit.service.app import CountRequests, create_app
 from greyfit.service.metrics import Metrics
 from greyfit.service.openapi import SYNC_PATHS
+from greyfit.service.routes.files import FILE_KINDS
 from greyfit.service.task_kinds import KINDS
 from tests.servers import free_port
 from tests.service.conftest import make_settings, msd_request, wait_for_job
@@ -26,7 +27,9 @@ from tests.service.conftest import make_settings, msd_request, wait_for_job
 METHODS = {"GET", "POST", "PUT", "PATCH", "DELETE"}
 NOT_INTEGERS = ["1.0", " 1", "1 ", "+1", "1_0", "1e1", "\u0663", "0x1", "true"]
 # the synchronous routes answer from a worker without the job store (the job report reads it)
-NO_STORE = (set(SYNC_PATHS) - {"/v1/jobs/{job_id}/report"}) | {"/healthz"}
+# (POST /v1/fits/files, /v1/discover/files: synchronous too, from a multipart form; the store is not asked)
+FILE_PATHS = {f"{KINDS[kind].sync_path}/files" for kind in FILE_KINDS}
+NO_STORE = (set(SYNC_PATHS) - {"/v1/jobs/{job_id}/report"}) | {"/healthz"} | FILE_PATHS
 
 
 @pytest.fixture(scope="module")

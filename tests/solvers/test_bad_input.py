@@ -82,13 +82,14 @@ def test_length_mismatch_names_series_and_counts():
 
 @pytest.mark.parametrize("bad", [math.nan, math.inf, -math.inf])
 def test_non_finite_values_are_refused(bad):
-    def change(b):
-        b["experiments"][0]["outputs"]["v"][7] = bad
-    fails_with(request_with(change), DataError, "experiments[0].outputs.v", "index 7")
-
-    def change_input(b):
-        b["experiments"][0]["inputs"]["u"][3] = bad
-    fails_with(request_with(change_input), DataError, "experiments[0].inputs.u", "index 3")
+    """By the schema, at the sample (every path validates it: tests/service/test_nonfinite_every_path.py)."""
+    for group, name, i in (("outputs", "v", 7), ("inputs", "u", 3)):
+        body = copy.deepcopy(GOOD)
+        body["experiments"][0][group][name][i] = bad
+        with pytest.raises(ValidationError) as info:
+            FitRequest.model_validate(body)
+        assert [(e["type"], e["loc"]) for e in info.value.errors()] == [
+            ("finite_number", ("experiments", 0, group, name, i))]
 
 
 def test_missing_input_samples_and_missing_inputs():

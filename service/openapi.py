@@ -58,6 +58,8 @@ OPERATION_IDS = {
     ("get", "/metrics"): "get_metrics",
     ("post", "/v1/simulate"): "create_simulation",
     ("post", "/v1/report"): "create_report",
+    ("post", "/v1/fits/files"): "create_fit_from_files",
+    ("post", "/v1/discover/files"): "create_discovery_from_files",
     ("get", "/v1/jobs"): "list_jobs",
     ("get", "/v1/jobs/{job_id}"): "get_job",
     ("delete", "/v1/jobs/{job_id}"): "cancel_job",

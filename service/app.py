@@ -19,7 +19,7 @@ from greyfit.service.executors import make_executor
 from greyfit.service.json_body import BodyParser, body_model
 from greyfit.service.json_shape import ListLimits
 from greyfit.service.logs import REQUEST_ID, configure_logging
-from greyfit.service.metrics import Metrics
+from greyfit.service.metrics import Metrics, service_gauges
 from greyfit.service.openapi import install_docs, install_openapi
 from greyfit.service.problems import install_handlers, route_methods
 from greyfit.service.routes import health, jobs, ops
@@ -102,6 +102,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
         executor = make_executor(settings)
         dispatcher = Dispatcher(store, executor, settings, app.state.metrics)
         app.state.store, app.state.dispatcher = store, dispatcher
+        app.state.metrics.watch(service_gauges(store, dispatcher, app.state.metrics))
         dispatcher.start()
         app.state.body_parser.start(body_modules)
         log.info("greyfit ready: %s executor, store %s", settings.executor, store.engine.url)

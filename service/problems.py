@@ -185,6 +185,7 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(PoolTimeout)
     async def _store(request: Request, exc: Exception):
         log.error("job store error on %s %s: %s", request.method, request.url.path, store_error_detail(exc))
+        request.app.state.metrics.store_errors.labels("http").inc()
         # the database's text only for a caller with the API key (the same rule as /readyz)
         return retry_later(503, "Job store unavailable", store_error_detail(exc, carries_api_key(request)),
                            "store-unavailable", request.app.state.settings.retry_after_seconds)

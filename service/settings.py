@@ -33,6 +33,9 @@ class Settings(BaseSettings):
     max_parameters: int = Field(default=200, ge=1, description="parameters in one model")
     max_expression_length: int = Field(default=4000, ge=10, description="characters in one expression")
     max_batch_requests: int = Field(default=1000, ge=1, description="requests in one job")
+    max_queued_tasks: int = Field(
+        default=100_000, ge=1, description="tasks queued in the job store at most (every server's); a job that "
+                                           "would pass it gets 503 + Retry-After, and nothing accepted is dropped")
     max_answer_bytes: int = Field(
         default=4 * 1024 * 1024, ge=1024,
         description="largest answer assembled in memory (a job's status with its tasks); a larger one gets 422 "

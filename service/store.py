@@ -43,7 +43,8 @@ from sqlalchemy import (
     update,
 )
 from sqlalchemy.engine import Engine, make_url
-from sqlalchemy.exc import DBAPIError, IntegrityError
+from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, InternalError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 metadata = MetaData()
 
@@ -162,6 +163,11 @@ class StoreUnavailable(Exception):
     def __init__(self, detail: str, public: str = "the job store does not take writes"):
         super().__init__(detail)
         self.public = public
+
+
+# what a store that fails raises: StoreUnavailable, and the database driver's errors as SQLAlchemy
+# wraps them (read-only is InternalError on PostgreSQL, OperationalError on SQLite)
+STORE_ERRORS = (StoreUnavailable, OperationalError, InternalError, InterfaceError, PoolTimeout)
 
 
 class DataDirNotWritable(RuntimeError):
@@ -609,6 +615,13 @@ class JobStore:
                  "b_result": result_json, "b_error": json.dumps(error) if error is not None else None}
                 for job_id, idx, status, result_json, error in outcomes])
         return res.rowcount
+
+    def task_counts(self) -> dict[str, int]:
+        """Unfinished tasks of every job, by status (queued, running): for /metrics and the queue's limit."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(tasks.c.status, func.count()).where(tasks.c.status.in_(("queued", "running")))
+                                .group_by(tasks.c.status)).all()
+        return {status: n for status, n in rows}
 
     def queue_depth(self) -> int:
         with self.engine.connect() as conn:

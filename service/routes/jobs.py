@@ -11,6 +11,7 @@ from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
 
 from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, JobSummary, TaskError, TaskPublic
+from greyfit.service.backpressure import check_queue_room
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
 from greyfit.service.problems import LimitExceeded
@@ -82,6 +83,7 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
                             "split the batch")
     for i, req in enumerate(requests):
         check(req, settings, prefix=f"requests[{i}].")
+    check_queue_room(request, len(requests))
     texts = request_texts(request, requests)
     try:
         job_id = state.store.create_job(kind, texts, label, idempotency_of(request, kind, texts, label))

@@ -152,11 +152,12 @@ def get_results(job_id: Annotated[str, JOB_ID], request: Request, offset: Annota
     def body():
         yield f'{{"id":{json.dumps(job_id)},"status":"{status}","results":['
         for n, (idx, task_status, result, error) in enumerate(pages):
-            # the result as its worker wrote it; an error through TaskError, which leaves out what is
-            # not for the caller (the traceback of an internal error)
+            # the result as its worker wrote it, a slice at a time; an error through TaskError, which
+            # leaves out what is not for the caller (the traceback of an internal error)
             error_json = TaskError.model_validate_json(error).model_dump_json() if error else "null"
-            yield (f'{"," if n else ""}{{"index":{idx},"status":{json.dumps(task_status)},'
-                   f'"result":{result or "null"},"error":{error_json}}}')
+            yield f'{"," if n else ""}{{"index":{idx},"status":{json.dumps(task_status)},"result":'
+            yield from result if result is not None else ("null",)
+            yield f',"error":{error_json}}}'
         yield "]}"
 
     return StreamingResponse(body(), media_type="application/json")

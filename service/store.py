@@ -37,6 +37,7 @@ from sqlalchemy import (
     event,
     func,
     inspect,
+    literal_column,
     select,
     text,
     tuple_,
@@ -138,10 +139,15 @@ _JOB = select(jobs).where(jobs.c.id == bindparam("b_id"))
 _JOB_TASKS = (select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at, tasks.c.finished_at,
                      tasks.c.error)
               .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
-# a result is read whole only up to RESULT_CHUNK characters; a longer one a slice a query (its
-# length and then substr, in characters on both SQLite and PostgreSQL), so that streaming it holds
-# one slice in memory: four downloads of a 31.6 MB result held 519 MB when it was read whole
+# a result is read whole only up to RESULT_CHUNK characters; a longer one a slice a query, so that
+# streaming it holds one slice in memory: four downloads of a 31.6 MB result held 519 MB when it was
+# read whole. PostgreSQL: length and substr (in characters; the server reads the TOAST slices).
+# SQLite: its incremental blob I/O (bytes), since its substr and length load the whole value into the
+# web process (SQLite runs in it) to count characters
 RESULT_CHUNK = 1 << 20
+_RESULTS_SQLITE = (select(tasks.c.idx, tasks.c.status, literal_column("tasks.rowid"), tasks.c.error,
+                          tasks.c.result.is_not(None))
+                   .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
 _RESULT_LENGTH = func.length(tasks.c.result)
 _RESULTS = (select(tasks.c.idx, tasks.c.status,
                    case((_RESULT_LENGTH <= bindparam("b_chunk"), tasks.c.result), else_=None), tasks.c.error,
@@ -453,19 +459,38 @@ class JobStore:
         from `offset`, `page` rows a query: an answer streamed from this holds one page of small
         results in memory, and one slice of a large one, not every result of the job."""
         last, left = offset - 1, limit
+        sqlite = self.engine.dialect.name == "sqlite"
         while left is None or left > 0:
             size = page if left is None else min(page, left)
             with self.engine.connect() as conn:
-                rows = conn.execute(_RESULTS.where(tasks.c.idx > last).limit(size),
+                rows = conn.execute((_RESULTS_SQLITE if sqlite else _RESULTS).where(tasks.c.idx > last).limit(size),
                                     {"b_id": job_id, "b_chunk": RESULT_CHUNK}).all()
             for idx, status, small, error, length in rows:
-                slices = None if not length else iter([small]) if small is not None else \
-                    self._result_slices(job_id, idx, length)
+                if sqlite:   # (rowid, whether there is a result)
+                    slices = self._blob_slices(small) if length else None
+                else:
+                    slices = None if not length else iter([small]) if small is not None else \
+                        self._result_slices(job_id, idx, length)
                 yield idx, status, slices, error
             if len(rows) < size:
                 return
             last = rows[-1][0]
             left = None if left is None else left - len(rows)
+
+    def _blob_slices(self, rowid: int):
+        """A result on SQLite, RESULT_CHUNK bytes a read of its blob (a connection taken for each read:
+        a slow client holds none between them)."""
+        chunk, at = RESULT_CHUNK, 0
+        while True:
+            with self.engine.connect() as conn:
+                with conn.connection.driver_connection.blobopen("tasks", "result", rowid, readonly=True) as blob:
+                    blob.seek(at)
+                    data = blob.read(chunk)
+            if data:
+                yield data
+            if len(data) < chunk:
+                return
+            at += len(data)
 
     def _result_slices(self, job_id: str, idx: int, length: int):
         """A long result, RESULT_CHUNK characters a query (a stored result never changes: no transaction)."""

@@ -33,7 +33,8 @@ def bodies() -> dict[str, tuple[str, bytes]]:
         "250 000 empty requests (job)": ("/v1/jobs", b'{"requests":[' + b",".join([b"{}"] * 250_000) + b"]}"),
         "unknown field of 10^6 zeros (job)": ("/v1/jobs", f'{{"requests":[{EXAMPLE}],"junk":{zeros}}}'.encode()),
         "unknown field of 10^6 keys (fit)": ("/v1/fits", f'{{"junk":{keys},{EXAMPLE[1:]}'.encode()),
-        "10^6 definitions (fit)": ("/v1/fits", ('{"model":{"definitions":' + keys.replace(":0", ':"1"') + "}}").encode()),
+        "10^6 definitions (fit)": ("/v1/fits", ('{"model":{"definitions":' + keys.replace(":0", ':"1"')
+                                                + "}}").encode()),
         # the baseline: a valid fit of 12 MB (parsed and validated, then 413: too large to fit synchronously)
         "valid 12 MB fit (baseline)": ("/v1/fits", json.dumps(large_fit_request(12)).encode()),
     }
@@ -52,7 +53,8 @@ def main() -> None:
                 before = kb(server.pid, "VmRSS")
                 stop = threading.Event()
                 latencies: list[float] = []
-                prober = threading.Thread(target=lambda: latencies.extend(probe_healthz(base, stop)))
+                prober = threading.Thread(target=lambda stop=stop, latencies=latencies:
+                                          latencies.extend(probe_healthz(base, stop)))
                 prober.start()
                 time.sleep(0.1)
                 started = time.perf_counter()

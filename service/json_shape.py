@@ -15,6 +15,7 @@ Standard library and pydantic only: a body-parser process runs it (service.json_
 """
 from __future__ import annotations
 
+import json
 import re
 from dataclasses import dataclass
 from typing import Any, Optional
@@ -32,7 +33,9 @@ MAX_ELEMENTS = 2_000_000
 
 _WS = re.compile(rb"[ \t\n\r]*")
 _STRING = re.compile(rb'"(?:[^"\\]|\\.)*"')
-_NUMBERS = re.compile(rb"\[(?:[-+0-9.eE,\s]|null)*\]")   # an array of numbers (and nulls): data
+# an array of numbers (and nulls): data. One character class (the letters of null in it), which the
+# regular expression engine repeats in C; an alternation with "null" was 20 times slower
+_NUMBERS = re.compile(rb"\[[-+0-9.eE,\snul]*\]")
 _SCALAR = re.compile(rb"-?[0-9][-+0-9.eE]*|true|false|null")
 
 
@@ -134,7 +137,11 @@ class _Walk:
             key = _STRING.match(self.body, pos)
             if key is None:
                 raise _Malformed
-            name = key.group()[1:-1].decode("utf-8", "replace")
+            raw = key.group()
+            try:   # a key with escapes (\u0061) is the text they stand for
+                name = json.loads(raw) if b"\\" in raw else raw[1:-1].decode("utf-8")
+            except ValueError:
+                raise _Malformed from None
             keys += 1
             self.count()
             if fields is not None and name not in fields:

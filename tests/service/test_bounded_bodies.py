@@ -73,6 +73,8 @@ def test_the_shape_walk_names_unknown_fields_at_any_depth_and_passes_valid_bodie
     limits = ListLimits((("requests", 2, "GREYFIT_MAX_BATCH_REQUESTS"),))
     assert check_shape(JobCreate, json.dumps({"requests": [example, example]}).encode(), limits) == 2
     assert check_shape(FitRequest, json.dumps(example).encode(), limits) is None
+    escaped = json.dumps(example).replace('"model"', '"\\u006dodel"', 1)   # the same key, escaped
+    assert check_shape(FitRequest, escaped.encode(), limits) is None
     example["experiments"][0]["outputz"] = {}
     with pytest.raises(ShapeError) as err:
         check_shape(FitRequest, json.dumps(example).encode(), limits)

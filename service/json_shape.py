@@ -26,7 +26,8 @@ from greyfit.service.error_text import _members, _step
 
 # at most this many keys in one object: more than any model has fields, parameters or outputs
 MAX_KEYS = 10_000
-# at most this many items in an array that is not all numbers (a list of models has its own limit)
+# at most this many objects, arrays and strings in one array (a list of models has its own limit);
+# numbers among them are not counted: a record of data with one bad value is the model's to name
 MAX_ITEMS = 100_000
 # objects, arrays, keys and strings in one body at most (a job of 1 000 requests holds ~50 000)
 MAX_ELEMENTS = 2_000_000
@@ -168,9 +169,11 @@ class _Walk:
         pos, n = self.skip(pos + 1), 0
         if self.body[pos:pos + 1] == b"]":
             return self._counted(loc, 0, pos + 1)
+        counted = 0   # items that are objects, arrays or strings: a number among numbers is data
         while True:
             n += 1
-            if n > most:
+            counted += self.body[pos:pos + 1] in (b"{", b"[", b'"')
+            if counted > most:
                 where = f" ({setting})" if setting else ""
                 raise ShapeError("limit", loc, f"more than {most} items, the limit is {most}{where}; "
                                  "split the body into several")

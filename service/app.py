@@ -18,8 +18,9 @@ from greyfit.service.clients import KeyStore
 from greyfit.service.dispatcher import Dispatcher
 from greyfit.service.executors import make_executor
 from greyfit.service.json_body import BodyParser, body_model
+from greyfit.service.json_shape import ListLimits
 from greyfit.service.logs import REQUEST_ID, configure_logging
-from greyfit.service.metrics import Metrics
+from greyfit.service.metrics import Metrics, service_gauges
 from greyfit.service.openapi import install_docs, install_openapi
 from greyfit.service.problems import install_handlers, route_methods
 from greyfit.service.routes import files as file_routes
@@ -80,6 +81,13 @@ def _request_id(scope: Scope) -> str:
     return uuid.uuid4().hex[:16]
 
 
+def list_limits(settings: Settings) -> ListLimits:
+    """The lists of models a body's shape is checked against before it is validated (service.json_shape)."""
+    records = (settings.max_experiments, "GREYFIT_MAX_EXPERIMENTS")
+    return ListLimits((("requests", settings.max_batch_requests, "GREYFIT_MAX_BATCH_REQUESTS"),
+                       ("experiments", *records), ("validation", *records), ("data", *records)))
+
+
 def create_app(settings: Optional[Settings] = None) -> FastAPI:
     settings = settings or get_settings()
     configure_logging(settings.log_format, settings.log_level)
@@ -97,6 +105,7 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
         dispatcher = Dispatcher(store, executor, settings, app.state.metrics)
         app.state.store, app.state.dispatcher = store, dispatcher
         app.state.keys = KeyStore(store.engine)   # the named API keys (ApiKeyGate reads them)
+        app.state.metrics.watch(service_gauges(store, dispatcher, app.state.metrics))
         dispatcher.start()
         app.state.body_parser.start(body_modules)
         log.info("greyfit ready: %s executor, store %s", settings.executor, store.engine.url)
@@ -112,7 +121,8 @@ def create_app(settings: Optional[Settings] = None) -> FastAPI:
                   description="Fit the physical parameters of ODE models to measured data.")
     app.state.settings = settings
     app.state.metrics = Metrics()
-    app.state.body_parser = BodyParser(settings.body_parser_processes, settings.retry_after_seconds)
+    app.state.body_parser = BodyParser(settings.body_parser_processes, settings.retry_after_seconds,
+                                       list_limits(settings), settings.max_parse_queue)
     install_handlers(app)
     routers = (health.router, *task_routers(), file_routes.router, jobs.router, ops.router, simulate_routes.router,
                report_routes.router)

@@ -50,7 +50,11 @@ def cmd_serve(args) -> int:
     # httptools (a dependency): h11, uvicorn's pure-Python fallback, would hold the interpreter for
     # every chunk of a large body and stall /healthz during uploads
     # log_config=None: uvicorn's lines go through greyfit's JSON handler (service.logs), not its own
-    uvicorn.run(app, host=args.host, port=args.port, log_level="info", http="httptools", log_config=None)
+    # (greyfit's subclass of it bounds a connection's idle time and answers what uvicorn cannot parse
+    # as problem+json: service.http_protocol)
+    from greyfit.service.http_protocol import bounded_protocol
+    uvicorn.run(app, host=args.host, port=args.port, log_level="info", log_config=None,
+                http=bounded_protocol(settings.request_head_seconds), timeout_keep_alive=settings.keep_alive_seconds)
     return 0
 
 

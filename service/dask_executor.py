@@ -82,6 +82,8 @@ def _lost(detail: str) -> Outcome:
 class DaskExecutor:
     """Fits as tasks on a Dask distributed cluster (scheduler address from the settings)."""
 
+    replaced = 0   # the cluster replaces its own workers: none here (/metrics)
+
     def __init__(self, address: str, cpu_seconds: float, wall_seconds: float, capacity: int | None = None,
                  connect_seconds: float = 30.0):
         self.address, self.connect_seconds = address, connect_seconds

@@ -41,7 +41,7 @@ from typing import Optional
 
 from greyfit.service.metrics import Metrics
 from greyfit.service.settings import Settings
-from greyfit.service.store import JobStore, TaskRow
+from greyfit.service.store import STORE_ERRORS, JobStore, TaskRow
 
 log = logging.getLogger("greyfit.dispatcher")
 
@@ -174,7 +174,7 @@ class Dispatcher:
         # tasks we were running (or had claimed for the next free worker) go back to the queue at
         # once, without counting an attempt; another server (or our restart) runs them
         self.ready.clear()
-        self.store.requeue_owned(self.owner)
+        self.metrics.give_backs.labels("shutdown").inc(self.store.requeue_owned(self.owner))
         for item in list(self.running.values()):
             if item[0] == "sync" and not item[1].done():
                 item[1].set_exception(RuntimeError("the server is shutting down"))
@@ -193,15 +193,18 @@ class Dispatcher:
                         released = self.store.renew(self.owner, self.settings.lease_seconds, self._held())
                         if released:
                             log.warning("gave back %d task(s) claimed by a claim whose outcome was lost", released)
-                        self.store.requeue_expired()
+                            self.metrics.give_backs.labels("lost_claim").inc(released)
+                        self.metrics.give_backs.labels("expired").inc(self.store.requeue_expired())
                         last_lease = now
                     if now - last_cancel_check > 0.25:
                         self._stop_cancelled()
                         last_cancel_check = now
                     self._write_pending(flush=False)
                     self._claim_more()
-            except Exception:  # the loop must survive a database hiccup
+            except Exception as exc:  # the loop must survive a database hiccup
                 log.exception("dispatcher iteration failed")
+                if isinstance(exc, STORE_ERRORS):
+                    self.metrics.store_errors.labels("dispatcher").inc()
                 self._stop.wait(min(1.0, self.settings.poll_seconds * 10))
             if not self._wake.is_set():
                 timeout = self.settings.poll_seconds
@@ -345,6 +348,8 @@ class Dispatcher:
                 # (synchronous fits only go to a free worker, so never queue behind another)
                 outcome = {"status": "failed", "error": {"type": "WorkerLost", "field": None, "retry": True,
                                                          "detail": "the worker process was replaced; retry"}}
+            if _is_retry(outcome):
+                self.metrics.worker_losses.labels(kind).inc()
             seconds = outcome.get("seconds", time.monotonic() - t0)   # the worker's count: not queued time
             self.metrics.count_fit(kind, outcome["status"], seconds)
             error = outcome.get("error") or {}
@@ -403,6 +408,7 @@ class Dispatcher:
         for job_id, idx, outcome in retried:
             status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, outcome["error"])
             if status == "queued":
+                self.metrics.give_backs.labels("lost_worker").inc()
                 log.warning("task %s:%s re-queued: %s", job_id, idx, outcome["error"].get("detail"),
                             extra={"task_id": f"{job_id}:{idx}"})
             self.pending.remove((job_id, idx, outcome))

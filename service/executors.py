@@ -267,9 +267,12 @@ class LocalWorkerPool:
         slot.keys.append(key)
         slot.conn.send((key, kind, request))
 
+    replaced = 0   # workers replaced (lost, stalled or ended for a cancel): /metrics
+
     def _replace(self, i: int) -> None:
         """End worker i (if alive) and start another; the tasks queued behind its own were never
         started: they come back from the next poll()."""
+        self.replaced += 1
         slot = self.slots[i]
         if slot.process.is_alive():
             slot.process.kill()

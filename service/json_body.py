@@ -35,6 +35,7 @@ from fastapi.routing import APIRoute
 from pydantic import BaseModel
 
 from greyfit.service.json_parsing import (
+    capped,
     exit_with_parent,
     has_duplicate_keys,
     loads_strict,
@@ -42,6 +43,7 @@ from greyfit.service.json_parsing import (
     validate_json,
     warm_up,
 )
+from greyfit.service.json_shape import ListLimits, worth_checking
 
 LARGE_BODY_BYTES = 1 << 20
 
@@ -57,6 +59,15 @@ class InvalidBody(HTTPException):
         self.errors, self.body = errors, body
 
 
+class BodyLimitExceeded(HTTPException):
+    """A body with a list or an object beyond this server's limits, found before it was validated (422,
+    answered like service.problems.LimitExceeded)."""
+
+    def __init__(self, field: str, detail: str):
+        super().__init__(422, detail)
+        self.field = field
+
+
 class NotJSON(HTTPException):
     """A body sent without a JSON media type: 415, saying what to send."""
 
@@ -70,8 +81,10 @@ class BodyParser:
     """Parser processes (started by `start()`, else on the first large body); 0 processes parses in a
     thread."""
 
-    def __init__(self, processes: int, retry_after: int):
-        self.processes, self.retry_after = processes, retry_after
+    def __init__(self, processes: int, retry_after: int, limits: ListLimits = ListLimits(), max_waiting: int = 8):
+        self.processes, self.retry_after, self.limits = processes, retry_after, limits
+        self.max_waiting = max_waiting   # bodies waiting for a parser beyond those being parsed: then 503
+        self.pending = 0                 # bodies submitted and not yet parsed (one event loop: no lock)
         self._pool: Optional[cf.ProcessPoolExecutor] = None
         self._lock = threading.Lock()
 
@@ -93,20 +106,17 @@ class BodyParser:
     async def parse(self, model: Optional[type[BaseModel]], body: bytes) -> tuple[Any, Optional[list[str]]]:
         """The validated model (or, without one, the parsed JSON) and, for a job body, the JSON text
         of each request; the same errors as in the web process."""
-        if self.processes == 0:
-            outcome = await anyio.to_thread.run_sync(parse_and_validate, model, body)
-        else:
-            pool = self._executor()
-            try:
-                outcome = await asyncio.wrap_future(pool.submit(parse_and_validate, model, body))
-            except cf.BrokenExecutor:      # a parser process died (e.g. out of memory): start afresh
-                with self._lock:
-                    if self._pool is pool:
-                        self._pool = None
-                pool.shutdown(wait=False, cancel_futures=True)
-                raise HTTPException(503, "the process parsing large bodies was lost (out of memory?); retry",
-                                    headers={"Retry-After": str(self.retry_after)}) from None
+        if self.pending >= max(1, self.processes) + self.max_waiting:
+            raise HTTPException(503, f"{self.pending} bodies are waiting to be parsed; retry later",
+                                headers={"Retry-After": str(self.retry_after)})
+        self.pending += 1
+        try:
+            outcome = await self._run(model, body)
+        finally:
+            self.pending -= 1
         status, value = outcome
+        if status == "limit":
+            raise BodyLimitExceeded(_dotted(value[0]), f"{_dotted(value[0])}: {value[1]}")
         if status == "ok":
             return value          # (the instance or parsed JSON, the requests' JSON texts or None)
         if status == "json_invalid":
@@ -117,6 +127,20 @@ class BodyParser:
         if status == "too_deep":
             raise RecursionError("nested too deeply")
         raise ValueError("unparsable body")   # FastAPI answers 400, as for a body it parsed itself
+
+    async def _run(self, model: Optional[type[BaseModel]], body: bytes) -> tuple[str, Any]:
+        if self.processes == 0:
+            return await anyio.to_thread.run_sync(parse_and_validate, model, body, self.limits)
+        pool = self._executor()
+        try:
+            return await asyncio.wrap_future(pool.submit(parse_and_validate, model, body, self.limits))
+        except cf.BrokenExecutor:      # a parser process died (e.g. out of memory): start afresh
+            with self._lock:
+                if self._pool is pool:
+                    self._pool = None
+            pool.shutdown(wait=False, cancel_futures=True)
+            raise HTTPException(503, "the process parsing large bodies was lost (out of memory?); retry",
+                                headers={"Retry-After": str(self.retry_after)}) from None
 
     def shutdown(self) -> None:
         with self._lock:
@@ -131,7 +155,10 @@ class StrictJSONRequest(Request):
     async def json(self) -> Any:
         if not hasattr(self, "_json"):
             body = await self.body()
-            if len(body) > LARGE_BODY_BYTES:
+            _refuse_other_encodings(body)
+            # a large body, or one of many objects and strings (its shape is walked before it is
+            # validated, service.json_shape): in a parser process, never in the event loop
+            if len(body) > LARGE_BODY_BYTES or (self.body_model is not None and worth_checking(body)):
                 self._json, texts = await self.app.state.body_parser.parse(self.body_model, body)
                 if texts is not None:
                     self.state.request_texts = texts   # see request_texts()
@@ -150,8 +177,29 @@ class StrictJSONRequest(Request):
             return instance
         data = loads_strict(body)
         if errors is not None:
+            requests = data.get("requests") if isinstance(data, dict) else None
+            errors = capped(errors, len(requests) if isinstance(requests, list) else None)
             raise InvalidBody([{**e, "loc": ("body", *e["loc"])} for e in errors], body)
         return data
+
+
+# a byte-order mark, or the NUL bytes of UTF-16/32 among the first four: json.loads would decode
+# these (RFC 8259 says UTF-8 without a BOM), and the docs promise 400
+_BOMS = (b"\xef\xbb\xbf", b"\xff\xfe", b"\xfe\xff")
+
+
+def _refuse_other_encodings(body: bytes) -> None:
+    if body.startswith(_BOMS) or b"\x00" in body[:4]:
+        raise HTTPException(400, "the body must be UTF-8 JSON without a byte-order mark (it looks like UTF-16 "
+                            "or UTF-32, or starts with a BOM): re-encode it as UTF-8")
+
+
+def _dotted(loc: tuple) -> str:
+    """`requests` or `requests[0].experiments` for a location tuple (the body itself: `body`)."""
+    out = ""
+    for part in loc:
+        out += f"[{part}]" if isinstance(part, int) else (f".{part}" if out else str(part))
+    return out or "body"
 
 
 def validated_text(request: Request, instance: BaseModel) -> str | dict:
@@ -207,6 +255,10 @@ class StrictJSONRoute(APIRoute):
         async def strict_handler(request: Request) -> Response:
             if takes_json and _has_body(request) and not _is_json(request.headers.get("content-type")):
                 raise NotJSON(request.headers.get("content-type"))
+            encoding = request.headers.get("content-encoding", "identity").strip().lower()
+            if takes_json and encoding != "identity":   # read as plain JSON, a gzip body would be garbage
+                raise HTTPException(415, f"Content-Encoding '{encoding}' is not accepted: send the body "
+                                    "uncompressed, without a Content-Encoding header")
             strict = StrictJSONRequest(request.scope, request.receive)
             strict.body_model = model
             return await handler(strict)

@@ -15,6 +15,11 @@ from typing import Any, Optional
 
 from pydantic import BaseModel, ValidationError
 
+from greyfit.service.json_shape import ListLimits, ShapeError, check_shape
+
+# errors listed in one answer at most; the rest are counted
+MAX_ERRORS = 50
+
 
 class _DuplicateKey(ValueError):
     pass
@@ -94,17 +99,23 @@ def warm_up(modules: list[str]) -> None:
         importlib.import_module(name)
 
 
-def parse_and_validate(model: Optional[type[BaseModel]], body: bytes) -> tuple[str, Any]:
+def parse_and_validate(model: Optional[type[BaseModel]], body: bytes,
+                       limits: ListLimits = ListLimits()) -> tuple[str, Any]:
     """Parse a body and validate it as `model`; never raises, the outcome says what happened.
 
     ("ok", (instance or, without a model, the parsed JSON; request_texts)) | ("json_invalid", (message, position))
-    | ("invalid", pydantic errors without their input) | ("unparsable", None): not UTF-8 JSON or
-    nested too deeply to parse (FastAPI answers 400) | ("too_deep", None): nested too deeply to
-    validate (answered 422, as in the web process).
+    | ("invalid", pydantic errors without their input, at most MAX_ERRORS and a count of the rest)
+    | ("limit", (location, message)): a list or an object beyond `limits` (service.json_shape), found
+    before anything was validated | ("unparsable", None): not UTF-8 JSON or nested too deeply to parse
+    (FastAPI answers 400) | ("too_deep", None): nested too deeply to validate (answered 422, as in the
+    web process).
 
     `request_texts`: for a job body (a model with a list `requests`), the JSON text of each request,
     made here so that the web process only stores it (serialising holds the interpreter lock too).
     """
+    shape = shape_of(model, body, limits)
+    if shape[0] != "ok":
+        return shape
     instance, errors = validate_json(model, body) if model is not None else (None, None)
     if instance is not None and not has_duplicate_keys(body):
         return "ok", (instance, _request_texts(instance))
@@ -117,16 +128,48 @@ def parse_and_validate(model: Optional[type[BaseModel]], body: bytes) -> tuple[s
     if model is None:
         return "ok", (data, None)
     if errors is not None:
-        return "invalid", errors
+        return "invalid", capped(errors, shape[1])
     try:   # pydantic's parser could not read what json.loads did: validated as before
         instance = model.model_validate(data)
     except ValidationError as exc:
         # the input of each error is left out: it may be megabytes, and the answer never shows it
-        return "invalid", [{"type": e["type"], "loc": tuple(e["loc"]), "msg": e["msg"]}
-                           for e in exc.errors(include_url=False, include_input=False, include_context=False)]
+        return "invalid", capped([{"type": e["type"], "loc": tuple(e["loc"]), "msg": e["msg"]} for e in
+                                  exc.errors(include_url=False, include_input=False, include_context=False)],
+                                 shape[1])
     except RecursionError:
         return "too_deep", None
     return "ok", (instance, _request_texts(instance))
+
+
+def shape_of(model: Optional[type[BaseModel]], body: bytes, limits: ListLimits) -> tuple[str, Any]:
+    """("ok", the number of requests or None), or the outcome of a body refused by its shape
+    (service.json_shape): ("limit", (location, message)) or ("invalid", [the unknown field's error])."""
+    if model is None:
+        return "ok", None
+    try:
+        return "ok", check_shape(model, body, limits)
+    except ShapeError as exc:
+        if exc.kind == "unknown":
+            return "invalid", [{"type": "extra_forbidden", "loc": exc.loc, "msg": "Extra inputs are not permitted"}]
+        return "limit", (exc.loc, exc.msg)
+
+
+def capped(errors: list[dict], requests: Optional[int] = None) -> list[dict]:
+    """At most MAX_ERRORS errors, then one that counts the rest. A job body's requests are validated up
+    to the first invalid one (`fail_fast`): the last entry says how many were not checked."""
+    if any(e.get("type") in ("too_many_errors", "not_checked") for e in errors):
+        return errors    # capped already (in a parser process)
+    out = errors[:MAX_ERRORS]
+    if len(errors) > MAX_ERRORS:
+        out.append({"type": "too_many_errors", "loc": (), "msg": f"{len(errors) - MAX_ERRORS} more errors "
+                    "not listed: fix these and send the body again"})
+    failed = [e["loc"][1] for e in errors if tuple(e["loc"][:1]) == ("requests",) and len(e["loc"]) > 1
+              and isinstance(e["loc"][1], int)]
+    if requests is not None and failed and requests > max(failed) + 1:
+        rest = requests - max(failed) - 1
+        out.append({"type": "not_checked", "loc": ("requests",), "msg": f"the {rest} requests after "
+                    f"requests[{max(failed)}] were not checked (validation stops at the first invalid one)"})
+    return out
 
 
 def _request_texts(instance: BaseModel) -> Optional[list[str]]:

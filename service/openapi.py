@@ -82,6 +82,21 @@ def _problem_response(description: str, headers: bool) -> dict:
     return out
 
 
+# pydantic's names of bounds and JSON Schema's: a bound given on an annotated parameter (QueryInt with
+# Query(ge=0), and its Optional) reaches FastAPI's description under pydantic's name, which JSON Schema
+# and every client ignore
+_BOUNDS = {"ge": "minimum", "le": "maximum", "gt": "exclusiveMinimum", "lt": "exclusiveMaximum"}
+
+
+def _publish_bounds(schema: dict) -> None:
+    """Rename pydantic's bounds to JSON Schema's in a parameter's schema, its anyOf members included."""
+    for ours, theirs in _BOUNDS.items():
+        if ours in schema:
+            schema[theirs] = schema.pop(ours)
+    for member in schema.get("anyOf", []):
+        _publish_bounds(member)
+
+
 def describe(app: FastAPI, settings: Settings) -> dict:
     spec = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
     components = spec.setdefault("components", {})
@@ -98,6 +113,8 @@ def describe(app: FastAPI, settings: Settings) -> dict:
     for path, ops in spec["paths"].items():
         for method, op in ops.items():
             responses = op.setdefault("responses", {})
+            for parameter in op.get("parameters", []):
+                _publish_bounds(parameter.get("schema", {}))
             codes = ["500"] if path == "/healthz" else ["500", "503"]
             if path not in PUBLIC:
                 codes += ["401", "404", "413", "422", "429"]

@@ -14,7 +14,8 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from greyfit.service.deps import carries_api_key
 from greyfit.service.error_text import describe
-from greyfit.service.json_body import InvalidBody, body_model
+from greyfit.service.json_body import BodyLimitExceeded, InvalidBody, body_model
+from greyfit.service.json_parsing import capped
 from greyfit.service.logs import REQUEST_ID
 from greyfit.service.store import StoreUnavailable
 from greyfit.solvers.errors import DataError, FitError, ModelDefinitionError
@@ -138,7 +139,7 @@ def store_error_detail(exc: Exception, full: bool = True) -> str:
 
 def install_handlers(app: FastAPI) -> None:
     def invalid_request(errors: Sequence[Any], body, model: Optional[type[BaseModel]] = None) -> JSONResponse:
-        errors = validation_errors(errors, body, model)
+        errors = validation_errors(capped(list(errors)), body, model)
         detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
         return problem(422, "Invalid request", detail, "validation-error", errors=errors)
 
@@ -165,6 +166,11 @@ def install_handlers(app: FastAPI) -> None:
         return problem(422, "Limit exceeded", f"{exc.field}: {exc.detail}", "limit-exceeded",
                        errors=[{"loc": exc.field, "msg": exc.detail}])
 
+    @app.exception_handler(BodyLimitExceeded)   # the same, found by the body's shape before validation
+    async def _body_limit(_: Request, exc: BodyLimitExceeded):
+        return problem(422, "Limit exceeded", str(exc.detail), "limit-exceeded",
+                       errors=[{"loc": exc.field, "msg": str(exc.detail).partition(": ")[2]}])
+
     @app.exception_handler(Overloaded)
     async def _overloaded(request: Request, exc: Overloaded):
         return retry_later(503, "Unavailable", exc.detail, "unavailable",
@@ -179,6 +185,7 @@ def install_handlers(app: FastAPI) -> None:
     @app.exception_handler(PoolTimeout)
     async def _store(request: Request, exc: Exception):
         log.error("job store error on %s %s: %s", request.method, request.url.path, store_error_detail(exc))
+        request.app.state.metrics.store_errors.labels("http").inc()
         # the database's text only for a caller with the API key (the same rule as /readyz)
         return retry_later(503, "Job store unavailable", store_error_detail(exc, carries_api_key(request)),
                            "store-unavailable", request.app.state.settings.retry_after_seconds)

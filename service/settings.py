@@ -34,6 +34,9 @@ class Settings(BaseSettings):
     max_parameters: int = Field(default=200, ge=1, description="parameters in one model")
     max_expression_length: int = Field(default=4000, ge=10, description="characters in one expression")
     max_batch_requests: int = Field(default=1000, ge=1, description="requests in one job")
+    max_queued_tasks: int = Field(
+        default=100_000, ge=1, description="tasks queued in the job store at most (every server's); a job that "
+                                           "would pass it gets 503 + Retry-After, and nothing accepted is dropped")
     max_answer_bytes: int = Field(
         default=4 * 1024 * 1024, ge=1024,
         description="largest answer assembled in memory (a job's status with its tasks); a larger one gets 422 "
@@ -55,6 +58,9 @@ class Settings(BaseSettings):
         default=1, ge=0, le=64, description="processes that parse and validate bodies above 1 MB, so that "
         "parsing (which holds the interpreter lock) never stalls the web process and /healthz; "
         "0 parses them in a thread of the web process")
+    max_parse_queue: int = Field(
+        default=8, ge=0, description="bodies waiting for a parser process beyond those being parsed; "
+                                     "beyond it 503 + Retry-After")
     max_sync_queue: int = Field(default=32, ge=1, description="synchronous fits waiting for a worker; "
                                                               "beyond it 503 + Retry-After")
     rate_limit_per_minute: Optional[int] = Field(
@@ -91,6 +97,12 @@ class Settings(BaseSettings):
     body_read_seconds: float = Field(
         default=60.0, gt=0, description="a request body must arrive within this many seconds of the request's "
                                         "start (a 64 MB body: at least ~1.1 MB/s); a slower sender gets 408")
+
+    request_head_seconds: float = Field(
+        default=10.0, gt=0, description="a connection must send a request's line and headers within this many "
+                                        "seconds of opening (or of its next request's first byte); else it is closed")
+    keep_alive_seconds: float = Field(
+        default=5.0, gt=0, description="an idle connection between requests is closed after this many seconds")
 
     @field_validator("quick_compiler")
     @classmethod

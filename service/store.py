@@ -37,13 +37,15 @@ from sqlalchemy import (
     event,
     func,
     inspect,
+    literal_column,
     select,
     text,
     tuple_,
     update,
 )
 from sqlalchemy.engine import Engine, make_url
-from sqlalchemy.exc import DBAPIError, IntegrityError
+from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, InternalError, OperationalError
+from sqlalchemy.exc import TimeoutError as PoolTimeout
 
 metadata = MetaData()
 
@@ -152,8 +154,22 @@ _JOB = select(jobs).where(jobs.c.id == bindparam("b_id"))
 _JOB_TASKS = (select(tasks.c.idx, tasks.c.status, tasks.c.attempts, tasks.c.started_at, tasks.c.finished_at,
                      tasks.c.error)
               .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
-_RESULTS = (select(tasks.c.idx, tasks.c.status, tasks.c.result, tasks.c.error)
+# a result is read whole only up to RESULT_CHUNK characters; a longer one a slice a query, so that
+# streaming it holds one slice in memory: four downloads of a 31.6 MB result held 519 MB when it was
+# read whole. PostgreSQL: length and substr (in characters; the server reads the TOAST slices).
+# SQLite: its incremental blob I/O (bytes), since its substr and length load the whole value into the
+# web process (SQLite runs in it) to count characters
+RESULT_CHUNK = 1 << 20
+_RESULTS_SQLITE = (select(tasks.c.idx, tasks.c.status, literal_column("tasks.rowid"), tasks.c.error,
+                          tasks.c.result.is_not(None))
+                   .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
+_RESULT_LENGTH = func.length(tasks.c.result)
+_RESULTS = (select(tasks.c.idx, tasks.c.status,
+                   case((_RESULT_LENGTH <= bindparam("b_chunk"), tasks.c.result), else_=None), tasks.c.error,
+                   _RESULT_LENGTH)
             .where(tasks.c.job_id == bindparam("b_id")).order_by(tasks.c.idx))
+_RESULT_SLICE = (select(func.substr(tasks.c.result, bindparam("b_from"), bindparam("b_chunk")))
+                 .where(tasks.c.job_id == bindparam("b_id"), tasks.c.idx == bindparam("b_idx")))
 _FINISH = (update(tasks)
            .where(tasks.c.job_id == bindparam("b_job"), tasks.c.idx == bindparam("b_idx"),
                   tasks.c.status == "running", tasks.c.owner == bindparam("b_owner"))
@@ -177,6 +193,11 @@ class StoreUnavailable(Exception):
     def __init__(self, detail: str, public: str = "the job store does not take writes"):
         super().__init__(detail)
         self.public = public
+
+
+# what a store that fails raises: StoreUnavailable, and the database driver's errors as SQLAlchemy
+# wraps them (read-only is InternalError on PostgreSQL, OperationalError on SQLite)
+STORE_ERRORS = (StoreUnavailable, OperationalError, InternalError, InterfaceError, PoolTimeout)
 
 
 class DataDirNotWritable(RuntimeError):
@@ -469,18 +490,50 @@ class JobStore:
         return [{"job": dict(j), **summary[j["id"]]} for j in page], count
 
     def result_pages(self, job_id: str, offset: int = 0, limit: Optional[int] = None, page: int = 20):
-        """(idx, status, result JSON, error JSON) of each task from `offset`, `page` rows a query:
-        an answer streamed from this holds one page in memory, not every result of the job."""
+        """(idx, status, result JSON as an iterator of its slices or None, error JSON) of each task
+        from `offset`, `page` rows a query: an answer streamed from this holds one page of small
+        results in memory, and one slice of a large one, not every result of the job."""
         last, left = offset - 1, limit
+        sqlite = self.engine.dialect.name == "sqlite"
         while left is None or left > 0:
             size = page if left is None else min(page, left)
             with self.engine.connect() as conn:
-                rows = conn.execute(_RESULTS.where(tasks.c.idx > last).limit(size), {"b_id": job_id}).all()
-            yield from (tuple(r) for r in rows)
+                rows = conn.execute((_RESULTS_SQLITE if sqlite else _RESULTS).where(tasks.c.idx > last).limit(size),
+                                    {"b_id": job_id, "b_chunk": RESULT_CHUNK}).all()
+            for idx, status, small, error, length in rows:
+                if sqlite:   # (rowid, whether there is a result)
+                    slices = self._blob_slices(small) if length else None
+                else:
+                    slices = None if not length else iter([small]) if small is not None else \
+                        self._result_slices(job_id, idx, length)
+                yield idx, status, slices, error
             if len(rows) < size:
                 return
             last = rows[-1][0]
             left = None if left is None else left - len(rows)
+
+    def _blob_slices(self, rowid: int):
+        """A result on SQLite, RESULT_CHUNK bytes a read of its blob (a connection taken for each read:
+        a slow client holds none between them)."""
+        chunk, at = RESULT_CHUNK, 0
+        while True:
+            with self.engine.connect() as conn:
+                with conn.connection.driver_connection.blobopen("tasks", "result", rowid, readonly=True) as blob:
+                    blob.seek(at)
+                    data = blob.read(chunk)
+            if data:
+                yield data
+            if len(data) < chunk:
+                return
+            at += len(data)
+
+    def _result_slices(self, job_id: str, idx: int, length: int):
+        """A long result, RESULT_CHUNK characters a query (a stored result never changes: no transaction)."""
+        chunk = RESULT_CHUNK
+        for start in range(1, length + 1, chunk):
+            with self.engine.connect() as conn:
+                yield conn.execute(_RESULT_SLICE, {"b_id": job_id, "b_idx": idx, "b_from": start,
+                                                   "b_chunk": chunk}).scalar_one()
 
     def cancel(self, job_id: str) -> list[int]:
         """Cancel queued tasks now and return the running ones (the dispatcher stops them)."""
@@ -644,6 +697,13 @@ class JobStore:
                  "b_result": result_json, "b_error": json.dumps(error) if error is not None else None}
                 for job_id, idx, status, result_json, error in outcomes])
         return res.rowcount
+
+    def task_counts(self) -> dict[str, int]:
+        """Unfinished tasks of every job, by status (queued, running): for /metrics and the queue's limit."""
+        with self.engine.connect() as conn:
+            rows = conn.execute(select(tasks.c.status, func.count()).where(tasks.c.status.in_(("queued", "running")))
+                                .group_by(tasks.c.status)).all()
+        return {status: n for status, n in rows}
 
     def queue_depth(self) -> int:
         with self.engine.connect() as conn:

@@ -12,6 +12,7 @@ from fastapi.responses import StreamingResponse
 from pydantic import BaseModel
 
 from greyfit.schemas.jobs import JobProgress, JobPublic, JobResults, JobsPublic, JobSummary, TaskError, TaskPublic
+from greyfit.service.backpressure import check_queue_room
 from greyfit.service.deps import client_of
 from greyfit.service.json_body import StrictJSONRoute, request_texts
 from greyfit.service.limits import check_limits
@@ -94,6 +95,7 @@ def submit_job(request: Request, kind: str, requests: list, label: Optional[str]
                             "split the batch")
     for i, req in enumerate(requests):
         check(req, settings, prefix=f"requests[{i}].")
+    check_queue_room(request, len(requests))
     texts = request_texts(request, requests)
     try:
         job_id = state.store.create_job(kind, texts, label, idempotency_of(request, kind, texts, label),
@@ -165,11 +167,12 @@ def get_results(job_id: Annotated[str, JOB_ID], request: Request, offset: Annota
     def body():
         yield f'{{"id":{json.dumps(job_id)},"status":"{status}","results":['
         for n, (idx, task_status, result, error) in enumerate(pages):
-            # the result as its worker wrote it; an error through TaskError, which leaves out what is
-            # not for the caller (the traceback of an internal error)
+            # the result as its worker wrote it, a slice at a time; an error through TaskError, which
+            # leaves out what is not for the caller (the traceback of an internal error)
             error_json = TaskError.model_validate_json(error).model_dump_json() if error else "null"
-            yield (f'{"," if n else ""}{{"index":{idx},"status":{json.dumps(task_status)},'
-                   f'"result":{result or "null"},"error":{error_json}}}')
+            yield f'{"," if n else ""}{{"index":{idx},"status":{json.dumps(task_status)},"result":'
+            yield from result if result is not None else ("null",)
+            yield f',"error":{error_json}}}'
         yield "]}"
 
     return StreamingResponse(body(), media_type="application/json")

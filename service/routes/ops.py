@@ -1,14 +1,12 @@
 from fastapi import APIRouter, Request
 from fastapi.responses import PlainTextResponse
 
+from greyfit.service.metrics import CONTENT_TYPE
+
 router = APIRouter(tags=["operations"])
 
 
 @router.get("/metrics", response_class=PlainTextResponse)
 def metrics(request: Request) -> PlainTextResponse:
-    """Prometheus metrics: requests, fits by status, fit durations, queue depth."""
-    state = request.app.state
-    # tasks this server has claimed for its next free workers are waiting too
-    waiting = state.store.queue_depth() + len(state.dispatcher.ready)
-    text = state.metrics.render(waiting, state.dispatcher.running_count())
-    return PlainTextResponse(text, media_type="text/plain; version=0.0.4")
+    """Prometheus metrics: requests, fits, queues, running tasks, workers lost, store errors, the process."""
+    return PlainTextResponse(request.app.state.metrics.render(), media_type=CONTENT_TYPE)

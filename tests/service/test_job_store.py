@@ -36,9 +36,14 @@ def requests(n):
     return [{"i": i} for i in range(n)]
 
 
+def joined(slices) -> str:
+    """A result's slices as the route sends them: str (PostgreSQL) or UTF-8 bytes (SQLite's blob reads)."""
+    return b"".join(s if isinstance(s, bytes) else s.encode() for s in slices).decode()
+
+
 def results(store, job_id):
     """The job's outcomes as the results route streams them, parsed."""
-    return [{"index": idx, "status": status, "result": json.loads(result) if result else None,
+    return [{"index": idx, "status": status, "result": json.loads(joined(result)) if result else None,
              "error": json.loads(error) if error else None}
             for idx, status, result, error in store.result_pages(job_id)]
 
@@ -304,3 +309,19 @@ def test_postgres_stores_request_and_result_texts_with_lz4(postgres_url):
         assert results(store, job)[0]["result"] == body
     finally:
         store.engine.dispose()
+
+
+def test_a_large_result_is_read_a_slice_at_a_time(store, monkeypatch):
+    """A result longer than RESULT_CHUNK comes out of result_pages as slices of at most that many
+    characters (a query each), which join to the stored text; a short one is one piece."""
+    from greyfit.service import store as store_module
+    monkeypatch.setattr(store_module, "RESULT_CHUNK", 1000)
+    job_id = store.create_job("fit", [{"n": 1}, {"n": 2}], None)
+    big = json.dumps({"values": list(range(2000)), "name": "é" * 300})   # ~10 kB, not all ASCII
+    for _ in range(2):
+        task = store.claim("s1", 30, 3)
+        store.finish(task.job_id, task.idx, "s1", "succeeded", big if task.idx == 0 else '{"ok": 1}', None)
+    pages = list(store.result_pages(job_id))
+    slices = list(pages[0][2])
+    assert len(slices) > 1 and max(map(len, slices)) <= store_module.RESULT_CHUNK and joined(slices) == big
+    assert joined(pages[1][2]) == '{"ok": 1}'

@@ -26,10 +26,11 @@ from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 METHODS = {"GET", "POST", "PUT", "PATCH", "DELETE"}
 NOT_INTEGERS = ["1.0", " 1", "1 ", "+1", "1_0", "1e1", "\u0663", "0x1", "true"]
-# the synchronous routes answer from a worker without the job store (the job report reads it)
+# the synchronous routes answer from a worker without the job store (the job report reads it);
+# /metrics answers without the store's gauges (the process's and the counters stay scrapable)
 # (POST /v1/fits/files, /v1/discover/files: synchronous too, from a multipart form; the store is not asked)
 FILE_PATHS = {f"{KINDS[kind].sync_path}/files" for kind in FILE_KINDS}
-NO_STORE = (set(SYNC_PATHS) - {"/v1/jobs/{job_id}/report"}) | {"/healthz"} | FILE_PATHS
+NO_STORE = (set(SYNC_PATHS) - {"/v1/jobs/{job_id}/report"}) | {"/healthz", "/metrics"} | FILE_PATHS
 
 
 @pytest.fixture(scope="module")
@@ -109,6 +110,9 @@ def test_with_the_job_store_out_of_reach_every_operation_needing_it_answers_503_
                 assert str(resp.status_code) in op["responses"], (method, path)
                 assert int(resp.headers["retry-after"]) >= 1, (method, path)
                 assert "Retry-After" in op["responses"]["503"]["headers"]
+            metrics = c.get("/metrics")   # still scraped, the store's errors counted
+            assert metrics.status_code == 200 and "greyfit_queue_depth" not in metrics.text
+            assert 'greyfit_store_errors_total{where="http"} ' in metrics.text
         finally:
             store.engine = engine   # the shutdown hands its tasks back through the store
         assert len(seen) >= 8, seen

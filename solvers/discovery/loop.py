@@ -111,7 +111,7 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         else request.options.input_interpolation
     fit_req = fit_req.model_copy(update={"options": fit_req.options.model_copy(
         update={"input_interpolation": reading})})
-    fit_req, base, notes = solid_ground(fit_req, base, clock)
+    fit_req, base, notes = solid_ground(fit_req, base, clock, base_cpu)
     request = request.model_copy(update={"options": fit_req.options})   # finer substeps, if raised, throughout
     with clock.phase("validation"):
         base_validation = validate(request, fit_req.model, base, request.validation)

@@ -201,6 +201,8 @@ def _case(sysm: System, seed: int, n: int, dt: float, noise: str) -> Case:
         equations.update({s: e.format(d=drive) for s, e in b.equations.items()})
         drive = b.states[0]
     truth = {k: v for b in sysm.blocks for k, v in b.params.items()}
+    if sysm.drift is not None:   # a drift is written p + d·(t − t̄): p is the value at the record's mean time
+        truth[sysm.drift[0]] *= 1 + sysm.drift[1] * float(np.mean(t))
     params = [{"name": k, "value": v * 1.3, "lower": 0.0, "upper": 50.0} for k, v in truth.items()]
     model = {"name": "generated", "states": names, "inputs": ["u"], "parameters": params,
              "equations": equations, "outputs": {b.measured: b.measured for b in sysm.blocks}}

@@ -46,7 +46,7 @@ from greyfit.solvers.discovery.confirm import LoopState, screen_state
 from greyfit.solvers.discovery.discriminate import discriminate
 from greyfit.solvers.discovery.ground import solid_ground
 from greyfit.solvers.discovery.leftover import leftover_at
-from greyfit.solvers.discovery.screening import Screening
+from greyfit.solvers.discovery.screening import Scored, Screening
 from greyfit.solvers.discovery.shape import shape_at
 from greyfit.solvers.discovery.summary import added_inputs, public_scores, steps_conclusion, summarize, validate
 from greyfit.solvers.errors import ModelDefinitionError
@@ -132,11 +132,11 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         if round_no == 0:
             screened_first = public_scores(screening)
         why_not = nothing_to_refit(screening)
-        if why_not:
-            break
-        accepted = try_in_rank_order(request, state, screening, tell)
+        accepted = not why_not and try_in_rank_order(request, state, screening, tell)
+        # the screen's linearised p-value can drop a law whose refit gains much: the top few refitted
+        accepted = accepted or refit_below_screen(request, state, screening, tell)
         if not accepted:
-            why_not = no_confirmation(state, screening)
+            why_not = why_not or no_confirmation(state, screening)
             break
         # what is left after the step: for the next round's shape tests and, at the end, `unexplained`
         state.shape, shape_note = shape_at(state.request, state.fit, clock)
@@ -282,6 +282,55 @@ def _where_scored(screening: Screening) -> str:
 
 
 # --- confirming refits ----------------------------------------------------------------------------
+
+BELOW_SCREEN_REFITS = 3   # laws refitted per round though the screen did not call them significant
+
+
+def refit_below_screen(request: DiscoverRequest, state: LoopState, screening: Screening,
+                       tell: Progress = _silent) -> bool:
+    """Refit the best named law of each family the screen did not call significant, by its screening BIC
+    drop (at least `min_bic_drop`), at most `BELOW_SCREEN_REFITS`; the refit's gates decide.
+
+    The screen linearises at the fit without the law: a law nonlinear in its variables (radiation's T⁴)
+    can screen at p = 0.04, above the Bonferroni level, and gain a BIC drop of hundreds once refitted.
+    The refit's likelihood ratio is held to the screen's Bonferroni level, so a law refitted here is
+    held to the same evidence as one the screen passed.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request.
+    state : LoopState
+        The search so far; updated with the accepted step or the rejections.
+    screening : Screening
+        The screen, ranked.
+    tell : Progress
+        Progress callback, told of every refit.
+
+    Returns
+    -------
+    bool
+        True when a law was added.
+    """
+    best: dict[str, Scored] = {}
+    for sc in screening.scored:
+        c = sc.candidate
+        if (sc.significant or c.catch_all or c.refit_only or c.family in state.tried or c.family in best
+                or sc.score.bic_drop < request.discovery.min_bic_drop
+                or sc.score.explained < request.discovery.min_explained):
+            continue
+        if c.sign == 0 or np.sign(sc.score.beta) == np.sign(c.sign):
+            best[c.family] = sc
+    for sc in sorted(best.values(), key=lambda x: -x.score.bic_drop)[:BELOW_SCREEN_REFITS]:
+        if state.refits_left <= 0 or not state.clock.allows():
+            return False
+        if sc.candidate.family in state.tried:
+            continue
+        tell("refit", sc.candidate.description, request.discovery.max_refits - state.refits_left)
+        if discriminate(request, state, screening, sc):
+            return True
+    return False
+
 
 def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening,
                       tell: Progress = _silent) -> bool:

@@ -11,7 +11,7 @@ values, the declared start 30 % off. The truth adds, by the configuration's grou
 
 - `in`: one effect of the library on a block that can have it (Coulomb friction, quadratic drag or a
   cubic spring on an oscillator; a constant heat source on a thermal block; an orifice outflow on a
-  tank; a sensor offset or gain on a measured output; a parameter drifting in time);
+  tank; a sensor offset on a measured output; a parameter drifting in time);
 - `out`: one effect the library has no family for (Monod kinetics in a reactor or a population, a
   dead zone on the input, a thrust ∝ u·|u| on an oscillator);
 - `none`: nothing (a complete model).
@@ -29,8 +29,10 @@ import numpy as np
 from tests.suite_systems import Case, noisy, simulate
 
 BLOCKS = ("mech", "thermal", "rc", "tank", "reactor", "population")
+PREFIX = {"thermal": "T", "rc": "q", "tank": "h", "reactor": "c", "population": "n"}   # the block's state
 IN_LIBRARY = {"mech": ("coulomb", "quadratic_drag", "cubic_stiffness"), "thermal": ("offset",),
-              "tank": ("sqrt_flow",), "any": ("output_offset", "output_gain", "parameter_drift")}
+              "tank": ("sqrt_flow",), "any": ("output_offset", "parameter_drift")}
+# a sensor gain on a chain of linear blocks is the last block's input gain: not identifiable, not drawn
 OUT_OF_LIBRARY = {"mech": ("thrust", "dead_zone"), "reactor": ("monod",), "population": ("monod",),
                   "any": ("dead_zone",)}
 
@@ -57,7 +59,7 @@ class System:
 
 
 def _block(kind: str, i: int, rng: np.random.Generator) -> Block:
-    s = f"{kind[0]}{i}"
+    s = f"{PREFIX[kind]}{i}"
     if kind == "mech":
         x, v = f"x{i}", f"v{i}"
         k, c = float(rng.uniform(2, 6)), float(rng.uniform(0.4, 1.0))

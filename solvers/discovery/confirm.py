@@ -1,6 +1,8 @@
 """Confirming refits: a screened candidate is added and the whole model refitted with the requested
 method. It is kept if the refit converges, its BIC falls by `min_bic_drop`, the new parameter has
-|value|/stderr ≥ `min_t_value`, and the validation records do not get worse.
+|value|/stderr ≥ `min_t_value` (where only that gate fails, its profile-likelihood interval decides:
+`profile_decides`), and the validation records do not get worse (time laws on, on a validation record
+that continues the estimation record in time: `off_on_validation`).
 
 Refits start one Gauss-Newton step away from the old fit (`warm_start`), are capped at
 `REFIT_MAX_ITER` Ipopt iterations, a contender's at a multiple of its leader's (`budget.RefitLimits`),

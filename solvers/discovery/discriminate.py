@@ -17,6 +17,10 @@ accepted effect, and never when it moves the declared parameters far outside the
 than `STAND_IN_SIGMAS` standard errors and `STAND_IN_RELATIVE` of the value) unless the validation
 records back the move (their error falls by `BACKED_BY_VALIDATION`): a term that does is a stand-in.
 A named law that does so after the first step is kept but labelled `approximates`.
+
+A catch-all is a symptom (`catch_all`): the laws its values line up with, and any lag beside a delay,
+are refitted beside it; a law within `AMBIGUOUS_BIC` of it goes ahead; one that wins all the same
+while it lines up with a law, or follows an approximation, is at most `approximates`.
 """
 from __future__ import annotations
 

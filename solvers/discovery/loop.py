@@ -18,8 +18,12 @@ The steps, in the order they run:
    evidence are each added and the whole model refitted with the requested method, started one
    Gauss-Newton step from the old fit (`warm_start`). A refit passes if it converges, its BIC falls
    by `min_bic_drop`, its likelihood ratio with the noise allowed to be coloured passes the screen's
-   Bonferroni level (`refit_test`), the new parameter has |value|/stderr ≥ `min_t_value`, and the
-   validation records do not get worse; a catch-all also under the parsimony rules. Of those that
+   Bonferroni level (`refit_test`), the new parameter has |value|/stderr ≥ `min_t_value` (or, where
+   only that gate fails, its profile-likelihood interval at that level excludes 0:
+   `confirm.profile_decides`), and the validation records do not get worse; a catch-all also under
+   the parsimony rules and `catch_all`'s (what it lines up with is refitted beside it). When no
+   significant candidate is confirmed, the best named law of each family with a screening BIC drop of
+   `min_bic_drop` is refitted under the same gates (`refit_below_screen`). Of those that
    pass, the best by whitened BIC and validation is added, the others reported as its runners-up;
    two the data cannot tell apart make the step `ambiguous`. A smoothed switch is refitted at its
    widest significant width and the width refined after. What fails is recorded in `rejected` with
@@ -38,7 +42,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
+from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryOptions, DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.discovery.budget import Clock
@@ -312,16 +316,7 @@ def refit_below_screen(request: DiscoverRequest, state: LoopState, screening: Sc
     bool
         True when a law was added.
     """
-    best: dict[str, Scored] = {}
-    for sc in screening.scored:
-        c = sc.candidate
-        if (sc.significant or c.catch_all or c.refit_only or c.family in state.tried or c.family in best
-                or sc.score.bic_drop < request.discovery.min_bic_drop
-                or sc.score.explained < request.discovery.min_explained):
-            continue
-        if c.sign == 0 or np.sign(sc.score.beta) == np.sign(c.sign):
-            best[c.family] = sc
-    for sc in sorted(best.values(), key=lambda x: -x.score.bic_drop)[:BELOW_SCREEN_REFITS]:
+    for sc in below_screen(screening, state.tried, request.discovery):
         if state.refits_left <= 0 or not state.clock.allows():
             return False
         if sc.candidate.family in state.tried:
@@ -330,6 +325,37 @@ def refit_below_screen(request: DiscoverRequest, state: LoopState, screening: Sc
         if discriminate(request, state, screening, sc):
             return True
     return False
+
+
+def below_screen(screening: Screening, tried: set[str], opts: DiscoveryOptions) -> list[Scored]:
+    """The named laws `refit_below_screen` refits: of each family not tried, the best by screening BIC
+    drop that the screen did not call significant, with the physical sign, a BIC drop of at least
+    `min_bic_drop` and at least `min_explained` of the residual; at most `BELOW_SCREEN_REFITS`.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen.
+    tried : set of str
+        Families refitted already.
+    opts : DiscoveryOptions
+        The discovery options.
+
+    Returns
+    -------
+    list of Scored
+        Largest screening BIC drop first.
+    """
+    best: dict[str, Scored] = {}
+    for sc in screening.scored:
+        c = sc.candidate
+        if (sc.significant or c.catch_all or c.refit_only or c.family in tried
+                or sc.score.bic_drop < opts.min_bic_drop or sc.score.explained < opts.min_explained
+                or not (c.sign == 0 or np.sign(sc.score.beta) == np.sign(c.sign))):
+            continue
+        if c.family not in best or sc.score.bic_drop > best[c.family].score.bic_drop:
+            best[c.family] = sc
+    return sorted(best.values(), key=lambda x: -x.score.bic_drop)[:BELOW_SCREEN_REFITS]
 
 
 def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening,

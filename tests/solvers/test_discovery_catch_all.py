@@ -156,3 +156,26 @@ def test_the_multistart_is_bounded_relative_to_the_base_fit():
     assert cpu == pytest.approx(24.0) and iters == 36
     cpu, iters = multistart_bounds(req, SimpleNamespace(solver=SimpleNamespace(iterations=2)), Clock(300.0), 0.1)
     assert cpu == pytest.approx(MULTISTART_CPU_FLOOR_S) and iters == MULTISTART_MIN_ITER
+
+
+def test_laws_the_screen_dropped_with_a_large_gain_are_refitted_best_per_family():
+    from greyfit.schemas.discovery import DiscoveryOptions
+    from greyfit.solvers.discovery.loop import BELOW_SCREEN_REFITS, below_screen
+    from greyfit.solvers.discovery.scoring import Score
+    from greyfit.solvers.discovery.screening import Screening
+
+    def scored(family, bic_drop, beta=1.0, significant=False, sign=1.0, **kw):
+        c = Candidate(family, {0: [np.ones(3)]}, f"{family} {bic_drop}", family, lambda m: (m, []), family=family,
+                      sign=sign, **kw)
+        return Scored(c, Score(1.0, 0.5, 100, 80.0, 0.3, 5.0, 0.04, bic_drop, beta, 0.5), "outputs",
+                      significant=significant)
+    screen = Screening(scored=[
+        scored("radiation", 581.0), scored("radiation", 300.0),          # its family's best only
+        scored("coulomb", 40.0), scored("quadratic_drag", 25.0, beta=-1.0),   # unphysical sign: no
+        scored("offset", 5.0),                                            # too little gain
+        scored("parameter_step", 900.0, record_specific=True),            # a catch-all: never here
+        scored("cubic_stiffness", 900.0, significant=True),               # the screen's own business
+        scored("power_law", 30.0), scored("sqrt_flow", 20.0)])
+    picked = below_screen(screen, {"power_law"}, DiscoveryOptions())
+    assert [s.candidate.term for s in picked] == ["radiation 581.0", "coulomb 40.0", "sqrt_flow 20.0"]
+    assert len(picked) == BELOW_SCREEN_REFITS

@@ -279,8 +279,9 @@ def generated_main(groups: list[str], seeds: list[int], jobs: int, budget: float
     print("|---|---|---|---|---|---|---|")
     with multiprocessing.get_context("spawn").Pool(jobs, maxtasksperchild=10) as pool:
         for group in groups:
-            runs = pool.map(run_generated, [(group, s, budget, noise) for s in seeds])
-            for r in runs:
+            runs = []
+            for r in pool.imap_unordered(run_generated, [(group, s, budget, noise) for s in seeds]):
+                runs.append(r)
                 print(f"  seed {r['seed']}: {r['what']}: ok={r['ok']} err={100 * r['err']:.1f} % "
                       f"named={list(zip(r['named'], r['verdicts']))} unexplained={r['unexplained']} "
                       f"cpu={r['cpu']:.1f}", file=sys.stderr, flush=True)

@@ -59,7 +59,7 @@ class System:
 
 
 def _block(kind: str, i: int, rng: np.random.Generator) -> Block:
-    s = f"{PREFIX[kind]}{i}"
+    s = f"{PREFIX.get(kind, 'x')}{i}"
     if kind == "mech":
         x, v = f"x{i}", f"v{i}"
         k, c = float(rng.uniform(2, 6)), float(rng.uniform(0.4, 1.0))
@@ -137,7 +137,9 @@ def _add_effect(sysm: System, group: str, rng: np.random.Generator) -> None:
         sysm.equation = blk.states[-1]
         return
     if effect == "dead_zone":
-        sysm.dead_zone = float(rng.uniform(0.2, 0.4))
+        # a third to a half of the held levels (0.2-2) inside the band: narrower, the input is merely
+        # shifted where it is outside it, and a constant source is the same law on these data
+        sysm.dead_zone = float(rng.uniform(0.7, 1.0))
         sysm.equation = sysm.blocks[0].states[-1]
         return
     assert blk is not None

@@ -130,11 +130,9 @@ def _state_for(req: FitRequest) -> LoopState:
 
 
 def test_the_profile_likelihood_decides_a_coefficient_by_its_interval():
-    body = _body(0.0, False, n=300)
-    exp = body["experiments"][0]
-    shifted = {**exp, "outputs": {"T": (np.array(exp["outputs"]["T"]) + 0.0).tolist()}}
+    exp = _body(0.0, False, n=300)["experiments"][0]
     # a constant source f: truly 0 here, so its interval reaches 0; with 0.3 added to the truth it does not
-    req0 = FitRequest.model_validate({"model": _model(" + f"), "experiments": [shifted],
+    req0 = FitRequest.model_validate({"model": _model(" + f"), "experiments": [exp],
                                       "method": "single_shooting", "options": {"input_interpolation": "zoh"}})
     state = _state_for(req0)
     assert profile_decides(state, req0, state.fit, ["f"], 1e-3) == ""

@@ -29,6 +29,7 @@ from greyfit.solvers.data.preprocess import looks_piecewise_constant
 from greyfit.solvers.discovery.augment import fresh_name, replace_in_equations, rewrite_output, with_parameter
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, Regressor
 from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, sensitivity_regressor
+from greyfit.solvers.discovery.families.inputs import NeedsInputs
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.expressions import names_in, parse, substitute, unparse
 
@@ -191,27 +192,12 @@ class SensorLag:
                 for j, name in enumerate(ctx.outputs.names)]
 
 
-class InputLag:
+class InputLag(NeedsInputs):
     """An actuator (or input filter) passes its input on through a first-order lag."""
 
     name = "input_lag"
     scope: Scope = "input"
     generic = True
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether the model has inputs.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when the model has inputs.
-        """
-        return bool(ctx.trace.cm.inputs)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """Input u becomes, in the state equations and definitions, a new state w with τ·dw/dt = u − w.

@@ -106,8 +106,8 @@ def pointed_candidates(lead: Scored, screening: Screening, tried: set[str]) -> l
     best: dict[str, tuple[Scored, float]] = {}
     for sc in screening.scored:
         o = sc.candidate
-        if o.catch_all or o.family in tried or o.family == c.family:
-            continue
+        if o.family in tried or o.family == c.family or (o.catch_all and not is_lag(sc)):
+            continue   # a lag is a catch-all too, and the comparison a delay needs
         if c.lag > 0 and is_lag(sc):
             score = 1.0 + sc.score.explained   # every lag beside a delay: the best explained first
         elif c.modifies and (o.modifies == c.modifies or o.same_place(c)):

@@ -177,3 +177,19 @@ def test_laws_the_screen_dropped_with_a_large_gain_are_refitted_best_per_family(
     picked = below_screen(screen, {"power_law"}, DiscoveryOptions())
     assert [s.candidate.term for s in picked] == ["radiation 581.0", "coulomb 40.0", "sqrt_flow 20.0"]
     assert len(picked) == BELOW_SCREEN_REFITS
+
+
+def test_a_delay_is_refitted_beside_every_lag_the_library_offers():
+    from greyfit.solvers.discovery.catch_all import pointed_candidates
+    from greyfit.solvers.discovery.scoring import Score
+    from greyfit.solvers.discovery.screening import Screening
+
+    def scored(effect, explained, **kw):
+        c = Candidate(effect, {0: [np.ones(3)]}, effect, effect, lambda m: (m, []), family=effect, **kw)
+        return Scored(c, Score(1.0, 0.5, 100, 80.0, explained, 5.0, 1e-6, 50.0, 1.0, 0.5), "outputs")
+    delay = scored("input_delay", 0.6, generic=True, lag=3)
+    screen = Screening(scored=[delay, scored("sensor_lag", 0.4, generic=True), scored("input_lag", 0.5, generic=True),
+                               scored("coulomb", 0.55), scored("parameter_step", 0.7, record_specific=True)])
+    offered = pointed_candidates(delay, screen, set())
+    assert [sc.candidate.effect for sc, _ in offered] == ["input_lag", "sensor_lag"]
+    assert pointed_candidates(delay, screen, {"input_lag"})[0][0].candidate.effect == "sensor_lag"

@@ -31,6 +31,16 @@ Per configuration it prints:
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_discovery_suite.py [--seeds 10] [--quick] [--jobs 2]
         [--configs tanks,pendulum] [--budget 3600]
+    OPENBLAS_NUM_THREADS=1 python bench/bench_discovery_suite.py --generated in,out,none [--seeds 10]
+        [--first-seed 1] [--noise ar1] [--budget 300]
+
+`--generated` runs the procedural generator instead (bench/discovery_generator.py: random chains of
+mechanical, thermal, electrical, fluid, chemical and biological blocks, 2-5 states, a missing effect
+in the library (`in`), outside it (`out`) or none (`none`)), and prints per group the share right
+(in: the true effect on the true equation, the declared parameters within 5 %), honest (out: nothing
+added or flagged — `unexplained`, `approximates` or `ambiguous` — with every declared parameter
+within 10 %) or with nothing added (none), and the share passing a wrong law off as `identified`
+with nothing flagged, with Wilson 95 % intervals; each run on stderr.
 
 `--budget` is `discovery.time_budget_s` (CPU seconds, 3600 by default here against the request's
 300): the suite measures what the search finds. `--jobs` runs seeds in worker processes (CPU times
@@ -216,8 +226,77 @@ def summarise(cfg: Config, runs: list[dict], sindy: list[dict]) -> str:
             f"{confident_wrong:.2f} | {err} | {named} | {cpu:.1f} | {wall:.1f} | {s} |")
 
 
+# --- the procedural generator (bench/discovery_generator.py) ----------------------------------------
+
+def wilson(k: int, n: int, z: float = 1.96) -> str:
+    """k/n with its Wilson 95 % interval."""
+    if n == 0:
+        return "n/a"
+    p = k / n
+    d = 1 + z * z / n
+    mid = (p + z * z / (2 * n)) / d
+    half = z * np.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
+    return f"{k}/{n} ({100 * p:.0f} %, {100 * max(mid - half, 0):.0f}–{100 * min(mid + half, 1):.0f} %)"
+
+
+def judge_generated(group: str, case: ss.Case, res) -> dict:
+    """One generated run judged: right (in), honest (out), nothing added (none), and wrong-unflagged."""
+    errs = [abs(res.fit.parameters[k].value - v) / abs(v) for k, v in case.truth.items() if k in res.fit.parameters]
+    err = max(errs, default=np.inf)
+    correct = [s for s in res.steps if is_right(s, case, res.ambiguous)]
+    flagged = res.unexplained is not None or any(s.verdict != "identified" for s in res.steps)
+    wrong_unflagged = any(s not in correct for s in res.steps) and not flagged
+    if group == "in":
+        ok = bool(correct) and err <= 0.05
+    elif group == "out":
+        ok = (not res.steps or flagged) and err <= 0.10 and not wrong_unflagged
+    else:
+        ok = not res.steps
+    return {"ok": ok, "wrong_unflagged": wrong_unflagged, "err": err, "named": [s.effect for s in res.steps],
+            "verdicts": [s.verdict for s in res.steps], "unexplained": res.unexplained is not None}
+
+
+def run_generated(job: tuple[str, int, float, str]) -> dict:
+    from bench.discovery_generator import describe, generate
+    group, seed, budget, noise = job
+    case = generate(group, seed, noise=noise)
+    case.body["discovery"] = {"time_budget_s": budget}
+    c0 = time.process_time()
+    try:
+        res = discover(DiscoverRequest.model_validate(case.body))
+    except Exception as exc:   # a traceback is a finding of the bench, not its end
+        return {"ok": False, "wrong_unflagged": False, "err": np.inf, "named": [f"ERROR {exc!r}"[:120]],
+                "verdicts": [], "unexplained": False, "cpu": time.process_time() - c0, "seed": seed,
+                "what": describe(case)}
+    out = judge_generated(group, case, res)
+    out.update(cpu=time.process_time() - c0, seed=seed, what=describe(case))
+    return out
+
+
+def generated_main(groups: list[str], seeds: list[int], jobs: int, budget: float, noise: str) -> None:
+    print("| group | noise | runs | right / honest / nothing added | wrong law `identified` unflagged | "
+          "median CPU s | max CPU s |")
+    print("|---|---|---|---|---|---|---|")
+    with multiprocessing.get_context("spawn").Pool(jobs, maxtasksperchild=10) as pool:
+        for group in groups:
+            runs = []
+            for r in pool.imap_unordered(run_generated, [(group, s, budget, noise) for s in seeds]):
+                runs.append(r)
+                print(f"  seed {r['seed']}: {r['what']}: ok={r['ok']} err={100 * r['err']:.1f} % "
+                      f"named={list(zip(r['named'], r['verdicts']))} unexplained={r['unexplained']} "
+                      f"cpu={r['cpu']:.1f}", file=sys.stderr, flush=True)
+            cpu = [r["cpu"] for r in runs]
+            print(f"| {group} | {noise} | {len(runs)} | {wilson(sum(r['ok'] for r in runs), len(runs))} | "
+                  f"{wilson(sum(r['wrong_unflagged'] for r in runs), len(runs))} | {np.median(cpu):.1f} | "
+                  f"{max(cpu):.1f} |", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
+    ap.add_argument("--generated", default="", help="run the procedural generator's groups instead "
+                                                    "(comma-separated of in, out, none)")
+    ap.add_argument("--first-seed", type=int, default=1)
+    ap.add_argument("--noise", default="ar1", help="generator's noise: white or ar1")
     ap.add_argument("--seeds", type=int, default=10)
     ap.add_argument("--quick", action="store_true", help=f"{len(QUICK)} configurations only")
     ap.add_argument("--configs", default="", help="only configurations whose label contains one of these "
@@ -225,6 +304,10 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="worker processes (one discovery each)")
     ap.add_argument("--budget", type=float, default=3600.0, help="discovery.time_budget_s, CPU seconds")
     args = ap.parse_args()
+    if args.generated:
+        seeds = list(range(args.first_seed, args.first_seed + args.seeds))
+        generated_main(args.generated.split(","), seeds, args.jobs, args.budget, args.noise)
+        return
     configs = QUICK if args.quick else CONFIGS
     if args.configs:
         configs = [c for c in configs if any(k in c.label for k in args.configs.split(","))]

@@ -14,7 +14,8 @@ from greyfit.schemas.model import Expression, Model, Name
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow", "radiation",
                  "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
                  "output_saturation", "power_law", "parameter_law", "parameter_step",
-                 "parameter_drift", "state_dependent", "input_delay"]
+                 "parameter_drift", "state_dependent", "input_delay", "sensor_lag", "input_lag",
+                 "extra_pole"]
 ALL_EFFECTS: tuple[Effect, ...] = get_args(Effect)
 
 

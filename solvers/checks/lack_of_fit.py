@@ -8,8 +8,9 @@ the candidates tried. A significant candidate says the declared model leaves a s
 the residual that a named physical effect would explain: the answer is biased.
 
 Only the named laws are screened here (friction, drag, cubic stiffness, offsets, outflow, sensor
-gain and offset): switch points, steps and drifts in time are one hypothesis per grid point and
-cost most of a full screen, and the discovery endpoint is the place to search them. Only the
+gain and offset, and first-order lags of a sensor, an input or between two states): switch points,
+steps and drifts in time are one hypothesis per grid point and cost most of a full screen, and the
+discovery endpoint is the place to search them. Only the
 output-residual scores count: the equation-residual scores are made from smoothed derivatives, which
 lag a held input by about a sample and read that as a missing effect on a right model.
 """
@@ -23,7 +24,7 @@ from greyfit.solvers.errors import FitError
 from greyfit.solvers.methods.registry import simulates_outputs
 
 SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
-                    "output_offset", "output_gain"]
+                                   "output_offset", "output_gain", "sensor_lag", "input_lag", "extra_pole"]
 SIGNIFICANCE = 0.001         # family-wise, over the candidates tried (the screen's Bonferroni): a
 #                              right model is flagged in about 0.1 % of fits, far below the 3 % `good` may lose
 MAX_SCREENED_VALUES = 50_000  # samples × (free parameters + states): above it the screen is skipped

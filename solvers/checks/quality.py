@@ -23,7 +23,8 @@ SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "pa
                  "input_held_fitted_linear", "input_faster_than_sampling", "integration_step_coarse"}
 # online, frequency and equation-error checks (solvers/methods/online/checks.py, solvers/frequency/checks.py,
 # solvers/methods/equation_error_bias.py) whose warnings count against `good`
-SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias"}
+SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias",
+                  "estimate_not_settled"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "initial_simulation_diverged", "robust_covariance", "poor_excitation_at_start",
               "lack_of_fit_not_screened",

@@ -1,6 +1,8 @@
 """Confirming refits: a screened candidate is added and the whole model refitted with the requested
 method. It is kept if the refit converges, its BIC falls by `min_bic_drop`, the new parameter has
-|value|/stderr ≥ `min_t_value`, and the validation records do not get worse.
+|value|/stderr ≥ `min_t_value` (where only that gate fails, its profile-likelihood interval decides:
+`profile_decides`), and the validation records do not get worse (time laws on, on a validation record
+that continues the estimation record in time: `off_on_validation`).
 
 Refits start one Gauss-Newton step away from the old fit (`warm_start`), are capped at
 `REFIT_MAX_ITER` Ipopt iterations, a contender's at a multiple of its leader's (`budget.RefitLimits`),
@@ -56,6 +58,7 @@ class LoopState:
     tried: set[str] = field(default_factory=set)
     clock: Clock = field(default_factory=lambda: Clock(float("inf")))
     record_params: set[str] = field(default_factory=set)   # parameters of record-specific steps (off on validation)
+    time_params: set[str] = field(default_factory=set)     # ... of those, the laws of t (carried on a continuation)
     scorer_at: tuple[FitResult, OutputScorer] | None = None   # the output scorer built at a fit, for reuse
     base_cpu_s: float = 0.0    # CPU seconds of the declared model's fit (the refits' CPU safety net)
     limits: RefitLimits | None = None   # while contenders are refitted: their bounds (`discriminate`)
@@ -268,7 +271,8 @@ def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, f
     experiments : list of Experiment or None
         The records to simulate (the validation records with a candidate's data); None: the request's.
     neutral : set of str or None
-        Parameters switched off there (record-specific terms); None: those of the steps so far.
+        Parameters switched off there (record-specific terms); None: those of the steps so far
+        (`off_on_validation`).
 
     Returns
     -------
@@ -276,8 +280,56 @@ def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, f
         Its validation metrics; None without validation records or when they cannot be simulated.
     """
     exps = request.validation if experiments is None else experiments
+    off = off_on_validation(request, state, set()) if neutral is None else neutral
     with state.clock.phase("validation"):
-        return validate(request, model, fit, exps, state.record_params if neutral is None else neutral)
+        return validate(request, model, fit, exps, off)
+
+
+def continues_in_time(request: DiscoverRequest) -> bool:
+    """Whether every validation record continues the estimation records in time (starts where they end).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request.
+
+    Returns
+    -------
+    bool
+        True when there are validation records and each starts no earlier than the last estimation
+        sample (less one sample interval): a law of t fitted on the estimation record holds there.
+    """
+    if not request.validation or not request.experiments:
+        return False
+    end = max(float(e.time[-1]) for e in request.experiments)
+    dt = min(float(np.median(np.diff(e.time))) for e in request.experiments if len(e.time) > 1)
+    return all(float(v.time[0]) >= end - dt for v in request.validation)
+
+
+def off_on_validation(request: DiscoverRequest, state: LoopState, new: set[str], new_in_time: bool = False) -> set[str]:
+    """Parameters switched off on the validation records: those of record-specific terms, except the
+    laws of t when the validation records continue the estimation records in time (a drift goes on).
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request (its records' times).
+    state : LoopState
+        The search so far (the record-specific and time-law parameters of its steps).
+    new : set of str
+        A candidate's record-specific parameters, beside the steps'.
+    new_in_time : bool
+        Whether those are a law of t.
+
+    Returns
+    -------
+    set of str
+        The parameters set to 0 on the validation records.
+    """
+    off = state.record_params | new
+    if continues_in_time(request):
+        off = off - state.time_params - (new if new_in_time else set())
+    return off
 
 
 @dataclass
@@ -296,6 +348,7 @@ class Refitted:
     validation: ValidationSummary | None = None
     rejection: RejectedCandidate | None = None   # set when the refit converged but failed an evidence gate
     only_t: bool = False   # that rejection was on the t-value alone (the BIC drop and likelihood ratio passed)
+    profiled: str = ""     # kept on its profile-likelihood interval though its t-value was below the gate
 
 
 def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[Scored],
@@ -353,7 +406,12 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
     order, lr_p = refit_likelihood_ratio(state.request, state.fit, new_req, new_fit)
     level = screening.significance / max(screening.tries, 1) / c.multiplicity
     bic_or_lr_fails = bic_drop < opts.min_bic_drop or (lr_p is not None and lr_p >= level)
-    if bic_or_lr_fails or (t_value is not None and t_value < opts.min_t_value):
+    t_fails = t_value is not None and t_value < opts.min_t_value
+    profiled = ""
+    if t_fails and not bic_or_lr_fails:   # the likelihood confirms it and one gate does not: its profile decides
+        profiled = profile_decides(state, new_req, new_fit, new_params, level)
+        t_fails = not profiled
+    if bic_or_lr_fails or t_fails:
         t_text = "n/a" if t_value is None else f"{t_value:.1f}"
         lr_text = "" if lr_p is None else \
             f", likelihood ratio p = {lr_p:.2g} with an AR({order}) noise model (needs {level:.2g})"
@@ -363,9 +421,58 @@ def refit_candidate(request: DiscoverRequest, state: LoopState, variants: list[S
                               detail=f"the refit did not confirm it: BIC drop {bic_drop:.1f} (needs "
                                      f"{opts.min_bic_drop:g}){lr_text}, t = {t_text} (needs {opts.min_t_value:g})")),
             only_t=not bic_or_lr_fails)
-    out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p)
+    out = Refitted(sc, new_fit, new_model, new_params, new_req, t_value, bic_drop, order, lr_p, profiled=profiled)
     out.validation = validate_refit(request, state, out)
     return out
+
+
+PROFILE_LEVEL_CAP = 0.9999   # the profile's confidence level: the refit's Bonferroni level, at most this
+
+
+def profile_decides(state: LoopState, req: FitRequest, fit: FitResult, names: list[str], level: float) -> str:
+    """Whether the profile-likelihood interval of every new coefficient excludes 0, at the refit's level.
+
+    A t-value is a quadratic reading of the cost: where the new coefficient is nearly collinear with
+    declared ones, or the HAC standard error is inflated by strong colour, it can stay below the gate
+    while the BIC and the whitened likelihood ratio confirm the law (EMPS's Coulomb friction: BIC drop
+    2 887, t = 1.8). The profile follows the cost itself, every other parameter re-optimised, with its
+    threshold scaled for coloured residuals as the fit's profiles are.
+
+    Parameters
+    ----------
+    state : LoopState
+        The search so far (the profile refit is counted and bounded as a refit).
+    req : FitRequest
+        The refit's request.
+    fit : FitResult
+        The refit.
+    names : list of str
+        The new coefficients.
+    level : float
+        The refit's significance level (Bonferroni): the interval's confidence is 1 − level (at most
+        `PROFILE_LEVEL_CAP`).
+
+    Returns
+    -------
+    str
+        "" when an interval reaches 0, is open or was not computed; else a note with the intervals.
+    """
+    if not names or state.refits_left <= 0 or not state.clock.allows():
+        return ""
+    confidence = min(max(1.0 - level, 0.95), PROFILE_LEVEL_CAP)
+    preq = req.model_copy(update={"model": with_estimates(req.model, fit), "options": req.options.model_copy(
+        update={"profile": list(names), "confidence_level": confidence})})
+    pfit = counted_refit(state, preq)
+    if isinstance(pfit, str) or pfit.quality == "failed" or not pfit.profile:
+        return ""
+    shown = []
+    for n in names:
+        iv = pfit.profile.get(n)
+        if iv is None or iv.lower is None or iv.upper is None or iv.lower * iv.upper <= 0:
+            return ""
+        shown.append(f"{n} in [{iv.lower:.4g}, {iv.upper:.4g}]")
+    return (f"its t-value is below the gate, but the profile likelihood at {100 * confidence:.4g} % excludes 0: "
+            + ", ".join(shown))
 
 
 def _cpu_cap_text(state: LoopState) -> str:
@@ -460,7 +567,7 @@ def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> V
     for prior in [*state.accepted, c]:   # inputs added by earlier steps (a delayed input), then this one's
         if prior.transform_experiments and exps:
             exps = prior.transform_experiments(exps)
-    neutral = state.record_params | (set(r.params) if c.record_specific else set())
+    neutral = off_on_validation(request, state, set(r.params) if c.record_specific else set(), "t" in c.variables)
     return timed_validation(request, state, r.model, r.fit, exps, neutral)
 
 

@@ -17,6 +17,10 @@ accepted effect, and never when it moves the declared parameters far outside the
 than `STAND_IN_SIGMAS` standard errors and `STAND_IN_RELATIVE` of the value) unless the validation
 records back the move (their error falls by `BACKED_BY_VALIDATION`): a term that does is a stand-in.
 A named law that does so after the first step is kept but labelled `approximates`.
+
+A catch-all is a symptom (`catch_all`): the laws its values line up with, and any lag beside a delay,
+are refitted beside it; a law within `AMBIGUOUS_BIC` of it goes ahead; one that wins all the same
+while it lines up with a law, or follows an approximation, is at most `approximates`.
 """
 from __future__ import annotations
 
@@ -28,6 +32,7 @@ import numpy as np
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, RunnerUp, ValidationSummary
 from greyfit.solvers.discovery.budget import contender_limits
 from greyfit.solvers.discovery.candidate import Candidate
+from greyfit.solvers.discovery.catch_all import catch_all_cap, pointed_laws, prefer_law
 from greyfit.solvers.discovery.confirm import (
     REFIT_MAX_ITER,
     LoopState,
@@ -90,6 +95,8 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     finally:
         state.limits = None
     kept += named_laws_beside_kept_series(request, state, kept, failed, before_val, screening)
+    offered = pointed_laws(request, state, screening, kept, variants_of, lambda r, sc: _judge(
+        request, state, r, sc.candidate, before_val, screening, kept, failed))
     state.undetermined += [(state.fit, f.refit.sc.candidate, f.refit.bic_drop) for f in failed
                            if f.refit is not None and f.refit.only_t and not f.refit.sc.candidate.approximating
                            and not f.refit.sc.candidate.catch_all]
@@ -100,6 +107,9 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     verdict, note = stand_in_verdict(request, state, winner, verdict, before_val)
     if verdict != "approximates":
         verdict, note = approximation_verdict(state, winner, verdict, refitted, screening)
+    if verdict != "approximates":
+        verdict, note = catch_all_cap(state, winner, verdict, offered)
+    note = "; ".join(x for x in (note, winner.profiled) if x)
     accept(request, state, winner, screening, note=note, verdict=verdict, runners_up=runners, separate_by=separate)
     return True
 
@@ -416,6 +426,7 @@ def choose(request: DiscoverRequest, state: LoopState, kept: list[Refitted],
     bics = whitened_bics(kept)
     # an exact tie (equivalent laws) keeps the screening order: the leader first
     order = sorted(range(len(kept)), key=lambda i: (round(bics[i], 3), i))
+    order = prefer_law(order, kept, bics, AMBIGUOUS_BIC)   # a law the data cannot tell from a catch-all
     vals = [mean_nrmse(r.validation) for r in kept]
     best, second, verdict, separate = order[0], None, "identified", None
     if len(order) > 1:

@@ -12,10 +12,13 @@ Two cases the fit itself flags:
   integrator's artefact), else from the base fit's estimates (only its accuracy was in doubt).
 - `suspect` with the sign of a local minimum (`fit_below_noise_level`: the residual far above the
   data's own noise level): a multistart from the declared start and draws inside the bounds, bounded
-  by its number of starts and iterations per start, so its answer does not depend on machine load;
-  the best is kept when better. The CPU limit (the request's `max_cpu_time`, at most what is left
+  by its number of starts and iterations per start (at most `MULTISTART_ITER_FACTOR` times the base
+  fit's, at least `MULTISTART_MIN_ITER`), so its answer does not depend on machine load;
+  the best is kept when better. The CPU limit (`MULTISTART_CPU_FACTOR` times the base fit's CPU
+  time, at least `MULTISTART_CPU_FLOOR_S`, and at most the request's `max_cpu_time` and what is left
   of the discovery budget) is a safety net: a multistart it cuts off is not an answer, the base fit
-  is kept and the note says the limit ended it.
+  is kept and the note says the limit ended it. Bounded by the whole budget alone, a 3-state motor's
+  multistart ran for 300 CPU-s before the first screen.
 """
 from __future__ import annotations
 
@@ -35,10 +38,15 @@ REFINE_ROUNDS = 2
 # residual that is merely not white is the usual sign of a missing term, and no reason to restart)
 LOCAL_MINIMUM_CODES = {"fit_below_noise_level"}
 MULTISTART_STARTS = 8
-MULTISTART_MAX_ITER = 100   # per start
+MULTISTART_MAX_ITER = 100   # per start ...
+MULTISTART_ITER_FACTOR = 3  # ... and at most this many times the base fit's iterations
+MULTISTART_MIN_ITER = 30
+MULTISTART_CPU_FACTOR = 6.0  # the safety net: about a base fit per start, with room for a harder one
+MULTISTART_CPU_FLOOR_S = 5.0
 
 
-def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[FitRequest, FitResult, list[str]]:
+def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock,
+                 base_cpu_s: float = 0.0) -> tuple[FitRequest, FitResult, list[str]]:
     """(request, base fit, notes): the base fit refitted with finer steps and/or a multistart when it
     warns as above; unchanged otherwise. Timed as the base fit.
 
@@ -51,6 +59,8 @@ def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[Fi
     clock : Clock
         The discovery budget (the multistart is skipped once it is spent; what is left caps its CPU
         time as a safety net).
+    base_cpu_s : float
+        CPU seconds of the base fit: the multistart's CPU safety net is a multiple of it.
 
     Returns
     -------
@@ -63,7 +73,7 @@ def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock) -> tuple[Fi
     with clock.phase("base_fit"):
         fit_req, base = _finer_steps(fit_req, base, notes)
         if clock.allows():
-            base = _multistart(fit_req, base, clock, notes)
+            base = _multistart(fit_req, base, clock, notes, base_cpu_s)
     return fit_req, base, notes
 
 
@@ -133,15 +143,40 @@ def _finer_steps(fit_req: FitRequest, base: FitResult, notes: list[str]) -> tupl
     return fit_req, base
 
 
-def _multistart(fit_req: FitRequest, base: FitResult, clock: Clock, notes: list[str]) -> FitResult:
+def multistart_bounds(fit_req: FitRequest, base: FitResult, clock: Clock, base_cpu_s: float) -> tuple[float, int]:
+    """(CPU seconds, iterations per start) of the solid-ground multistart, relative to the base fit.
+
+    Parameters
+    ----------
+    fit_req : FitRequest
+        The base fit's request (its `max_cpu_time` and `max_iter` bound both).
+    base : FitResult
+        The base fit (its iterations).
+    clock : Clock
+        The discovery budget (what is left bounds the CPU time).
+    base_cpu_s : float
+        CPU seconds of the base fit.
+
+    Returns
+    -------
+    tuple of (float, int)
+        The CPU safety net and the iterations per start.
+    """
+    cpu = min(fit_req.options.max_cpu_time, max(clock.left(), 1.0),
+              max(MULTISTART_CPU_FLOOR_S, MULTISTART_CPU_FACTOR * base_cpu_s))
+    iters = max(MULTISTART_MIN_ITER, MULTISTART_ITER_FACTOR * int(base.solver.iterations or 0))
+    return cpu, min(fit_req.options.max_iter, MULTISTART_MAX_ITER, iters)
+
+
+def _multistart(fit_req: FitRequest, base: FitResult, clock: Clock, notes: list[str],
+                base_cpu_s: float) -> FitResult:
     codes = {w.code for w in base.warnings}
     if base.quality != "suspect" or not codes & LOCAL_MINIMUM_CODES or fit_req.options.multistart > 1:
         return base
     # bounded by starts and iterations; the CPU limit is only the safety net
-    cpu = min(fit_req.options.max_cpu_time, max(clock.left(), 1.0))
+    cpu, max_iter = multistart_bounds(fit_req, base, clock, base_cpu_s)
     req = fit_req.model_copy(update={"options": fit_req.options.model_copy(update={
-        "multistart": MULTISTART_STARTS, "max_cpu_time": cpu,
-        "max_iter": min(fit_req.options.max_iter, MULTISTART_MAX_ITER)})})
+        "multistart": MULTISTART_STARTS, "max_cpu_time": cpu, "max_iter": max_iter})})
     why = f"the base fit was suspect ({', '.join(sorted(codes & LOCAL_MINIMUM_CODES))})"
     try:
         best = fit_model(req)
@@ -152,7 +187,8 @@ def _multistart(fit_req: FitRequest, base: FitResult, clock: Clock, notes: list[
     status = best.solver.return_status
     if status in CPU_STATUSES:
         notes.append(f"{why}; a multistart of {MULTISTART_STARTS} starts was cut off by its CPU limit of "
-                     f"{cpu:.3g} s (options.max_cpu_time, at most what was left of discovery.time_budget_s; "
+                     f"{cpu:.3g} s ({MULTISTART_CPU_FACTOR:g}× the base fit's, at most options.max_cpu_time and "
+                     f"what was left of discovery.time_budget_s; "
                      f"{status}): it is no answer, and whether a start does better is not known; the search "
                      "starts from the base fit (raise max_cpu_time or time_budget_s for the multistart)")
         return base

@@ -18,8 +18,12 @@ The steps, in the order they run:
    evidence are each added and the whole model refitted with the requested method, started one
    Gauss-Newton step from the old fit (`warm_start`). A refit passes if it converges, its BIC falls
    by `min_bic_drop`, its likelihood ratio with the noise allowed to be coloured passes the screen's
-   Bonferroni level (`refit_test`), the new parameter has |value|/stderr ≥ `min_t_value`, and the
-   validation records do not get worse; a catch-all also under the parsimony rules. Of those that
+   Bonferroni level (`refit_test`), the new parameter has |value|/stderr ≥ `min_t_value` (or, where
+   only that gate fails, its profile-likelihood interval at that level excludes 0:
+   `confirm.profile_decides`), and the validation records do not get worse; a catch-all also under
+   the parsimony rules and `catch_all`'s (what it lines up with is refitted beside it). When no
+   significant candidate is confirmed, the best named law of each family with a screening BIC drop of
+   `min_bic_drop` is refitted under the same gates (`refit_below_screen`). Of those that
    pass, the best by whitened BIC and validation is added, the others reported as its runners-up;
    two the data cannot tell apart make the step `ambiguous`. A smoothed switch is refitted at its
    widest significant width and the width refined after. What fails is recorded in `rejected` with
@@ -38,7 +42,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryResult
+from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryOptions, DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.data.preprocess import prepare_request
 from greyfit.solvers.discovery.budget import Clock
@@ -46,7 +50,7 @@ from greyfit.solvers.discovery.confirm import LoopState, screen_state
 from greyfit.solvers.discovery.discriminate import discriminate
 from greyfit.solvers.discovery.ground import solid_ground
 from greyfit.solvers.discovery.leftover import leftover_at
-from greyfit.solvers.discovery.screening import Screening
+from greyfit.solvers.discovery.screening import Scored, Screening
 from greyfit.solvers.discovery.shape import shape_at
 from greyfit.solvers.discovery.summary import (
     added_inputs,
@@ -118,7 +122,7 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         else request.options.input_interpolation
     fit_req = fit_req.model_copy(update={"options": fit_req.options.model_copy(
         update={"input_interpolation": reading})})
-    fit_req, base, notes = solid_ground(fit_req, base, clock)
+    fit_req, base, notes = solid_ground(fit_req, base, clock, base_cpu)
     request = request.model_copy(update={"options": fit_req.options})   # finer substeps, if raised, throughout
     with clock.phase("validation"):
         base_validation = validate(request, fit_req.model, base, request.validation)
@@ -139,11 +143,11 @@ def discover(request: DiscoverRequest, progress: Optional[Progress] = None) -> D
         if round_no == 0:
             screened_first = public_scores(screening)
         why_not = nothing_to_refit(screening)
-        if why_not:
-            break
-        accepted = try_in_rank_order(request, state, screening, tell)
+        accepted = not why_not and try_in_rank_order(request, state, screening, tell)
+        # the screen's linearised p-value can drop a law whose refit gains much: the top few refitted
+        accepted = accepted or refit_below_screen(request, state, screening, tell)
         if not accepted:
-            why_not = no_confirmation(state, screening)
+            why_not = why_not or no_confirmation(state, screening)
             break
         # what is left after the step: for the next round's shape tests and, at the end, `unexplained`
         state.shape, shape_note = shape_at(state.request, state.fit, clock)
@@ -290,6 +294,77 @@ def _where_scored(screening: Screening) -> str:
 
 
 # --- confirming refits ----------------------------------------------------------------------------
+
+BELOW_SCREEN_REFITS = 3   # laws refitted per round though the screen did not call them significant
+
+
+def refit_below_screen(request: DiscoverRequest, state: LoopState, screening: Screening,
+                       tell: Progress = _silent) -> bool:
+    """Refit the best named law of each family the screen did not call significant, by its screening BIC
+    drop (at least `min_bic_drop`), at most `BELOW_SCREEN_REFITS`; the refit's gates decide.
+
+    The screen linearises at the fit without the law: a law nonlinear in its variables (radiation's T⁴)
+    can screen at p = 0.04, above the Bonferroni level, and gain a BIC drop of hundreds once refitted.
+    The refit's likelihood ratio is held to the screen's Bonferroni level, so a law refitted here is
+    held to the same evidence as one the screen passed.
+
+    Parameters
+    ----------
+    request : DiscoverRequest
+        The discovery request.
+    state : LoopState
+        The search so far; updated with the accepted step or the rejections.
+    screening : Screening
+        The screen, ranked.
+    tell : Progress
+        Progress callback, told of every refit.
+
+    Returns
+    -------
+    bool
+        True when a law was added.
+    """
+    for sc in below_screen(screening, state.tried, request.discovery):
+        if state.refits_left <= 0 or not state.clock.allows():
+            return False
+        if sc.candidate.family in state.tried:
+            continue
+        tell("refit", sc.candidate.description, request.discovery.max_refits - state.refits_left)
+        if discriminate(request, state, screening, sc):
+            return True
+    return False
+
+
+def below_screen(screening: Screening, tried: set[str], opts: DiscoveryOptions) -> list[Scored]:
+    """The named laws `refit_below_screen` refits: of each family not tried, the best by screening BIC
+    drop that the screen did not call significant, with the physical sign, a BIC drop of at least
+    `min_bic_drop` and at least `min_explained` of the residual; at most `BELOW_SCREEN_REFITS`.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen.
+    tried : set of str
+        Families refitted already.
+    opts : DiscoveryOptions
+        The discovery options.
+
+    Returns
+    -------
+    list of Scored
+        Largest screening BIC drop first.
+    """
+    best: dict[str, Scored] = {}
+    for sc in screening.scored:
+        c = sc.candidate
+        if (sc.significant or c.catch_all or c.refit_only or c.family in tried
+                or sc.score.bic_drop < opts.min_bic_drop or sc.score.explained < opts.min_explained
+                or not (c.sign == 0 or np.sign(sc.score.beta) == np.sign(c.sign))):
+            continue
+        if c.family not in best or sc.score.bic_drop > best[c.family].score.bic_drop:
+            best[c.family] = sc
+    return sorted(best.values(), key=lambda x: -x.score.bic_drop)[:BELOW_SCREEN_REFITS]
+
 
 def try_in_rank_order(request: DiscoverRequest, state: LoopState, screening: Screening,
                       tell: Progress = _silent) -> bool:

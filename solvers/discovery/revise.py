@@ -70,6 +70,8 @@ def accept(request: DiscoverRequest, state: LoopState, r: Refitted, screening: S
     state.accepted.append(c)
     if c.record_specific:
         state.record_params |= set(r.params)
+        if "t" in c.variables:
+            state.time_params |= set(r.params)
     # no steps of a step, no drift of a drift
     state.tried.update(f"{kind}:{n}" for n in r.params for kind in ("parameter_step", "parameter_drift"))
     model_before = state.model

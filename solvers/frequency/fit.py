@@ -27,6 +27,7 @@ from greyfit.solvers.errors import DataError
 from greyfit.solvers.fit import _at_bound, _message
 from greyfit.solvers.frequency.checks import assess_frequency_fit
 from greyfit.solvers.frequency.data import prepare_frequency_data
+from greyfit.solvers.frequency.lack_of_fit import trend_warnings
 from greyfit.solvers.frequency.levy import levy_fit
 from greyfit.solvers.frequency.linearise import CompiledLinearisedModel, compile_linearised_model
 from greyfit.solvers.frequency.polynomials import ClosedLoop, CompiledTransferFunction, compile_transfer_function
@@ -273,7 +274,9 @@ def fit_frequency_response(request: FrequencyFitRequest) -> FitResult:
     return assess_frequency_fit(result, sets=sets, layout=layout, theta_s=theta_s, converged=outcome.success,
                                 status=outcome.status, nlp_cost=outcome.cost, covariance=cov, jac=jac, keep=keep,
                                 stability_enforced=opts.stability in ("routh", "penalty"),
-                                before=multistart_warnings(run, agree))
+                                before=multistart_warnings(run, agree) + trend_warnings(
+                                    sets, response, data_weights(sets, opts.cost), opts.cost, res,
+                                    jac[:, :layout.size][:, keep]))
 
 
 def _active_stability(fp: FrequencyProblem, w: np.ndarray, margin: float) -> list[str]:

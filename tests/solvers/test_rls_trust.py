@@ -40,7 +40,9 @@ def test_decreasing_gain_with_default_initialisation_equals_batch_least_squares(
     res = rls(u, i, gain_law="decreasing_gain", trajectory_every=10_000)   # first and last kept
     got = np.array([res.trajectory.coefficients[c][-1] for c in COEFFICIENTS])
     np.testing.assert_allclose(got, batch_least_squares(res, u, i), rtol=1e-7)
-    assert res.success and res.trajectory.excitation.required_order == 4
+    assert res.trajectory.excitation.persistently_exciting and res.trajectory.excitation.required_order == 4
+    # R enters only through T·R/L = 0.004: determined to about ±20 % by 4 s of this record, so not `good`
+    assert res.quality != "good" and "parameter_uncertain" in {w.code for w in res.warnings}
     if seed:
         return
     batch = fit_model(FitRequest.model_validate({
@@ -81,13 +83,18 @@ def test_dc_and_single_sine_into_a_second_order_model_are_not_success(forgetting
             assert "order 4" in w.message and "'u' of order" in w.message and "2 sinusoids" in w.message
 
 
-def test_rich_input_is_success_on_ten_seeds():
-    """The check does not fire on a persistently exciting input (three sines and a PRBS)."""
-    for seed in range(10):
+def test_rich_input_is_exciting_and_good_only_when_within_ten_percent():
+    """The excitation check does not fire on a persistently exciting input (three sines and a PRBS).
+    R enters the Euler model only through T·R/L = 0.004: over λ = 0.99's memory of 100 samples it is
+    determined to ±50-90 % (before: `good` with R 20-70 % off); now it is `parameter_uncertain` or not
+    settled, and nothing is `good` with a parameter more than 10 % off."""
+    for seed in range(6):
         u = rl_input(T, seed)
         res = rls(u, simulate_rlc(u, noise=1e-4, seed=seed, ar=0.5), forgetting=0.99, trajectory_every=20)
-        assert res.success and res.quality == "good", (seed, [w.message for w in res.warnings])
-        assert res.trajectory.excitation.available_order >= 4
+        codes = {w.code for w in res.warnings}
+        assert "poor_excitation" not in codes and res.trajectory.excitation.available_order >= 4
+        assert res.quality != "good" and codes & {"parameter_uncertain", "estimate_not_settled"}
+        assert res.parameters["L"].value == pytest.approx(0.5, rel=0.05)
 
 
 def test_estimates_without_physical_pre_image_are_marked_per_sample():

@@ -12,6 +12,7 @@ from greyfit.solvers.discovery.families.drag import QuadraticDrag
 from greyfit.solvers.discovery.families.flow import SqrtFlow
 from greyfit.solvers.discovery.families.friction import Coulomb
 from greyfit.solvers.discovery.families.inputs import InputDelay, Saturation
+from greyfit.solvers.discovery.families.lags import ExtraPole, InputLag, SensorLag
 from greyfit.solvers.discovery.families.offsets import Offset
 from greyfit.solvers.discovery.families.parameter_laws import Arrhenius, ParameterLaw
 from greyfit.solvers.discovery.families.powers import PowerLaw
@@ -40,6 +41,9 @@ FAMILIES: tuple[Family, ...] = (
     ParameterDrift(),
     StateDependent(),
     InputDelay(),
+    SensorLag(),
+    InputLag(),
+    ExtraPole(),
 )
 # the user's candidates: always screened when given, not an entry of `effects`
 USER = Custom()

@@ -17,10 +17,8 @@ def _input_regressor(ctx: LibraryContext, k: int, change: list[np.ndarray]):
     return sensitivity_regressor(ctx.trace, ctx.trace.ju, k, change)
 
 
-class Saturation:
-    name = "saturation"
-    scope: Scope = "input"
-    generic = False
+class NeedsInputs:
+    """The `supports` of a family that changes an input: it has something to look at when the model has inputs."""
 
     def supports(self, ctx: LibraryContext) -> bool:
         """Whether the model has inputs.
@@ -36,6 +34,12 @@ class Saturation:
             True when the model has inputs.
         """
         return bool(ctx.trace.cm.inputs)
+
+
+class Saturation(NeedsInputs):
+    name = "saturation"
+    scope: Scope = "input"
+    generic = False
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with input u replaced by min(max(u, −u_max), u_max), u_max a new parameter.
@@ -94,28 +98,13 @@ class Saturation:
         return out
 
 
-class InputDelay:
+class InputDelay(NeedsInputs):
     """The delay is a whole number of samples: the model language has no delay operator, so the
     delayed input enters as data (returned in `added_inputs`)."""
 
     name = "input_delay"
     scope: Scope = "input"
     generic = True
-
-    def supports(self, ctx: LibraryContext) -> bool:
-        """Whether the model has inputs.
-
-        Parameters
-        ----------
-        ctx : LibraryContext
-            The model, the fitted trajectory and the discovery options.
-
-        Returns
-        -------
-        bool
-            True when the model has inputs.
-        """
-        return bool(ctx.trace.cm.inputs)
 
     def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
         """`model` with input u replaced by a new input, u delayed.

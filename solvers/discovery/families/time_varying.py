@@ -1,7 +1,9 @@
 """A declared parameter that changes in time: switch times (steps) or a linear drift.
 
 Both are true of the record they are found in, not of new data (`record_specific`): on a validation
-record the estimation record's clock means nothing, so validation sees them switched off.
+record with its own clock the estimation record's times mean nothing, so validation sees them
+switched off; on one that continues the estimation record in time they are laws of t and go on
+(`confirm.off_on_validation`).
 """
 from __future__ import annotations
 

@@ -48,7 +48,11 @@ def excitation_warnings(excitation: ExcitationReport) -> list[FitWarning]:
         need = excitation.required_order
         parts.append(f"the model needs input persistently exciting of order {need} (at least "
                      f"{(need + 1) // 2} sinusoids of distinct frequencies, or a PRBS), the input gives "
-                     f"{orders} over the estimator's window of {excitation.window_samples} samples")
+                     f"{orders} over the estimator's window of {excitation.window_samples} samples, so the "
+                     f"regressor is rank deficient: the input determines at most {excitation.available_order} "
+                     f"of the {need} coefficients of an equation"
+                     + (f" (its numerical rank {excitation.regressor_rank} comes from noise)"
+                        if excitation.regressor_rank > (excitation.available_order or 0) else ""))
     if excitation.regressor_rank < excitation.regressor_size:
         parts.append(f"the regressor has rank {excitation.regressor_rank} of {excitation.regressor_size}")
     return [FitWarning(

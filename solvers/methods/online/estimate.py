@@ -21,7 +21,7 @@ from greyfit.schemas.fit import (
     ParameterEstimate,
     SolverInfo,
 )
-from greyfit.schemas.online import ParameterTrajectory
+from greyfit.schemas.online import ParameterTrajectory, RlsOptions
 from greyfit.solvers.checks.diagnostics import residual_analysis
 from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.prefilter import apply_prefilter
@@ -30,6 +30,12 @@ from greyfit.solvers.inference.covariance import correlation_from
 from greyfit.solvers.inference.statistics import information_criteria, student_t_quantile
 from greyfit.solvers.methods.equation_error import build_equation_error
 from greyfit.solvers.methods.online.checks import apply_verdict, bound_warnings, excitation_warnings, outside_bounds
+from greyfit.solvers.methods.online.convergence import (
+    TAIL,
+    disagreement_warnings,
+    settling_warnings,
+    uncertainty_warnings,
+)
 from greyfit.solvers.methods.online.recursive import OnlineRun, excitation_report, recursive_least_squares
 from greyfit.solvers.methods.online.rls_noise import measurement_noise
 from greyfit.solvers.model.compiler import compile_model
@@ -100,6 +106,7 @@ def fit_online(request: FitRequest) -> FitResult:
     phi = jac.reshape(ed.rows.size, neq, form.layout.size)
     y = -r0.reshape(ed.rows.size, neq)
     eta0 = form.layout.initial / form.layout.scale
+    reference = None
     if request.method == FitMethod.recursive_least_squares:
         noise = measurement_noise(form, eep.equations, ed.rows) if opts.rls.noise == "measurement" else None
         run = recursive_least_squares(y, phi, eta0, opts.rls, noise)
@@ -108,11 +115,13 @@ def fit_online(request: FitRequest) -> FitResult:
         from greyfit.solvers.methods.online.mras import model_reference_adaptive
         run = model_reference_adaptive(form, data[0], ed, eep.equations, eta0, opts.mras, opts)
         every = opts.mras.trajectory_every
+        # RLS on the same regression: what a converged adaptive law must agree with
+        reference = _physical(form, layout, recursive_least_squares(y, phi, eta0, RlsOptions()), phi.shape[0])
     d = data[0]
     excitation = excitation_report(phi, run, {u: d.u[k, ed.rows] for k, u in enumerate(cm.inputs)},
                                    linear_regressor=form.mapped or _linear_in_signals(form, equations))
     filt = "; ".join(x for x in (eep.derivative_filter, note) if x) or None
-    return _result(request, cm, layout, form, run, eep, d, excitation, every, filt, started)
+    return _result(request, cm, layout, form, run, eep, d, excitation, every, filt, started, reference)
 
 
 def _linear_in_signals(form: LinearForm, equations: list[int]) -> bool:
@@ -155,7 +164,8 @@ def _floats(a) -> list:
     return [float(v) if np.isfinite(v) else None for v in a]
 
 
-def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every, filt, started) -> FitResult:
+def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every, filt, started,
+            reference=None) -> FitResult:
     opts = request.options
     theta, cov, traj, traj_cov, keep = _physical(form, layout, run, every)
     ed, eqs = eep.per_experiment[0], eep.equations
@@ -228,4 +238,33 @@ def _result(request, cm, layout, form, run: OnlineRun, eep, d, excitation, every
                           return_status="Online_Estimate", derivative_filter=filt,
                           linear_in_parameters=not form.mapped),
         residual_analysis=analyses, trajectory=trajectory)
-    return apply_verdict(result, excitation_warnings(excitation) + bound_warnings(theta, layout, marks))
+    return apply_verdict(result, excitation_warnings(excitation) + bound_warnings(theta, layout, marks)
+                         + _convergence_warnings(form, run, theta, names, innov, reference, params))
+
+
+TAIL_SAMPLES = 40   # physical estimates the settling check maps over the record's tail
+
+
+def _tail_values(form: LinearForm, run: OnlineRun, theta: np.ndarray) -> np.ndarray:
+    """(K, nθ) physical estimates at `TAIL_SAMPLES` updates over the record's tail (whatever
+    `trajectory_every` keeps for the result)."""
+    m = run.estimates.shape[0]
+    idx = np.unique(np.linspace(int(m * (1 - TAIL)), m - 1, TAIL_SAMPLES).astype(int))
+    eta = run.estimates[idx] * form.layout.scale
+    if not form.mapped:
+        return eta
+    return to_physical(form, eta.T, None, theta)[0].T
+
+
+def _convergence_warnings(form, run, theta, names, innov, reference, params) -> list:
+    """The trajectory and the error settled, the estimate precise; MRAS beside RLS's (final θ,
+    covariance) when given, RLS's standard errors standing for the precision MRAS does not give."""
+    out = settling_warnings(_tail_values(form, run, theta), names, innov)
+    if reference is not None:
+        cov_rls = reference[1]
+        sd = None if cov_rls is None else np.sqrt(np.maximum(np.diag(cov_rls), 0.0))
+        out += disagreement_warnings(names, theta, reference[0], sd)
+    else:
+        errors = [params[n].stderr for n in names]
+        sd = None if any(e is None for e in errors) else np.array(errors, dtype=float)
+    return out + uncertainty_warnings(names, theta, sd)

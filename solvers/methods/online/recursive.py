@@ -170,20 +170,23 @@ def recursive_least_squares(y: np.ndarray, phi: np.ndarray, eta0: np.ndarray, op
     return OnlineRun(estimates, covs, innovations, label, window, lam)
 
 
-def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
-    """Largest n for which the lagged-input matrix [u_k, u_{k-1}, ..., u_{k-n+1}] has full rank.
+def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER, spacing: int = 1) -> int:
+    """Largest n for which the lagged-input matrix [u_k, u_{k-s}, ..., u_{k-(n-1)s}] has full rank.
 
-    Full rank: the smallest eigenvalue of its Gram matrix above 1e-10 of the largest
-    (fast sampling makes neighbouring samples nearly collinear, hence the small threshold). A constant has
+    Full rank: the smallest eigenvalue of its Gram matrix above 1e-10 of the largest. A constant has
     order 1, a sinusoid 2, n sinusoids 2n (the model reference adaptive systems chapter: an n-th order
-    plant needs n frequencies).
+    plant needs n frequencies), at any lag spacing s that does not alias them; neighbouring samples of
+    a finely sampled input are nearly collinear, so lags one sample apart count two slow sines in a
+    short window as three (`spacing` spreads the lags over the window instead).
 
     Parameters
     ----------
     u : numpy.ndarray
         (N,) one input series.
     max_order : int
-        Largest order tried (it is also capped at N // 2).
+        Largest order tried (it is also capped so that N/2 rows remain).
+    spacing : int
+        Samples between the lags.
 
     Returns
     -------
@@ -191,10 +194,11 @@ def pe_order(u: np.ndarray, max_order: int = PE_MAX_ORDER) -> int:
         The persistent-excitation order; 0 for an all-zero input.
     """
     u = np.asarray(u, dtype=float)
-    n_max = min(max_order, u.size // 2)
+    n_max = min(max_order, u.size // 2, 1 + u.size // (2 * spacing))
     order = 0
     for n in range(1, n_max + 1):
-        lagged = np.column_stack([u[n - 1 - j:u.size - j] for j in range(n)])
+        span = (n - 1) * spacing
+        lagged = np.column_stack([u[span - j * spacing:u.size - j * spacing] for j in range(n)])
         gram = lagged.T @ lagged
         ev = np.linalg.eigvalsh(gram)
         if ev[-1] <= 0 or ev[0] <= PE_RELATIVE_EIGENVALUE * ev[-1]:
@@ -223,20 +227,31 @@ def required_order(phi: np.ndarray) -> int:
     return int(np.max(np.sum(used, axis=1))) if used.size else 0
 
 
-def _available_order(phi: np.ndarray, inputs: dict[str, np.ndarray], window: int) -> tuple[dict[str, int], int]:
+def _available_order(phi: np.ndarray, inputs: dict[str, np.ndarray], window: int,
+                     needed: int | None) -> tuple[dict[str, int], int]:
     """(PE order of each input over the window, the order they give the regression together).
 
     A constant regressor column (an offset term) adds one; the inputs are then counted without
-    their mean, so that a DC input and the offset are not counted twice.
+    their mean, so that a DC input and the offset are not counted twice. The lags are spread over
+    the window (a quarter of it for the orders asked about: two more than the regression needs).
     """
     m = phi.shape[0]
     tail = phi[m - window:]
-    constant = bool(np.any(np.all(tail == tail[:1], axis=0) & (tail[0] != 0)))
-    orders = {name: pe_order(series[m - window:]) for name, series in inputs.items()}
+    # constant to rounding: the equation-error regressor carries the inputs through its smoother
+    constant = bool(np.any(np.all(np.abs(tail - tail[:1]) <= 1e-9 * np.abs(tail[:1]), axis=0) & (tail[0] != 0)))
+    top = min(PE_MAX_ORDER, (needed or PE_MAX_ORDER) + 2)
+    spacing = max(1, window // (4 * top))
+    orders = {name: pe_order(series[m - window:], top, spacing) for name, series in inputs.items()}
     if not constant:
         return orders, sum(orders.values())
-    centred = sum(pe_order(series[m - window:] - np.mean(series[m - window:])) for series in inputs.values())
+    centred = sum(pe_order(_centred(series[m - window:]), top, spacing) for series in inputs.values())
     return orders, centred + 1
+
+
+def _centred(u: np.ndarray) -> np.ndarray:
+    """u without its mean; a constant's rounding residue (1e-16 of it) is zero, not a rich signal."""
+    c = u - np.mean(u)
+    return np.zeros_like(c) if np.max(np.abs(c), initial=0.0) <= 1e-9 * np.max(np.abs(u), initial=0.0) else c
 
 
 def excitation_report(phi: np.ndarray, run: OnlineRun, inputs: dict[str, np.ndarray],
@@ -274,8 +289,8 @@ def excitation_report(phi: np.ndarray, run: OnlineRun, inputs: dict[str, np.ndar
     rank = int(np.sum(ev > RANK_RELATIVE_EIGENVALUE * ev[-1])) if ev[-1] > 0 else 0
     cond = float(ev[-1] / ev[0]) if ev[0] > 0 else None
     window = min(run.window, m)
-    orders, available = _available_order(phi, inputs, window)
     needed = required_order(phi) if linear_regressor and inputs else None
+    orders, available = _available_order(phi, inputs, window, needed)
     enough = needed is None or available >= needed
     return ExcitationReport(window_samples=window, input_order=orders, regressor_rank=rank, regressor_size=n,
                             regressor_condition=cond, persistently_exciting=rank == n and enough,

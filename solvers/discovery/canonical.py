@@ -56,6 +56,9 @@ class CanonicalForm:
     # parameter -> the names of its linear parts, for parameters every monomial of which (in every
     # equation) is a linear part: a ks used only in ks*(zs - zu) gives {zs, zu}
     linear_in: dict[str, frozenset[str]]
+    # state -> the parameters and constants every monomial of its equation is divided by (a mass, a
+    # heat capacity): a new term is divided by them too, so its parameter is a force, whatever the spelling
+    divisors: dict[str, tuple[str, ...]]
 
 
 def expand(e: ca.SX) -> list[ca.SX]:
@@ -210,6 +213,29 @@ def _linear_in(sym: _Symbols) -> dict[str, frozenset[str]]:
     return {n: frozenset(names) for n, names in seen.items() if names}
 
 
+def _divisors(sym: _Symbols, s: str) -> tuple[str, ...]:
+    """Parameters and constants c with every monomial m of equation s ∝ 1/c (c·∂m/∂c ≡ −m)."""
+    terms = [m for m in expand(sym.equations[s]) if not m.is_constant()]
+    names = {**sym.parameters, **sym.constants}
+    found = [n for n, c in names.items() if terms and all(ca.depends_on(m, c) for m in terms)]
+    if not found:
+        return ()
+    everything = ca.vertcat(sym.coefficients, sym.moving)
+    rng = np.random.default_rng(1)
+    out = []
+    for n in found:
+        c = names[n]
+        fn = ca.Function("d", [everything], [ca.vertcat(*[c * ca.jacobian(m, c) + m for m in terms]),
+                                             ca.vertcat(*terms)])
+        ok = True
+        for _ in range(DRAWS):
+            gap, size = (np.asarray(v).ravel() for v in fn(rng.uniform(0.5, 2.0, everything.numel())))
+            ok = ok and bool(np.all(np.abs(gap) <= 1e-9 * np.maximum(np.abs(size), 1e-300)))
+        if ok:
+            out.append(n)
+    return tuple(out)
+
+
 def canonical_form(model: Model) -> CanonicalForm:
     """The couplings and kinematic identities of the model, the same for every spelling of it.
 
@@ -244,7 +270,7 @@ def canonical_form(model: Model) -> CanonicalForm:
         if v is not None:
             pos_of[v] = s
     form = CanonicalForm(tuple(Coupling(*k, v) for k, v in found.items()), pos_of, {x: v for v, x in pos_of.items()},
-                         _linear_in(sym))
+                         _linear_in(sym), {s: _divisors(sym, s) for s in model.states})
     _CACHE[key] = form
     while len(_CACHE) > CACHE_SIZE:
         _CACHE.popitem(last=False)

@@ -95,3 +95,18 @@ def test_labels_say_the_law_and_the_output_read():
     assert roots and all("Torricelli" not in c.description and "sqrt(T" in c.description for c in roots)
     sensors = [sc.candidate.term for sc in s.scored if sc.candidate.effect.startswith("output_")]
     assert "y_T1 = T1 + y_T1_bias" in sensors and not any(" h" in t or "(h" in t for t in sensors)
+
+
+@pytest.mark.parametrize("equation", ["(F - k*x - c*v)/m", "F/m - k*x/m - c*v/m", "-(k*x - F + v*c)*(1/m)",
+                                      "2*(F/2 - (k*x + c*v)/2)/m"])
+def test_a_new_term_is_divided_by_what_divides_the_whole_equation_in_every_spelling(equation):
+    """The new parameter is a force wherever the equation is forces over a mass, however it is spelt:
+    its value (and so the refit) does not depend on the spelling."""
+    from greyfit.solvers.discovery.augment import add_term
+    from greyfit.solvers.model.compiler import compile_model
+    model = Model.model_validate({"states": ["x", "v"], "inputs": ["F"], "constants": {"m": 4.0},
+                                  "parameters": [{"name": n, "value": 1.0} for n in ("k", "c", "b")],
+                                  "equations": {"x": "v", "v": equation}})
+    cm = compile_model(add_term(model, "v", "b*v^3", "-"))
+    dv = float(cm.rhs([0.5, 2.0], [3.0], [2.0, 0.5, 1.5], 0.0)[1])
+    assert dv == pytest.approx((3.0 - 2.0 * 0.5 - 0.5 * 2.0 - 1.5 * 8.0) / 4.0, rel=1e-12)

@@ -1,15 +1,18 @@
 """Every spelling of a model discovers alike: random respellings of generated models, screened and discovered.
 
 Models come from tests/generated_models.py (mechanical, electrical, thermal, fluid, chemical and
-biological blocks of 2–5 states, each lacking one effect; 300 samples, 1 % white noise, two outputs).
+biological blocks of 2–5 states, each lacking one effect; 1 % white noise, two outputs; `--samples`
+samples, 200 by default; a validation record in part 2).
 The respellings come from tests/respell.py (difference sides swapped with the sign, sums and products
 reordered, products distributed and factored, quotients split, 1/p for a division, negations moved,
 sub-expressions moved into definitions).
 
 Part 1 (`screen`): each model is fitted once; the declared spelling and `--per-model` respellings are
-screened at that fit (candidate generation and the score test only, so it is cheap). A respelling is
-*identical* when its candidate set (effect, equations, outputs, term, where scored) and its set of
-significant candidates equal the declared spelling's; a *traceback* is any exception.
+screened at that fit (candidate generation and the score test only, so it is cheap; the first
+respelling in full, the others with the declared spelling's output sensitivities, which are the
+same numbers and most of a screen's cost). A respelling is
+*identical* when its candidate set (effect, equations, outputs, term, where scored) and its
+significant candidates in the screen's ranking equal the declared spelling's; a *traceback* is any exception.
 
 Part 2 (`discover`): the full discovery (`max_terms` 1) on the declared spelling and on one respelling
 of `--discover` models; the *same answer* is the same steps (effect, equation, term, verdict) and the
@@ -50,33 +53,41 @@ def wilson(k: int, n: int, z: float = 1.96) -> str:
     return f"{k}/{n} = {100 * p:.1f} % [{100 * max(centre - half, 0):.1f}, {100 * min(centre + half, 1):.1f}]"
 
 
-def screen_model(kind: str, seed: int, per_model: int) -> list[dict]:
-    """The declared spelling and `per_model` respellings of one generated model, screened at one fit."""
+def screen_model(kind: str, seed: int, per_model: int, n: int) -> list[dict]:
+    """The declared spelling and `per_model` respellings of one generated model, screened at one fit.
+
+    The declared spelling and the first respelling are screened in full; the others reuse the declared
+    spelling's output sensitivities (the same numbers: the cost of a screen), their candidates and
+    equation scores from their own compiled model."""
     case = gm.generate(kind, seed)
-    exp = gm.record(case, seed)
+    exp = gm.record(case, seed, n=n)
     fit = fit_model(rs.request_of(case.model, exp))
-    reference = rs.candidate_set(case.model, exp, fit)
+    full = rs.screen_of(case.model, exp, fit)
+    reference = rs.candidate_set(case.model, exp, fit, output_scorer=full.output_scorer)
     rng = np.random.default_rng(seed)
     out = []
-    for _ in range(per_model):
+    for k in range(per_model):
         spelt = rs.respell(case.model, rng)
         try:
-            got = rs.candidate_set(spelt, exp, fit)
+            got = rs.candidate_set(spelt, exp, fit, output_scorer=None if k == 0 else full.output_scorer)
             out.append({"kind": kind, "same": got == reference, "error": None})
         except Exception:   # the bench counts any traceback
             out.append({"kind": kind, "same": False, "error": traceback.format_exc(limit=3)})
     return out
 
 
-def part_screen(models: int, per_model: int) -> None:
+def part_screen(models: int, per_model: int, n: int, start: int = 0) -> None:
     runs: list[dict] = []
     t0 = time.process_time()
-    for i in range(models):
+    for i in range(start, start + models):
         kind = gm.KINDS[i % len(gm.KINDS)]
         try:
-            runs += screen_model(kind, 1000 + i, per_model)
+            mine = screen_model(kind, 1000 + i, per_model, n)
         except Exception:
-            runs += [{"kind": kind, "same": False, "error": traceback.format_exc(limit=3)}] * per_model
+            mine = [{"kind": kind, "same": False, "error": traceback.format_exc(limit=3)}] * per_model
+        runs += mine
+        print(f"model {i} {kind}: {sum(r['same'] for r in mine)}/{len(mine)} identical, "
+              f"{sum(r['error'] is not None for r in mine)} tracebacks", flush=True)
     print(f"\nscreen: {len(runs)} respellings of {models} models ({time.process_time() - t0:.0f} CPU s)")
     print(f"{'kind':<12} {'identical candidates':<34} tracebacks")
     for kind in [*gm.KINDS, "all"]:
@@ -102,17 +113,17 @@ def gap(params: dict, params2: dict) -> tuple[float, float]:
     return rel, se
 
 
-def part_discover(count: int, start: int = 0) -> None:
+def part_discover(count: int, start: int = 0, n: int = 300) -> None:
     by_kind: dict[str, list[bool]] = defaultdict(list)
     errors = 0
     t0 = time.process_time()
     for i in range(start, start + count):
         kind = gm.KINDS[i % len(gm.KINDS)]
         case = gm.generate(kind, 2000 + i)
-        exp, val = gm.record(case, 2000 + i), gm.record(case, 3000 + i, name="val")
+        exp, val = gm.record(case, 2000 + i, n=n), gm.record(case, 3000 + i, n=n, name="val")
         spelt = rs.respell(case.model, np.random.default_rng(i))
         body = {"experiments": [exp], "validation": [val], "method": "multiple_shooting",
-                "discovery": {"max_terms": 1, "time_budget_s": 120}}
+                "discovery": {"max_terms": 1, "time_budget_s": 60}}
         try:
             steps, params = answer({**body, "model": case.model})
             steps2, params2 = answer({**body, "model": spelt})
@@ -136,13 +147,14 @@ def main() -> None:
     ap.add_argument("--models", type=int, default=100)
     ap.add_argument("--per-model", type=int, default=10)
     ap.add_argument("--discover", type=int, default=20)
-    ap.add_argument("--start", type=int, default=0, help="first model of the discover part (to split a run)")
+    ap.add_argument("--start", type=int, default=0, help="first model (to split a run over processes)")
+    ap.add_argument("--samples", type=int, default=200, help="samples of a record")
     ap.add_argument("--part", choices=("screen", "discover", "both"), default="both")
     args = ap.parse_args()
     if args.part in ("screen", "both"):
-        part_screen(args.models, args.per_model)
+        part_screen(args.models, args.per_model, args.samples, args.start)
     if args.part in ("discover", "both"):
-        part_discover(args.discover, args.start)
+        part_discover(args.discover, args.start, args.samples)
 
 
 if __name__ == "__main__":

@@ -171,9 +171,17 @@ def request_of(model: dict, experiment: dict):
     return FitRequest.model_validate({"model": model, "experiments": [experiment], "method": "multiple_shooting"})
 
 
-def candidate_set(model: dict, experiment: dict, fit, options=None) -> tuple[set, set]:
-    """((effect, equation or output, term) of every candidate screened, the same of the significant
-    ones) of `model` at the fit `fit` (a fit of any spelling of it: its parameters are by name).
+def screen_of(model: dict, experiment: dict, fit, options=None, output_scorer=None):
+    """The discovery screen of `model` at the fit `fit` (a fit of any spelling of it: its parameters are
+    by name); `output_scorer`, one built at this fit for another spelling, saves the sensitivities."""
+    from greyfit.schemas.discovery import DiscoveryOptions
+    from greyfit.solvers.discovery.screening import screen
+    return screen(request_of(model, experiment), fit, options or DiscoveryOptions(), set(), output_scorer)
+
+
+def candidate_set(model: dict, experiment: dict, fit, options=None, output_scorer=None) -> tuple[set, list]:
+    """((effect, equations, outputs, term, where scored) of every candidate screened, the same of the
+    significant ones in the screen's ranking) of `model` at the fit `fit` (`screen_of`).
 
     Parameters
     ----------
@@ -185,17 +193,17 @@ def candidate_set(model: dict, experiment: dict, fit, options=None) -> tuple[set
         A fit of the model.
     options : DiscoveryOptions or None
         The screen's options (the defaults when None).
+    output_scorer : OutputScorer or None
+        The output sensitivities at this fit, when already built.
 
     Returns
     -------
-    tuple of (set, set)
-        All candidates, and the significant ones, each as (effect, equations/outputs, term).
+    tuple of (set, list)
+        All candidates, and the significant ones, best first.
     """
-    from greyfit.schemas.discovery import DiscoveryOptions
-    from greyfit.solvers.discovery.screening import screen
-    s = screen(request_of(model, experiment), fit, options or DiscoveryOptions(), set())
+    s = screen_of(model, experiment, fit, options, output_scorer)
 
     def key(sc):
         c = sc.candidate
         return (c.effect, tuple(sorted(c.equations)), tuple(sorted(c.outputs or {})), c.term, sc.scored_on)
-    return {key(sc) for sc in s.scored}, {key(sc) for sc in s.scored if sc.significant}
+    return {key(sc) for sc in s.scored}, [key(sc) for sc in s.scored if sc.significant]

@@ -109,7 +109,8 @@ def answer(body: dict) -> tuple[list, dict]:
 def gap(params: dict, params2: dict) -> tuple[float, float]:
     """(largest relative difference, largest difference in standard errors) of the declared parameters."""
     rel = max(abs(a - params2[k][0]) / max(abs(a), 1e-12) for k, (a, _) in params.items())
-    se = max(abs(a - params2[k][0]) / s if s and np.isfinite(s) and s > 0 else 0.0 for k, (a, s) in params.items())
+    se = max(abs(a - params2[k][0]) / s if s and np.isfinite(s) and s > 0 else
+             (0.0 if a == params2[k][0] else np.inf) for k, (a, s) in params.items())
     return rel, se
 
 

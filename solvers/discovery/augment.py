@@ -2,14 +2,17 @@
 from __future__ import annotations
 
 from greyfit.schemas.model import Model
+from greyfit.solvers.discovery.canonical import canonical_form
 from greyfit.solvers.model.expressions import parse, substitute, unparse
 
 
 def add_term(model: Model, equation: str, term: str, sign: str = "+") -> Model:
     """Add `sign term` to d(equation)/dt.
 
-    When the equation is a quotient `(forces)/m`, the term goes inside the numerator, so that its
-    parameter keeps physical units (a force, not a force per mass).
+    Where every term of the equation is divided by the same parameters or constants (a mass, a heat
+    capacity: `(forces)/m`, however it is spelt), the new term is divided by them too, so that its
+    parameter keeps physical units (a force, not a force per mass) and the same value for every
+    spelling of the model (`canonical.CanonicalForm.divisors`).
 
     Parameters
     ----------
@@ -33,18 +36,10 @@ def add_term(model: Model, equation: str, term: str, sign: str = "+") -> Model:
         When the equation does not parse (`equations.<state>`).
     """
     node = parse(model.equations[equation], f"equations.{equation}")
-    if node[0] == "bin" and node[1] == "/":
-        numerator = unparse(node[2])
-        denominator = unparse(node[3])
-        new = f"({numerator} {sign} {term}) / ({denominator})"
-    elif node[0] == "neg" and node[1][0] == "bin" and node[1][1] == "/":
-        inner = node[1]
-        flipped = "-" if sign == "+" else "+"
-        new = f"-({unparse(inner[2])} {flipped} {term}) / ({unparse(inner[3])})"
-    else:
-        new = f"{unparse(node)} {sign} {term}"
+    divisors = canonical_form(model).divisors.get(equation, ())
+    added = f"{term}/({'*'.join(divisors)})" if divisors else term
     equations = dict(model.equations)
-    equations[equation] = new
+    equations[equation] = f"{unparse(node)} {sign} {added}"
     return model.model_copy(update={"equations": equations})
 
 

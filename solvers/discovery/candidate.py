@@ -15,8 +15,8 @@ import numpy as np
 from greyfit.schemas.discovery import CustomCandidate
 from greyfit.schemas.model import Model
 from greyfit.solvers.data.experiments import ExperimentData
+from greyfit.solvers.discovery.canonical import canonical_form
 from greyfit.solvers.discovery.scoring_equations import TraceData
-from greyfit.solvers.model.expressions import parse
 
 Regressor = dict[int, list[np.ndarray]]
 Rewrite = Callable[[Model], tuple[Model, list[str]]]
@@ -252,7 +252,8 @@ def structure(model: Model) -> tuple[dict[str, str], dict[str, str]]:
     Parameters
     ----------
     model : Model
-        The model; an equation that is exactly another state's name is kinematic.
+        The model; an equation that means exactly another state (`v`, `1*v`, `--v`) is kinematic
+        (`canonical.canonical_form`).
 
     Returns
     -------
@@ -262,12 +263,7 @@ def structure(model: Model) -> tuple[dict[str, str], dict[str, str]]:
     Raises
     ------
     ModelDefinitionError
-        When an equation does not parse.
+        When an equation does not compile.
     """
-    vel_of, pos_of = {}, {}
-    for s, text in model.equations.items():
-        node = parse(text, f"equations.{s}")
-        if node[0] == "name" and node[1] in model.states and node[1] != s:
-            pos_of[node[1]] = s
-            vel_of[s] = node[1]
-    return pos_of, vel_of
+    form = canonical_form(model)
+    return dict(form.pos_of), dict(form.vel_of)

@@ -13,7 +13,7 @@ import numpy as np
 from greyfit.schemas.discovery import CustomCandidate
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, OutputFit, fmt, structure
-from greyfit.solvers.discovery.families import FAMILIES, USER
+from greyfit.solvers.discovery.families import FAMILIES, USER, Family
 from greyfit.solvers.discovery.families.sensor import measured_values, quantisation_step
 from greyfit.solvers.discovery.scoring_equations import TraceData
 
@@ -64,12 +64,27 @@ def library(model: Model, trace: TraceData, effects: Sequence[str], custom: Sequ
     out: list[Candidate] = []
     for family in FAMILIES:
         if family.name in ctx.effects and family.supports(ctx):
-            out += family.candidates(ctx)
+            out += _candidates_of(family, ctx)
     if USER.supports(ctx):
         out += USER.candidates(ctx)
     if outputs is not None:
         ctx.notes += quantisation_notes(outputs)
     return drop_duplicates(out), ctx.notes
+
+
+# what a family's own arithmetic can raise on a model it did not foresee; a model error
+# (ModelDefinitionError) is the user's and still raises
+FAMILY_FAILURES = (KeyError, IndexError, ValueError, ZeroDivisionError, FloatingPointError)
+
+
+def _candidates_of(family: Family, ctx: LibraryContext) -> list[Candidate]:
+    """The family's candidates; a family that fails on this model is left out with a note, so one
+    family's blind spot never ends the search (every spelling of every model discovers)."""
+    try:
+        return family.candidates(ctx)
+    except FAMILY_FAILURES as exc:
+        ctx.notes.append(f"{family.name} not tried: it failed on this model ({type(exc).__name__}: {exc})")
+        return []
 
 
 def quantisation_notes(outputs: OutputFit) -> list[str]:

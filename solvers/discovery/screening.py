@@ -218,4 +218,6 @@ def rank(scored: list[Scored]) -> list[Scored]:
         if sc.candidate.generic and best >= 0.5 * sc.score.explained:
             return 0   # a named physical law before a catch-all switching coefficient
         return 2
-    return sorted(scored, key=lambda sc: (level(sc), sc.score.bic_drop), reverse=True)
+    # BIC drops equal to rounding (two spellings of one column, u² and a law P(u) whose linear part the
+    # model has) keep the registry's order, so the ranking does not depend on how the model is spelt
+    return sorted(scored, key=lambda sc: (level(sc), float(f"{sc.score.bic_drop:.8g}")), reverse=True)

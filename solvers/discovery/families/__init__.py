@@ -7,10 +7,12 @@ Order matters only for ties: where two families propose the same column, the ear
 from __future__ import annotations
 
 from greyfit.solvers.discovery.families.base import Family
+from greyfit.solvers.discovery.families.coupling import CouplingLaw
 from greyfit.solvers.discovery.families.custom import Custom
 from greyfit.solvers.discovery.families.drag import QuadraticDrag
 from greyfit.solvers.discovery.families.flow import SqrtFlow
 from greyfit.solvers.discovery.families.friction import Coulomb
+from greyfit.solvers.discovery.families.input_laws import InputLaw
 from greyfit.solvers.discovery.families.inputs import InputDelay, Saturation
 from greyfit.solvers.discovery.families.lags import ExtraPole, InputLag, SensorLag
 from greyfit.solvers.discovery.families.offsets import Offset
@@ -26,6 +28,7 @@ FAMILIES: tuple[Family, ...] = (
     Coulomb(),
     QuadraticDrag(),
     CubicStiffness(),
+    CouplingLaw(),
     Offset(),
     SqrtFlow(),
     Radiation(),
@@ -36,6 +39,7 @@ FAMILIES: tuple[Family, ...] = (
     OutputAbs(),
     OutputSaturation(),
     PowerLaw(),
+    InputLaw(),
     ParameterLaw(),
     ParameterStep(),
     ParameterDrift(),

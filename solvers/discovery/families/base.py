@@ -14,6 +14,7 @@ import numpy as np
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.augment import add_term, fresh_name, with_parameter
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, Regressor
+from greyfit.solvers.discovery.canonical import canonical_form
 
 # where a family's terms enter: a term in a state equation, a law of a declared parameter, a
 # change of an input, or the output path (the sensor)
@@ -296,43 +297,28 @@ def shared_free(model: Model) -> list[str]:
 
 
 def declared_differences(model: Model) -> list[tuple[str, str, str]]:
-    """(equation, a, b) for every difference `a - b` of two names the model's equations and
-    definitions use: a relative speed v4 - wd, a temperature difference T - Ta. Laws of such a
-    difference (radiation T⁴ − Ta⁴, a damper that switches with |v4 − wd|) act on it.
+    """(equation, a, b) for every difference a − b a state equation acts on: a relative speed
+    v4 − wd, a temperature difference T − Ta, found by meaning (`canonical.canonical_form`), so
+    `U*A*(Ta - T)` and `-U*A*(T - Ta)` give the same (T, Ta). Laws of such a difference (radiation
+    T⁴ − Ta⁴, a damper that switches with |v4 − wd|) act on it.
 
     Parameters
     ----------
     model : Model
-        The model; its state equations and definitions are parsed.
+        The model; its state equations (definitions inlined) are read.
 
     Returns
     -------
     list of tuple of (str, str, str)
-        (equation or definition name, a, b) for each distinct difference of two names.
+        (equation, a, b) for each distinct coupling, a the equation's own state or the pair's first
+        state; b a state, an input or a constant.
 
     Raises
     ------
     ModelDefinitionError
-        When an equation or definition does not parse.
+        When an equation or definition does not compile.
     """
-    from greyfit.solvers.model.expressions import parse
-    found: list[tuple[str, str, str]] = []
-    texts = [(s, model.equations[s]) for s in model.states] + list(model.definitions.items())
-    for eq, text in texts:
-        stack = [parse(text, f"equations.{eq}")]
-        while stack:
-            node = stack.pop()
-            if node[0] == "bin" and node[1] == "-" and node[2][0] == "name" and node[3][0] == "name":
-                pair = (eq, node[2][1], node[3][1])
-                if pair not in found:
-                    found.append(pair)
-            if node[0] in ("bin", "cmp"):
-                stack += [node[2], node[3]]
-            elif node[0] == "neg":
-                stack.append(node[1])
-            elif node[0] == "call":
-                stack += list(node[2])
-    return found
+    return [(c.equation, c.a, c.b) for c in canonical_form(model).couplings]
 
 
 def physical_variables(ctx: LibraryContext) -> set[str]:

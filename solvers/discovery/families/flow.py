@@ -1,4 +1,5 @@
-"""Torricelli outflow: every flow the model computes from a level follows sqrt(level), not the level."""
+"""A square-root law: every flow the model computes from a positive state follows its square root
+(Torricelli outflow where the state is a level)."""
 from __future__ import annotations
 
 from typing import Any
@@ -60,7 +61,7 @@ class SqrtFlow(NeedsTracedEquation):
         k = ctx.states.index(s)
         allv = np.concatenate([x[k] for x in trace.x])
         if s in ctx.pos_of or s in ctx.vel_of or np.mean(allv > 0) < 0.9:
-            return None   # Torricelli outflow is for levels: positive, non-mechanical states
+            return None   # a square-root law of a quantity that stays positive: not a position or a velocity
         change = [np.sqrt(np.maximum(x[k], 0)) - x[k] for x in trace.x]
         reg = sensitivity_regressor(trace, trace.jx, k, change)
         if not reg:
@@ -70,5 +71,5 @@ class SqrtFlow(NeedsTracedEquation):
         floor = fmt(1e-6 * float(np.sqrt(np.mean(allv ** 2))))
         where = f"d{s}/dt" + "".join(f", d{o}/dt" for o in flows_into)
         return Candidate(self.name, reg, f"{s} -> sqrt(max({s}, 0)) in the flows of {where}",
-                         f"Torricelli outflow: the flows through {s} follow sqrt({s})",
+                         f"a square-root law: the flows through {s} follow sqrt({s}), not {s}",
                          bind(self, state=s, floor=floor), sign=1.0, family=f"sqrt_flow:{s}", variables=(s,))

@@ -47,7 +47,8 @@ class Radiation(TermFamily):
             # exchange in the direction of the declared linear one: a loss where ∂f/∂a < 0
             sign, phys = ("-", -1.0) if slope < 0 else ("+", 1.0)
             c = self.term(ctx, eq, values, term, f"sigma_{a}", sign, 0.0,
-                          f"radiative exchange s*({a}^4 - {b}^4) in d{eq}/dt (s = sigma_{a}/{fmt(r)}^4)", phys,
+                          f"a fourth-power exchange s*({a}^4 - {b}^4) in d{eq}/dt (s = sigma_{a}/{fmt(r)}^4; "
+                          f"radiation where {a} is an absolute temperature)", phys,
                           (a, b) if b in ctx.states else (a,))
             if c is not None:
                 c.family = f"{self.name}:{eq}:{a}:{b}"

@@ -6,6 +6,7 @@ an effect: it is noted, never added.
 """
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import numpy as np
@@ -14,6 +15,8 @@ from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.augment import fresh_name, rewrite_output, with_parameter
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, OutputFit, fmt
 from greyfit.solvers.discovery.families.base import Scope, bind
+
+_NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 
 
 class _SensorFamily:
@@ -84,7 +87,8 @@ class OutputOffset(_SensorFamily):
         if step is not None:
             ctx.notes.append(f"output {name} is quantised in steps of {fmt(step)}: treated as noise "
                              f"(variance step²/12 = {fmt(step ** 2 / 12)}), not as an effect")
-        return [Candidate(self.name, {}, f"{name} = h + {name}_bias", f"constant offset (bias) of the sensor of {name}",
+        return [Candidate(self.name, {}, f"{name} = {reading(ctx, name)} + {name}_bias",
+                          f"constant offset (bias) of the sensor of {name}",
                           bind(self, output=name), outputs={j: [np.ones_like(y) for y in y_hat]},
                           family=f"output_offset:{name}")]
 
@@ -132,7 +136,8 @@ class OutputGain(_SensorFamily):
         list of Candidate
             One candidate.
         """
-        return [Candidate(self.name, {}, f"{name} = (1 + {name}_gain_error)*h", f"gain error of the sensor of {name}",
+        return [Candidate(self.name, {}, f"{name} = (1 + {name}_gain_error)*{reading(ctx, name)}",
+                          f"gain error of the sensor of {name}",
                           bind(self, output=name), outputs={j: [y.copy() for y in y_hat]},
                           family=f"output_gain:{name}")]
 
@@ -185,8 +190,8 @@ class OutputAbs(_SensorFamily):
         if not sign_blind(measured):
             return []
         changes_sign = np.mean(np.concatenate(y_hat) < 0) > 0.02
-        return [Candidate(self.name, {}, f"{name} = abs(h)",
-                          f"the sensor of {name} does not see the sign: it measures |h|",
+        return [Candidate(self.name, {}, f"{name} = abs({reading(ctx, name, bare=True)})",
+                          f"the sensor of {name} does not see the sign: it measures |{reading(ctx, name, bare=True)}|",
                           bind(self, output=name),
                           outputs={j: [np.abs(y) - y if changes_sign else np.zeros_like(y) for y in y_hat]},
                           sign=1.0, family=f"output_abs:{name}", refit_only=not changes_sign, fresh_start=True)]
@@ -245,11 +250,32 @@ class OutputSaturation(_SensorFamily):
                 continue
             fn = "min" if side == "upper" else "max"
             change = [(np.minimum(y, level) if side == "upper" else np.maximum(y, level)) - y for y in y_hat]
-            out.append(Candidate(self.name, {}, f"{name} = {fn}(h, {fmt(level)})",
+            out.append(Candidate(self.name, {}, f"{name} = {fn}({reading(ctx, name, bare=True)}, {fmt(level)})",
                                  f"the sensor of {name} clips at {fmt(level)} ({side} limit)",
                                  bind(self, output=name, fn=fn, level=float(level)), outputs={j: change}, sign=1.0,
                                  family=f"output_saturation:{name}:{side}"))
         return out
+
+
+def reading(ctx: LibraryContext, name: str, bare: bool = False) -> str:
+    """What output `name` reads, as the model declares it (parenthesised unless one name or `bare`).
+
+    Parameters
+    ----------
+    ctx : LibraryContext
+        The model.
+    name : str
+        The output's name.
+    bare : bool
+        True where the text goes inside a function's parentheses.
+
+    Returns
+    -------
+    str
+        The output's expression (`x1`, `(k*x1 + x2)`), or `name` when the model does not declare it.
+    """
+    text = ctx.model.measured_outputs().get(name, name).strip()
+    return text if bare or _NAME.fullmatch(text) else f"({text})"
 
 
 def measured_values(outputs: OutputFit, j: int) -> np.ndarray:

@@ -6,11 +6,11 @@ seeds: the share of fits called good with its Wilson 95 % interval, the coverage
 intervals (per parameter), how often a fit of the true structure detects the misspecification (a
 likelihood-ratio test at 1 %, white-noise rows), and the warnings that fired.
 
-    python bench/bench_trust.py [--seeds 20] [--rows right-white-held,sensor_lag-white,...]
+    python bench/bench_trust.py [--seeds 20] [--rows right-white-held,sensor_lag-white]
 
-`--suite cases` (issue 22): two systems other than the mass-spring-damper (tests/trust_systems.py): a thermal RC node driven by a
-held PRBS heater, and a pendulum measured by its angle only. Per system and scenario, over --seeds
-records (a new input and a new white noise each):
+`--suite cases` (issue 22): two systems other than the mass-spring-damper (tests/trust_systems.py):
+a thermal RC node driven by a held PRBS heater, and a pendulum measured by its angle only. Per
+system and scenario, over --seeds records (a new input and a new white noise each):
 
   correct         the right model, every option at its default (input_interpolation auto, substeps chosen)
   held_as_linear  the right model, but a held input forced to input_interpolation 'foh'

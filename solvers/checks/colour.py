@@ -53,7 +53,7 @@ def _series(groups: np.ndarray, sample_keys: np.ndarray, experiment_keys: np.nda
 
 
 def noise_model_test(jac: np.ndarray, res: np.ndarray, groups: np.ndarray, sample_keys: np.ndarray,
-                     experiment_keys: np.ndarray, labels: list[str]) -> NoiseModelTest | None:
+                     experiment_keys: np.ndarray, labels: list[str | None]) -> NoiseModelTest | None:
     """Output error against one prediction-error step with a per-series AR noise model.
 
     Parameters
@@ -123,7 +123,7 @@ def _segments(jac: np.ndarray, res: np.ndarray, models: list, info_inv: np.ndarr
     return stat, chi2_sf(stat, g.size)
 
 
-def _hausman(d: np.ndarray, v_oe: np.ndarray, v_d: np.ndarray, names: list[str], orders: list[int]):
+def _hausman(d: np.ndarray, v_oe: np.ndarray, v_d: np.ndarray, names: list, orders: list[int]):
     """dᵀ V_d⁺ d over the directions where V_d is at least `EXCESS_MIN` of V_OE."""
     try:
         chol = np.linalg.cholesky(v_oe)

@@ -99,7 +99,8 @@ def thermal_two_node(extras: dict[str, float]) -> Block:
     def rhs(x, u, p):
         q = (x[0] - x[1]) / p["R12"]
         return np.array([(u - q) / p["C1"], (q - x[1] / p["R2"] - extras.get("h", 0.0) * x[1] ** 2) / p["C2"]])
-    return Block("thermal_two_node", ["T1", "T2"], {"T1": "(u - (T1 - T2)/R12)/C1", "T2": f"((T1 - T2)/R12 - T2/R2{loss})/C2"},
+    eq = {"T1": "(u - (T1 - T2)/R12)/C1", "T2": f"((T1 - T2)/R12 - T2/R2{loss})/C2"}
+    return Block("thermal_two_node", ["T1", "T2"], eq,
                  {"T1": "T1", "T2": "T2"}, rhs, lambda x, p: np.array([x[0], x[1]]), np.zeros(2),
                  {"C1": 10.0, "C2": 50.0, "R12": 0.5, "R2": 1.0}, ["C1", "C2", "R12", "R2"],
                  1.0, 300, (0.0, 50.0), 0.2, dict(extras))

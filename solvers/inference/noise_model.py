@@ -108,3 +108,51 @@ def chi2_sf(x: float, dof: int) -> float:
         total += math.exp(-half) * term
         term *= half / (k + 1.5)
     return min(1.0, total)
+
+
+def whitened_score_p_value(r: np.ndarray, jac: np.ndarray, groups: np.ndarray, g: np.ndarray) -> float:
+    """Score test of adding column(s) `g` to a least-squares fit, under an AR noise model per channel.
+
+    Each channel's rows (in time order) are whitened by the AR(p) model of its residual and scaled by
+    its innovation deviation; the whitened residual is then regressed on the whitened candidate with
+    the whitened Jacobian projected out (a Lagrange-multiplier test of prediction error at β = 0).
+    Under coloured noise this holds its level where a test on the raw residual, even on an effective
+    sample size, is liberal: the fit's projection takes low-frequency power out of the residual.
+
+    Parameters
+    ----------
+    r : numpy.ndarray
+        The fit's residual, shape (n,).
+    jac : numpy.ndarray
+        Its Jacobian, shape (n, k).
+    groups : numpy.ndarray
+        The channel of each row, shape (n,); rows of a channel in time order.
+    g : numpy.ndarray
+        Candidate column(s), shape (n,) or (n, m).
+
+    Returns
+    -------
+    float
+        The p-value (χ²(m)); 1 where nothing can be tested.
+    """
+    g = g.reshape(g.shape[0], -1)
+    parts = []
+    for c in np.unique(groups):
+        rows = np.flatnonzero(groups == c)
+        if rows.size < 20:
+            continue
+        a, variance = fit_ar(r[rows])
+        scale = math.sqrt(max(variance, 1e-300))
+        parts.append([whiten(x[rows], a) / scale for x in (r, jac, g)])
+    if not parts:
+        return 1.0
+    rw, jw, gw = (np.concatenate([p[i] for p in parts]) for i in range(3))
+    basis, s, _ = np.linalg.svd(jw, full_matrices=False) if jw.size else (np.zeros((rw.size, 0)), np.zeros(0), None)
+    basis = basis[:, s > (s[0] if s.size else 0.0) * 1e-10]
+    r0 = rw - basis @ (basis.T @ rw)
+    g0 = gw - basis @ (basis.T @ gw)
+    if np.linalg.norm(g0) <= 1e-6 * max(float(np.linalg.norm(gw)), 1e-300) or not r0 @ r0 > 0:
+        return 1.0
+    coef, *_ = np.linalg.lstsq(g0, r0, rcond=None)
+    explained = float((g0 @ coef) @ r0)
+    return chi2_sf(explained / (float(r0 @ r0) / r0.size), g.shape[1])

@@ -13,13 +13,13 @@ import math
 
 import numpy as np
 
-MAX_ORDER = 4
+MAX_ORDER = 8
 IMPULSE_TOLERANCE = 1e-4   # the autocovariance is summed until the impulse response falls below this
 MAX_LAGS = 400
 
 
 def fit_ar(r: np.ndarray, max_order: int = MAX_ORDER) -> tuple[np.ndarray, float]:
-    """Least-squares AR(p) fit, p ≤ `max_order` chosen by BIC: A(q) r = e.
+    """Least-squares AR(p) fit, p ≤ `max_order` chosen by AIC: A(q) r = e.
 
     Parameters
     ----------
@@ -42,7 +42,7 @@ def fit_ar(r: np.ndarray, max_order: int = MAX_ORDER) -> tuple[np.ndarray, float
         coef, *_ = np.linalg.lstsq(lagged, r[p:], rcond=None)
         e = r[p:] - lagged @ coef
         variance = float(e @ e) / e.size
-        bic = n * math.log(max(variance, 1e-300)) + p * math.log(n)
+        bic = n * math.log(max(variance, 1e-300)) + 2 * p   # AIC: a small long-lasting colour matters here
         if np.all(np.abs(np.roots(np.r_[1.0, -coef])) < 0.995) and bic < best[0]:   # stable only
             best = (bic, np.r_[1.0, -coef], variance)
     return best[1], best[2]

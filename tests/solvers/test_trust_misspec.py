@@ -68,3 +68,20 @@ def test_equation_error_gets_no_interpolation_warning():
     assert "input_faster_than_sampling" not in codes(fit(body))
     body["method"] = "single_shooting"   # where it belongs, it still fires
     assert "input_faster_than_sampling" in codes(fit(body))
+
+
+def test_the_lack_of_fit_screen_holds_its_level_under_coloured_noise():
+    """A right DC motor model under AR(1) 0.8 noise: the screen's effective-size score test found a
+    "missing effect" here; confirmed under an AR noise model it does not, and the fit is good."""
+    case = make_case("right", 8, "ar1", "held")
+    r = fit(case.declared)
+    assert case.block == "dc_motor"
+    assert "missing_effect_likely" not in codes(r) and r.quality == "good"
+
+
+def test_a_missing_effect_under_a_coloured_residual_is_still_found():
+    """Saturable elimination (Michaelis-Menten) in a two-compartment model: the residual is coloured by
+    the misfit, and the whitened confirmation keeps the screen's finding."""
+    case = make_case("saturable", 1)
+    r = fit(case.declared)
+    assert case.block == "pk_two_compartment" and "missing_effect_likely" in codes(r) and r.quality == "suspect"

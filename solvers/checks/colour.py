@@ -44,11 +44,11 @@ class NoiseModelTest:
 def _series(groups: np.ndarray, sample_keys: np.ndarray, experiment_keys: np.ndarray) -> list[np.ndarray]:
     """Row indices of each (experiment, channel) series in time order."""
     out = []
-    for e in np.unique(experiment_keys):
-        for g in np.unique(groups):
-            rows = np.flatnonzero((experiment_keys == e) & (groups == g))
-            if rows.size >= MIN_ROWS:
-                out.append(rows[np.argsort(sample_keys[rows], kind="stable")])
+    order = np.lexsort((sample_keys, groups, experiment_keys))   # by record, channel, then time
+    key = experiment_keys[order] * (int(groups.max(initial=0)) + 1) + groups[order]
+    for rows in np.split(order, np.flatnonzero(np.diff(key)) + 1):
+        if rows.size >= MIN_ROWS:
+            out.append(rows)
     return out
 
 

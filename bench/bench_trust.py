@@ -118,7 +118,9 @@ def run_generated(row: str, seeds: int) -> dict:
     scenario, noise = parts[0], parts[1]
     good, covered, params, detected, tried, codes = 0, 0, 0, 0, 0, collections.Counter()
     for seed in range(seeds):
-        case = make_case(scenario, seed, noise, parts[2] if len(parts) > 2 else None)
+        kind = parts[2] if len(parts) > 2 and parts[2] in ("held", "smooth") else None
+        samples = int(parts[3]) if len(parts) > 3 else None   # e.g. right-ar1-any-121: a short record
+        case = make_case(scenario, seed, noise, kind, samples)
         result = fit_model(FitRequest.model_validate(case.declared))
         good += result.quality == "good"
         codes.update({w.code for w in result.warnings} - INFO)

@@ -175,9 +175,9 @@ def _model(b: Block, free: dict[str, float], fixed: dict[str, float]) -> dict:
             "equations": b.equations, "outputs": b.outputs}
 
 
-def _true_block(name: str, extras: dict, u0: float) -> Block:
+def _true_block(name: str, extras: dict, u0: float, samples: int) -> Block:
     base = {k: v for k, v in extras.items() if k not in ("tau_s", "tau_u")}
-    b = BLOCKS[name](base)
+    b = replace(BLOCKS[name](base), n=samples)
     if "tau_s" in extras:
         b = _with_sensor_lag(b, extras["tau_s"])
     if "tau_u" in extras:
@@ -185,12 +185,16 @@ def _true_block(name: str, extras: dict, u0: float) -> Block:
     return b
 
 
-def make_case(scenario: str, seed: int, noise_kind: str = "white", input_kind: str | None = None) -> Case:
-    """One random fit of `scenario` (see the module's list); `input_kind` held, smooth or None (drawn)."""
+def make_case(scenario: str, seed: int, noise_kind: str = "white", input_kind: str | None = None,
+              samples: int | None = None) -> Case:
+    """One random fit of `scenario` (see the module's list); `input_kind` held, smooth or None (drawn);
+    `samples` per record (None: the block's own, 240-400)."""
     rng = np.random.default_rng([SCENARIOS.index(scenario), seed, noise_kind == "ar1"])
     names = SUPPORTS.get(scenario, list(BLOCKS))
     block = names[int(rng.integers(len(names)))]
     declared = BLOCKS[block]({})
+    if samples is not None:
+        declared = replace(declared, n=samples)
     kind = "held" if scenario == "held_read_smooth" else input_kind or ("held" if rng.random() < 0.5 else "smooth")
     hold = (1, 2) if scenario == "held_read_smooth" else (2, 4)
     p = {k: v * float(np.exp(SPREAD * rng.standard_normal())) if k in declared.free else v
@@ -199,13 +203,14 @@ def make_case(scenario: str, seed: int, noise_kind: str = "white", input_kind: s
     records, sigma = [], None
     for name in ("fit", "validation"):
         u = Input(declared, kind, rng, hold)
-        record, sigma = _record(name, _true_block(block, extras, u(0.0)), declared, p, u, noise_kind, rng, sigma)
+        truth = _true_block(block, extras, u(0.0), declared.n)
+        record, sigma = _record(name, truth, declared, p, u, noise_kind, rng, sigma)
         records.append(record)
     guess = {k: p[k] * float(np.exp(GUESS_SPREAD * rng.standard_normal())) for k in declared.free}
     fixed = {k: v for k, v in p.items() if k not in declared.free}
     request = {"model": _model(declared, guess, fixed), "experiments": [records[0]], "validation": [records[1]]}
     true_extras = {k: v for k, v in extras.items()}
-    tb = _true_block(block, true_extras, 0.0)
+    tb = _true_block(block, true_extras, 0.0, declared.n)
     true_model = _model(tb, {**{k: p[k] for k in declared.free}, **true_extras}, fixed)
     true_records = [_with_extra_initial_states(r, tb, declared, p) for r in records]
     true_request = {"model": true_model, "experiments": [true_records[0]], "validation": [true_records[1]]}

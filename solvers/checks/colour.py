@@ -99,12 +99,12 @@ def noise_model_test(jac: np.ndarray, res: np.ndarray, groups: np.ndarray, sampl
     test = _hausman(step[tested], v_oe[np.ix_(tested, tested)], (v_oe - gls_inv)[np.ix_(tested, tested)],
                     [labels[i] for i in tested], [a.size - 1 for _, a, _ in models])
     if test is not None:
-        test.segment_statistic, test.segment_p_value = _segments(jac, res, models, info_inv, first, info)
+        test.segment_statistic, test.segment_p_value = _segments(jac, res, models, info_inv, first, info, tested)
     return test
 
 
 def _segments(jac: np.ndarray, res: np.ndarray, models: list, info_inv: np.ndarray, first: np.ndarray,
-              info: np.ndarray) -> tuple[float, float]:
+              info: np.ndarray, tested: list[int]) -> tuple[float, float]:
     """Do the two halves of the records estimate the same parameters? The score of the first halves,
     g = J₁ᵀr₁ (the second's is −g at the optimum), against its covariance under the noise model:
     g = Bv with the rows of B J_t I⁻¹I₂ in the first halves and −J_t I⁻¹I₁ in the second (I = I₁ + I₂)."""
@@ -116,6 +116,8 @@ def _segments(jac: np.ndarray, res: np.ndarray, models: list, info_inv: np.ndarr
         g += j[:half].T @ res[rows[:half]]
         signed = np.vstack([j[:half] @ to_first, -j[half:] @ to_second])
         var += coloured_meat(signed, gamma)
+    # the parameters only: an initial state is learnt from the first half alone, and its score compares nothing
+    g, var = g[tested], var[np.ix_(tested, tested)]
     try:
         stat = float(g @ np.linalg.solve(var, g))
     except np.linalg.LinAlgError:
@@ -183,6 +185,26 @@ def colour_warnings(test: NoiseModelTest | None, cov: CovarianceEstimate) -> lis
                 "intervals; from these data alone coloured noise cannot be told from a model error whose "
                 f"misfit colours the residual{said}",
         detail={"widening": widened, "p_value": None if test is None else test.p_value})]
+
+
+NEGLIGIBLE_FIT = 99.9   # fit % of every output above which the residual is the integrator's, not noise
+
+
+def negligible_fit(analyses: list) -> bool:
+    """Every output fitted to 99.9 % or better (`lack_of_fit.negligible_residual`'s threshold): the
+    residual is not noise, and neither its colour nor its dependence on the inputs says the model is wrong.
+
+    Parameters
+    ----------
+    analyses : list of ResidualAnalysis
+        The fit's residual analyses.
+
+    Returns
+    -------
+    bool
+        True when there is an analysis and every fit % is at least `NEGLIGIBLE_FIT`.
+    """
+    return bool(analyses) and all((a.fit_percent or 0.0) >= NEGLIGIBLE_FIT for a in analyses)
 
 
 def coloured_residual_warnings(jac: np.ndarray, res: np.ndarray, groups: np.ndarray | None, keep: np.ndarray,

@@ -213,8 +213,9 @@ def _residual_warnings(result: FitResult) -> list[FitWarning]:
     return out
 
 
-def _independence_warnings(result: FitResult) -> list[FitWarning]:
-    """The residual–input independence test in the verdict: a right model's residual (the noise, coloured or
+def independence_warnings(result: FitResult) -> list[FitWarning]:
+    """The residual–input independence test in the verdict (`verdict.review_fit` asks it of output error
+    of ODE models): a right model's residual (the noise, coloured or
     not) does not depend on the inputs, whatever the colour (the band allows for it, Bartlett's factor);
     a misread input, a sensor or input lag or a missing pole leave a residual that does. Not on a
     residual that is a negligible part of the signal (noise-free data: the integrator's own error)."""
@@ -283,8 +284,6 @@ def assess_fit(result: FitResult, q: QualityInputs) -> FitResult:
         warnings += _fit_warnings(result, q) + _solution_warnings(result, q)
         curvature = _curvature_warnings(q)
         warnings += curvature + _residual_warnings(result)
-        if method_family(q.method) != "equation_error":   # its residuals are smoothed derivatives
-            warnings += _independence_warnings(result)
         if q.covariance.matrix is not None and not curvature:
             warnings = [_at_start_only(w) if w.code == "poor_excitation" else w for w in warnings]
     if q.covariance.robust_bandwidth is not None:

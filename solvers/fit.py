@@ -28,6 +28,7 @@ from greyfit.schemas.fit import (
     SolverInfo,
 )
 from greyfit.schemas.preprocess import PreprocessingReport
+from greyfit.solvers.checks.colour import coloured_residual_warnings, negligible_fit
 from greyfit.solvers.checks.diagnostics import residual_analyses
 from greyfit.solvers.checks.fit_checks import (
     active_constraints,
@@ -301,6 +302,11 @@ def _diagnosed(request: FitRequest, cm, data, ext, layout: ParameterLayout, buil
     cov = estimate_covariance(jp.jac, jp.res, jp.labels, jp.values, jp.scale, keep, layout.size,
                               opts.confidence_level, groups=jp.groups, sample_keys=sample_keys,
                               experiment_keys=experiment_keys, robust=robust)
+    if built.oem is not None and cm.model.discrete is None and not negligible_fit(analyses):
+        # output error of an ODE: coloured noise or a model error? (not on noise-free data, whose residual
+        # is the integrator's own error; not on a difference equation, whose noise model is the user's)
+        before = before + coloured_residual_warnings(jp.jac, jp.res, jp.groups, keep, jp.labels, layout.size,
+                                                     sample_keys, experiment_keys, cov)
     agree = multistart_agreement(built.run, layout, ndata, nvarys, opts.confidence_level)
     before = before + multistart_warnings(built.run, agree)   # multiple_optima: not `good`
     result = _result(request, built, outcome, layout, theta, bounds, cov, channels, analyses,

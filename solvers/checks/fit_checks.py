@@ -78,8 +78,9 @@ def pre_fit_warnings(cm: CompiledModel, data: list[ExperimentData], layout: Para
         del oem.simulation_failures[failures:]   # a failure at the guess is reported as a warning
         labels = list(layout.labels) + oem.x0_labels()
     inputs = {name: [d.u[k] for d in data] for k, name in enumerate(cm.inputs)}
-    # a difference equation reads u[k] only: nothing is interpolated between samples
-    interpolation = "zoh" if cm.model.discrete is not None else options.input_interpolation
+    # a difference equation reads u[k] only, and equation error reads the inputs at the samples (through
+    # its derivative filter): nothing is interpolated between samples, so no interpolation warning
+    interpolation = "zoh" if cm.model.discrete is not None or eep is not None else options.input_interpolation
     return information_warnings(gram, labels) + input_warnings(inputs, interpolation, input_parameters(cm, layout))
 
 

@@ -21,6 +21,7 @@ from typing import Any
 from greyfit.schemas.discovery import DiscoveryOptions, Effect
 from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.solvers.errors import FitError
+from greyfit.solvers.inference.noise_model import whitened_score_p_value
 from greyfit.solvers.methods.registry import simulates_outputs
 
 SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
@@ -71,6 +72,22 @@ def _why_not_screened(request: FitRequest, result: FitResult) -> str | None:
     return ""
 
 
+def _confirmed_under_the_noise_model(hits: list, scorer, alpha: float) -> list:
+    """The hits that a score test under an AR noise model (`whitened_score_p_value`) also finds at the
+    same level: on a coloured residual the screen's effective-sample-size test is about twice as liberal
+    as its level (it flagged 3 of 20 right models under AR(1) 0.8 noise, issue 38). A missing effect of the
+    size the trust benchmark uses stays far below the level either way."""
+    if scorer is None:
+        return hits
+    groups = scorer.groups[scorer.ok]
+    kept = []
+    for sc in hits:
+        g = scorer.stack(sc.candidate.equations, sc.candidate.outputs)
+        if g is None or whitened_score_p_value(scorer.r, scorer.jac, groups, g) * sc.candidate.multiplicity < alpha:
+            kept.append(sc)
+    return kept
+
+
 def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitWarning]:
     """`missing_effect_likely` with the top significant candidates, or `lack_of_fit_not_screened`.
 
@@ -110,13 +127,15 @@ def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitW
                            detail={"reason": "screen failed"})]
     hits = [sc for sc in screening.scored if sc.significant and sc.scored_on == "outputs"
             and not sc.candidate.refit_only]
+    alpha = SIGNIFICANCE / max(screening.tries, 1)
+    if hits and not screening.white:
+        hits = _confirmed_under_the_noise_model(hits, screening.output_scorer, alpha)
     if not hits:
         return []
     top: list[dict[str, Any]] = [
         {"effect": sc.candidate.effect, "term": sc.candidate.term, "description": sc.candidate.description,
          "explained": round(float(sc.score.explained), 4), "p_value": float(sc.score.p_value)}
         for sc in hits[:TOP_CANDIDATES]]
-    alpha = SIGNIFICANCE / max(screening.tries, 1)
     return [FitWarning(
         code="missing_effect_likely",
         message=f"the residual holds a systematic part a missing effect would explain (score test, "

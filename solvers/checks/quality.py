@@ -20,14 +20,16 @@ SUSPECT_CODES = {"fit_below_noise_level", "continuity_gap", "extreme_state", "pa
                  "multiple_optima",   # solvers/methods/multistart.py
                  # lack of fit and integration (issue 22): each points at a wrong answer
                  "missing_effect_likely", "residual_above_noise", "validation_misfit",
-                 "input_held_fitted_linear", "input_faster_than_sampling", "integration_step_coarse"}
+                 "input_held_fitted_linear", "input_faster_than_sampling", "integration_step_coarse",
+                 # misspecification tests that need not name the effect (issue 38)
+                 "residual_correlated_with_input", "noise_model_disagrees"}
 # online, frequency and equation-error checks (solvers/methods/online/checks.py, solvers/frequency/checks.py,
 # solvers/methods/equation_error_bias.py) whose warnings count against `good`
 SUSPECT_CODES |= {"estimate_outside_bounds", "estimate_at_bound", "closed_loop_unstable", "errors_in_variables_bias",
                   "estimate_not_settled"}
 INFO_CODES = {"residual_not_white", "parameter_at_bound", "constraint_active", "input_not_exciting",
               "initial_simulation_diverged", "robust_covariance", "poor_excitation_at_start",
-              "lack_of_fit_not_screened",
+              "lack_of_fit_not_screened", "residual_coloured",
               "singular_derivative_guarded",     # solvers/model/compiler.py
               "polished_with_exact_hessian"}     # solvers/methods/multistart.py
 
@@ -39,6 +41,7 @@ NEAR_SINGULAR = 1e8          # condition of the equilibrated information matrix
 FLAT_RELATIVE = 1e-6         # cost change for a 100 % step along a direction, relative to the cost
 FAR_FROM_WHITE = 0.95        # residual autocorrelation at some lag
 NEGLIGIBLE_FIT = 99.0        # fit % above which the residual's colour does not matter
+INDEPENDENCE_NEGLIGIBLE_FIT = 99.9   # ... and its dependence on the inputs (lack_of_fit.negligible_residual)
 
 
 @dataclass
@@ -208,6 +211,29 @@ def _residual_warnings(result: FitResult) -> list[FitWarning]:
                         "unmodelled dynamics or coloured noise"
                         + ("" if not far else "; the estimates may be biased"),
                 detail={"output": a.output, "max_abs": a.whiteness.max_abs, "bound": a.whiteness.bound}))
+    return out
+
+
+def independence_warnings(result: FitResult) -> list[FitWarning]:
+    """The residual–input independence test in the verdict (`verdict.review_fit` asks it of output error
+    of ODE models): a right model's residual (the noise, coloured or
+    not) does not depend on the inputs, whatever the colour (the band allows for it, Bartlett's factor);
+    a misread input, a sensor or input lag or a missing pole leave a residual that does. Not on a
+    residual that is a negligible part of the signal (noise-free data: the integrator's own error)."""
+    out = []
+    for a in result.residual_analysis:
+        if (a.fit_percent or 0.0) >= INDEPENDENCE_NEGLIGIBLE_FIT:
+            continue
+        for u, test in a.independence.items():
+            if test.lags and not test.passed:
+                out.append(FitWarning(
+                    code="residual_correlated_with_input",
+                    message=f"the residual of '{a.output}' is correlated with input '{u}' (max |cross-correlation| "
+                            f"{test.max_abs:.2f}, band {test.bound:.3f}, p = {test.p_value:.1g}): the model's response "
+                            "to the input is wrong (a misread input, a sensor or input lag, a missing pole or "
+                            "nonlinearity), not the noise; the estimates are biased",
+                    detail={"output": a.output, "input": u, "max_abs": test.max_abs, "bound": test.bound,
+                            "p_value": test.p_value}))
     return out
 
 

@@ -10,7 +10,8 @@ from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.lack_of_fit import missing_effect_warnings
 from greyfit.solvers.checks.noise_level import noise_level_warnings
-from greyfit.solvers.checks.quality import requalify
+from greyfit.solvers.checks.quality import independence_warnings, requalify
+from greyfit.solvers.methods.registry import simulates_outputs
 
 
 def held_input_warnings(report: PreprocessingReport | None) -> list[FitWarning]:
@@ -52,8 +53,13 @@ def review_fit(request: FitRequest, result: FitResult, extra: list[FitWarning] |
     Returns
     -------
     FitResult
-        As `requalify` with the held-input, missing-effect and noise-level warnings.
+        As `requalify` with the held-input, missing-effect, noise-level and residual–input
+        independence warnings.
     """
     more = held_input_warnings(result.preprocessing) + list(extra or [])
     more += missing_effect_warnings(request, result) + noise_level_warnings(request, result)
+    if simulates_outputs(request.method) and request.model.discrete is None and result.quality != "failed":
+        # output error of an ODE (equation error's residuals are smoothed derivatives; a difference
+        # equation's prediction error is the user's noise model's)
+        more += independence_warnings(result)
     return requalify(result, more)

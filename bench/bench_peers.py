@@ -132,8 +132,9 @@ def load(path: str) -> dict:
     return prob
 
 
-def fit_request(prob: dict, record: int, method: str) -> dict:
-    """The same fit as greyfit's JSON request."""
+def fit_request(prob: dict, record: int, method: str, options: str = "pinned") -> dict:
+    """The same fit as greyfit's JSON request: `options` "pinned" (the peers' substeps and foh), "foh"
+    (only the interpolation pinned) or "none" (every option left to greyfit: what a user sends)."""
     if prob["kind"] == "seat":
         model = seat_model(dict(zip(SEAT_TRUTH, prob["start"])))
         names, inputs = SEAT_STATES, {"w": prob["u"][0].tolist(), "wd": prob["u"][1].tolist()}
@@ -145,7 +146,8 @@ def fit_request(prob: dict, record: int, method: str) -> dict:
            "outputs": {names[i]: prob["y"][record, j].tolist() for j, i in enumerate(prob["measured"])},
            "initial_state": dict(zip(names, prob["x0"].tolist()))}
     return {"model": model, "experiments": [exp], "method": method,
-            "options": {"substeps": prob["substeps"], "input_interpolation": "foh"}}
+            "options": {"pinned": {"substeps": prob["substeps"], "input_interpolation": "foh"},
+                        "foh": {"input_interpolation": "foh"}, "none": {}}[options]}
 
 
 def vertcat(parts):
@@ -170,9 +172,12 @@ def rk4(rhs, x, u0, u1, p, dt, substeps, stack):
 # --- the tools: each returns fit(record) -> (free parameters, iterations, compiled, solve seconds) ---
 # (compiled: greyfit's solver.compiled, the vmap's compile CPU; solve seconds: greyfit's solve stage, its
 # result's solver.timings, None for the peers, whose whole fit is a solve)
-def setup_greyfit(prob: dict, method: str):
+def setup_greyfit(prob: dict, method: str, options: str = "pinned"):
     import greyfit
-    requests = [greyfit.FitRequest.model_validate(fit_request(prob, r, method)) for r in range(len(prob["y"]))]
+    import greyfit.solvers.timing as timing
+    timing._now = time.process_time   # the stages' times in CPU, to set beside the peers' CPU
+    requests = [greyfit.FitRequest.model_validate(fit_request(prob, r, method, options))
+                for r in range(len(prob["y"]))]
     names = ["d1", "d2", "d3", "d4", "k1", "k2", "k3", "k4"] if prob["kind"] == "seat" else ["c", "k"]
 
     def fit(record: int):
@@ -279,6 +284,8 @@ def setup_casadi_loop(prob: dict):
 TOOLS = {"greyfit default": lambda prob: setup_greyfit(prob, "auto"),
          "greyfit MS": lambda prob: setup_greyfit(prob, "multiple_shooting"),
          "greyfit SS": lambda prob: setup_greyfit(prob, "single_shooting"),
+         "greyfit default, foh only": lambda prob: setup_greyfit(prob, "auto", "foh"),
+         "greyfit default, no options": lambda prob: setup_greyfit(prob, "auto", "none"),
          "CasADi SS jit -O3": setup_casadi, "JAX optimistix LM": setup_jax,
          "CasADi SS loop": setup_casadi_loop, "JAX vmap LM": lambda prob: setup_jax(prob, batched=True)}
 
@@ -371,7 +378,7 @@ class JobsRunner:
         values = np.array([[r["result"]["parameters"][k]["value"] for k in names] for r in results])
         return (unix_time(job["finished_at"]) - t0, server + workers, values,
                 max(r["result"]["solver"]["iterations"] for r in results),
-                sum(r["result"]["solver"]["timings"]["solve"] for r in results))
+                None)   # the workers' stage times are wall (their clock is their own): no CPU to compare
 
     def close(self) -> None:
         from tests.servers import stop_server
@@ -536,7 +543,8 @@ def tools_for(key: str, with_jax: bool) -> list[str]:
     if key == "e":
         names = ["CasADi SS loop", "JAX vmap LM"]
     else:
-        names = ["greyfit default", "greyfit MS", "greyfit SS", "CasADi SS jit -O3", "JAX optimistix LM"]
+        names = ["greyfit default", "greyfit default, foh only", "greyfit default, no options", "greyfit MS",
+                 "greyfit SS", "CasADi SS jit -O3", "JAX optimistix LM"]
         if key == "b":   # the cold first fit is set against the warm interpreted fit of the default method
             names += ["greyfit default interpreted", "greyfit MS interpreted"]
     return [n for n in names if with_jax or not n.startswith("JAX")]
@@ -611,7 +619,7 @@ def report(key: str, out: dict) -> list[str]:
         mem = f"{out['peak'][n]:8.0f}" if n in out["peak"] else f"{'':8s}"
         solves = [r[4] for r in rs if r[4] is not None]
         solve_txt = ""
-        if solves:   # greyfit's solve stage (wall), its checks apart: the peers' whole fit is a solve
+        if solves:   # greyfit's solve stage (CPU), its checks apart: the peers' whole fit is a solve
             solve = float(np.median(solves))
             solve_txt = f" {1e3 * solve:8.1f}" + (f" {solve / min(peers):15.2f}" if peers else "")
         lines.append(f"  {n:28s} {1e3 * cpu[n]:9.1f} {1e3 * wall:9.1f} {best} {iters:4d} {err:12.2e} "
@@ -648,8 +656,10 @@ def main() -> None:
     print("err vs truth: largest relative parameter error (problem e: median over the fits); vs CasADi: the "
           "largest relative difference from the hand-written CasADi optimum; x floor/it: CPU per iteration over "
           "the floor of one Gauss-Newton iteration; problem e's CPU: server + workers for greyfit, all fits; "
-          "solve ms: greyfit's solve stage alone (solver.timings, wall; problem e: all fits' summed), the checks "
-          "and diagnostics apart, over the better peer's whole CPU.")
+          "solve ms: greyfit's solve stage alone (solver.timings, CPU; none for problem e, whose workers time "
+          "stages in wall), the checks and diagnostics apart, over the better peer's whole CPU. greyfit default, "
+          "foh only: substeps left to greyfit; no options: nothing given (inputs read as greyfit decides), "
+          "each beside its pinned row.")
 
 
 if __name__ == "__main__":

@@ -1,7 +1,7 @@
 """Discovery: fit, trace the residual to a missing physical effect, add it, refit, report."""
 from __future__ import annotations
 
-from typing import Literal, Optional, get_args
+from typing import Any, Literal, Optional, get_args
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -200,6 +200,10 @@ class DiscoveryStep(BaseModel):
                                        description="the contenders refitted against it, best first")
     separate_by: Optional[str] = Field(default=None, description="for an ambiguous step: what would separate it "
                                                                  "from its runner-up")
+    design: Optional[dict[str, Any]] = Field(
+        default=None, description="for an ambiguous step: a DesignRequest body (POST /v1/designs, `greyfit design`) "
+                                  "whose T-optimal input tells the step's law from the runners-up the data tie "
+                                  "with; its limits, noise and length are the fitted record's, to be edited")
 
 
 class RejectedCandidate(BaseModel):

@@ -68,8 +68,10 @@ def information_warnings(gram: np.ndarray, labels: list[str]) -> list[FitWarning
                  "Excite the system more richly (steps plus several sinusoids whose summed spectrum is flat "
                  "over the band of interest, as in 'Digital simulation and parameter estimation for "
                  "multivariable systems') or fix "
-                 "some of: " + ", ".join(names)),
-        detail={"condition": condition, "null_directions": nulls, "parameters": names})]
+                 "some of: " + ", ".join(names) + ". POST /v1/designs (greyfit design --result) computes the "
+                 "input that determines them, within the limits you give"),
+        detail={"condition": condition, "null_directions": nulls, "parameters": names,
+                "design": {"criterion": "D", "parameters_of_interest": [n for n in names if "[" not in n]}})]
 
 
 def _mentions(combination: str, label: str) -> bool:

@@ -110,8 +110,24 @@ def discriminate(request: DiscoverRequest, state: LoopState, screening: Screenin
     if verdict != "approximates":
         verdict, note = catch_all_cap(state, winner, verdict, offered)
     note = "; ".join(x for x in (note, winner.profiled) if x)
-    accept(request, state, winner, screening, note=note, verdict=verdict, runners_up=runners, separate_by=separate)
+    design = _design_pointer(winner, kept, runners) if verdict == "ambiguous" else None
+    accept(request, state, winner, screening, note=note, verdict=verdict, runners_up=runners, separate_by=separate,
+           design=design)
     return True
+
+
+def _design_pointer(winner: Refitted, kept: list[Refitted], runners: list[RunnerUp]) -> dict | None:
+    """The T-optimal design request (POST /v1/designs) telling the winner from the runners-up the data tie with."""
+    from greyfit.solvers.design.pointer import discrimination_request
+    tied = {(r.effect, r.term) for r in runners if r.delta_bic is not None and r.delta_bic < AMBIGUOUS_BIC}
+    rivals = [(r.sc.candidate.effect, r.model, r.fit) for r in kept
+              if r is not winner and (r.sc.candidate.effect, r.sc.candidate.term) in tied]
+    if not rivals:
+        return None
+    try:
+        return discrimination_request(winner.sc.candidate.effect, winner.model, winner.fit, winner.request, rivals)
+    except (ValueError, KeyError, IndexError):   # a record the frame cannot be read from: no pointer, no failure
+        return None
 
 
 @dataclass

@@ -169,3 +169,27 @@ def test_a_combination_the_outputs_cannot_separate_is_refused():
 def test_schema_refuses_impossible_limits(body, message):
     with pytest.raises(ValueError, match=message):
         _request(**body)
+
+
+def test_the_pointer_of_an_ambiguous_step_is_a_design_request_that_runs():
+    """What discovery attaches to an `ambiguous` step: the fitted rivals, the record's frame as limits."""
+    from greyfit.solvers.design.pointer import discrimination_request
+    n = 101
+    time = [round(0.05 * i, 10) for i in range(n)]
+    record = {"name": "step", "time": time, "inputs": {"u": [0.5] * n}, "initial_state": {"x": 0.0, "v": 0.0}}
+    sim = simulate_request(SimulateRequest.model_validate({"model": COULOMB, "experiments": [record]}))
+    y = np.asarray(sim.experiments[0].outputs["y"]) + 0.01 * np.random.default_rng(3).standard_normal(n)
+    fits = {}
+    for model in (COULOMB, QUADRATIC):
+        request = FitRequest.model_validate({"model": model, "experiments": [{**record, "outputs": {"y": list(y)}}]})
+        fits[model["name"]] = (request, fit_model(request))
+    (req_c, fit_c), (_, fit_q) = fits["coulomb"], fits["quadratic"]
+    body = discrimination_request("coulomb", req_c.model, fit_c, req_c,
+                                  [("quadratic", fits["quadratic"][0].model, fit_q)])
+    # a constant input is designed between rest and the level it held; the noise is the fit's RMSE
+    assert body["inputs"] == {"u": {"lower": 0.0, "upper": 0.5}}
+    assert body["outputs"]["y"] == pytest.approx(fit_c.metrics.rmse["y"])
+    assert body["model"]["parameters"][2]["value"] == pytest.approx(fit_c.parameters["Fc"].value)
+    body["options"] = {"starts": 1, "rounds": 1, "max_iterations": 20}
+    result = design_experiment(DesignRequest.model_validate(body))
+    assert {d.truth for d in result.discrimination} == {"coulomb", "quadratic"}

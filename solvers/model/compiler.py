@@ -184,6 +184,52 @@ def compile_model(model: Model) -> CompiledModel:
     return cm
 
 
+# the largest model graph (CasADi instructions, shared sub-expressions counted once) and its Jacobian
+# with respect to states and parameters that a fit derives: every method differentiates the model, a
+# fit evaluates it per sample and RK4 substep, and the compiled kernels grow with it. A physical model
+# of the sizes the schema allows stays far below (the 4-DOF seat: ~100; 50 states of a linear
+# template: ~5 000); a runaway one (a long chain of definitions, an expression repeated thousands of
+# times) is refused here, in milliseconds, before anything is derived or compiled to C.
+MAX_MODEL_INSTRUCTIONS = 20_000
+MAX_JACOBIAN_INSTRUCTIONS = 200_000
+
+
+def check_graph_size(model: Model, rhs: ca.Function, out: ca.Function, dx: ca.SX, symbols: list) -> None:
+    """Refuse a model whose graph or first derivative is larger than a fit can afford.
+
+    Parameters
+    ----------
+    model : Model
+        The model (its equations name the field in the error).
+    rhs, out : casadi.Function
+        f(x, u, p, t) and h(x, u, p, t) in SX.
+    dx : casadi.SX
+        f's expression.
+    symbols : list of casadi.SX
+        x, u, p, t.
+
+    Raises
+    ------
+    ModelDefinitionError
+        Naming the largest equation (or output) and the limit.
+    """
+    size = rhs.n_instructions() + out.n_instructions()
+    x, _, p, _ = symbols
+    if size <= MAX_MODEL_INSTRUCTIONS:
+        derivative = ca.Function("derivative", symbols, [ca.jacobian(dx, ca.vertcat(x, p))]).n_instructions()
+        if derivative <= MAX_JACOBIAN_INSTRUCTIONS:
+            return
+        what = f"its derivative has {derivative} operations, the limit is {MAX_JACOBIAN_INSTRUCTIONS}"
+    else:
+        what = f"{size} operations after its definitions are inlined, the limit is {MAX_MODEL_INSTRUCTIONS}"
+    sizes = {f"equations.{s}": ca.Function("equation", symbols, [dx[i]]).n_instructions()
+             for i, s in enumerate(model.states)}
+    field = max(sizes, key=lambda k: sizes[k])
+    raise ModelDefinitionError(f"the model is too large to fit: {what}; the largest is {field} "
+                               f"({sizes[field]} operations): simplify it or share sub-expressions "
+                               "through definitions", field)
+
+
 def _compile(model: Model) -> CompiledModel:
     x = ca.SX.sym("x", len(model.states))
     u = ca.SX.sym("u", len(model.inputs))
@@ -223,6 +269,7 @@ def _compile(model: Model) -> CompiledModel:
 
     rhs = ca.Function("rhs", [x, u, p, t], [dx], ["x", "u", "p", "t"], ["dx"])
     out = ca.Function("output", [x, u, p, t], [y], ["x", "u", "p", "t"], ["y"])
+    check_graph_size(model, rhs, out, dx, [x, u, p, t])
     for fn in (rhs, out):
         if fn.has_free():
             raise ModelDefinitionError(f"free symbols {fn.get_free()} in the model", "equations")

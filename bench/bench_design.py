@@ -31,6 +31,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.rates import wilson  # noqa: E402
 from greyfit.schemas.design import DesignRequest  # noqa: E402
 from greyfit.schemas.discovery import DiscoverRequest  # noqa: E402
 from greyfit.schemas.fit import FitRequest  # noqa: E402
@@ -39,16 +40,6 @@ from greyfit.solvers.design import design_experiment  # noqa: E402
 from greyfit.solvers.discovery import discover  # noqa: E402
 from greyfit.solvers.fit import fit_model  # noqa: E402
 from greyfit.solvers.simulation.simulate import simulate_request  # noqa: E402
-
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return math.nan, math.nan
-    p = k / n
-    d = 1 + z * z / n
-    c = (p + z * z / (2 * n)) / d
-    h = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / d
-    return max(0.0, c - h), min(1.0, c + h)
 
 
 def _par(name, value):

@@ -46,6 +46,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.rates import wilson  # noqa: E402
 from greyfit.schemas.fit import FitRequest  # noqa: E402
 from greyfit.solvers.fit import fit_model  # noqa: E402
 from tests.generators.misspec import make_case  # noqa: E402
@@ -53,14 +54,6 @@ from tests.trust_systems import ALIASED_THERMAL, SCENARIOS, TRUTH  # noqa: E402
 
 ALL = ["correct", "held_as_linear", "wrong_model", "aliased", "aliased_auto", "linear_torque"]
 
-
-def wilson(k: int, n: int, z: float = 1.96) -> tuple[float, float]:
-    if n == 0:
-        return math.nan, math.nan
-    p = k / n
-    centre = (p + z * z / (2 * n)) / (1 + z * z / n)
-    half = z * math.sqrt(p * (1 - p) / n + z * z / (4 * n * n)) / (1 + z * z / n)
-    return max(0.0, centre - half), min(1.0, centre + half)
 
 
 def truth_of(system: str, scenario: str) -> dict:

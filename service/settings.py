@@ -37,6 +37,9 @@ class Settings(BaseSettings):
     max_queued_tasks: int = Field(
         default=100_000, ge=1, description="tasks queued in the job store at most (every server's); a job that "
                                            "would pass it gets 503 + Retry-After, and nothing accepted is dropped")
+    max_queued_tasks_per_client: int = Field(
+        default=0, ge=0, description="tasks one client (API key) may have queued at most (0: no limit of its "
+                                     "own); its next job gets 503 + Retry-After, other clients are not affected")
     max_answer_bytes: int = Field(
         default=4 * 1024 * 1024, ge=1024,
         description="largest answer assembled in memory (a job's status with its tasks); a larger one gets 422 "

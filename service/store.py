@@ -705,6 +705,12 @@ class JobStore:
                                 .group_by(tasks.c.status)).all()
         return {status: n for status, n in rows}
 
+    def queued_of(self, client: str) -> int:
+        """Queued tasks of the jobs one client created (the per-client limit of the queue)."""
+        with self.engine.connect() as conn:
+            return conn.execute(select(func.count()).select_from(tasks.join(jobs, tasks.c.job_id == jobs.c.id))
+                                .where(tasks.c.status == "queued", jobs.c.client == client)).scalar_one()
+
     def queue_depth(self) -> int:
         with self.engine.connect() as conn:
             return conn.execute(select(func.count()).select_from(tasks)

@@ -16,7 +16,7 @@ from greyfit.service.cli import main as greyfit
 from greyfit.service.clients import KeyStore
 from greyfit.service.store import JobStore, make_engine
 from tests.servers import free_port, start_server, stop_server
-from tests.service.conftest import make_settings, msd_request
+from tests.service.conftest import make_settings, msd_request, slow_request
 
 LEGACY_KEY = "the-single-legacy-key-" + uuid.uuid4().hex
 
@@ -155,3 +155,23 @@ def test_a_real_server_writes_no_key_to_its_log(tmp_path):
     assert "/v1/jobs" in written   # the access log was written
     for key in (key_a, key_b, LEGACY_KEY):
         assert key not in written and key[:-1] not in written and key not in metrics
+
+
+def test_a_client_that_fills_its_own_queue_does_not_stop_another(tmp_path):
+    settings = make_settings(tmp_path, workers=1, max_queued_tasks_per_client=3)
+    with TestClient(create_app(settings)) as http:
+        keys = KeyStore(http.app.state.store.engine)
+        key_a, key_b = keys.add("a"), keys.add("b")
+        time.sleep(1.1)   # NO_KEYS_RECHECK_SECONDS
+        # a's slow task holds the one worker; the two behind it stay queued
+        first = http.post("/v1/jobs", headers=bearer(key_a),
+                          json={"requests": [slow_request()] + [msd_request(0, n=41)] * 2})
+        assert first.status_code == 202, first.text
+        refused = http.post("/v1/jobs", headers=bearer(key_a), json={"requests": [msd_request(1, n=41)] * 2})
+        assert refused.status_code == 503 and "GREYFIT_MAX_QUEUED_TASKS_PER_CLIENT" in refused.text
+        assert int(refused.headers["retry-after"]) >= 1
+        too_many = http.post("/v1/jobs", headers=bearer(key_b), json={"requests": [msd_request(1, n=41)] * 4})
+        assert too_many.status_code == 422 and "GREYFIT_MAX_QUEUED_TASKS_PER_CLIENT" in too_many.text
+        other = http.post("/v1/jobs", headers=bearer(key_b), json={"requests": [msd_request(1, n=41)] * 2})
+        assert other.status_code == 202, other.text   # b's own room is untouched by a's queue
+        http.delete(f"/v1/jobs/{first.json()['id']}", headers=bearer(key_a))

@@ -186,7 +186,7 @@ def test_every_option_has_help_text():
     from greyfit.service.cli import build_parser
     parser = build_parser()
     subparsers = next(a for a in parser._actions if a.dest == "command")
-    assert set(subparsers.choices) == {"fit", "discover", "serve", "batch", "simulate", "report"}
+    assert set(subparsers.choices) == {"fit", "discover", "serve", "batch", "simulate", "report", "design", "keys"}
     for name, sub in subparsers.choices.items():
         assert sub.description, name
         for action in sub._actions:

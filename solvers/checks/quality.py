@@ -219,7 +219,18 @@ def independence_warnings(result: FitResult) -> list[FitWarning]:
     of ODE models): a right model's residual (the noise, coloured or
     not) does not depend on the inputs, whatever the colour (the band allows for it, Bartlett's factor);
     a misread input, a sensor or input lag or a missing pole leave a residual that does. Not on a
-    residual that is a negligible part of the signal (noise-free data: the integrator's own error)."""
+    residual that is a negligible part of the signal (noise-free data: the integrator's own error).
+
+    Parameters
+    ----------
+    result : FitResult
+        The fit (its residual analysis per record and output).
+
+    Returns
+    -------
+    list of FitWarning
+        `residual_correlated_with_input` where the test rejects; else empty.
+    """
     out = []
     for a in result.residual_analysis:
         if (a.fit_percent or 0.0) >= INDEPENDENCE_NEGLIGIBLE_FIT:

@@ -40,7 +40,20 @@ class Table:
     csv: bool = False
 
     def where(self, column: str, row: Optional[int] = None) -> str:
-        """`run1.csv: column 'x', row 12 (line 13)`, rows counted from 1 below the header."""
+        """`run1.csv: column 'x', row 12 (line 13)`, rows counted from 1 below the header.
+
+        Parameters
+        ----------
+        column : str
+            The column's name.
+        row : int, optional
+            The row (from 0); None names the column only.
+
+        Returns
+        -------
+        str
+            The place, for an error line.
+        """
         at = f"{self.label}: column '{column}'"
         if row is None:
             return at
@@ -103,7 +116,20 @@ def read_table(path: str | Path, label: Optional[str] = None) -> Table:
 
 
 def table_from_dataframe(frame: Any, label: str = "DataFrame") -> Table:
-    """A pandas DataFrame's columns (a named index, e.g. a time index, counts as a column)."""
+    """A pandas DataFrame's columns (a named index, e.g. a time index, counts as a column).
+
+    Parameters
+    ----------
+    frame : pandas.DataFrame
+        The frame.
+    label : str
+        Names it in errors.
+
+    Returns
+    -------
+    Table
+        Its columns by name.
+    """
     return Table(label, _frame_columns(frame))
 
 
@@ -149,7 +175,20 @@ def _h5_vector(columns: dict[str, np.ndarray], name: str, obj: Any, h5py: Any) -
 
 
 def find_column(table: Table, wanted: str) -> Optional[str]:
-    """The table's column called `wanted`, or written `wanted [unit]` / `wanted (unit)`."""
+    """The table's column called `wanted`, or written `wanted [unit]` / `wanted (unit)`.
+
+    Parameters
+    ----------
+    table : Table
+        The file's columns.
+    wanted : str
+        The model's name.
+
+    Returns
+    -------
+    str or None
+        The column's name, or None where none matches.
+    """
     if wanted in table.columns:
         return wanted
     for column in table.columns:
@@ -166,6 +205,20 @@ def numeric_column(table: Table, column: str, complete: bool) -> np.ndarray:
     ------
     DataFileError
         A cell that is not a number, not finite, or missing where `complete`; the row is named.
+
+    Parameters
+    ----------
+    table : Table
+        The file's columns.
+    column : str
+        The column's name.
+    complete : bool
+        Whether every sample must be present (inputs, time).
+
+    Returns
+    -------
+    numpy.ndarray
+        The values.
     """
     raw = table.columns[column]
     if raw.size == 0:
@@ -299,7 +352,18 @@ def _not_found(table: Table, wanted: str, what: str, fix: str) -> str:
 
 
 def model_names(model: Model) -> tuple[list[str], list[str]]:
-    """The inputs a file must hold (not those an ARMAX predictor reads from an output) and the outputs."""
+    """The inputs a file must hold (not those an ARMAX predictor reads from an output) and the outputs.
+
+    Parameters
+    ----------
+    model : Model
+        The model.
+
+    Returns
+    -------
+    tuple of (list of str, list of str)
+        The inputs and the outputs a file is read for.
+    """
     fed = measured_output_inputs(model.template)
     return [u for u in model.inputs if u not in fed], list(model.measured_outputs())
 
@@ -346,6 +410,17 @@ def read_records(paths: Sequence[str | Path], model: Model, spec: FileColumns, r
 
 
 def record_name(label: str) -> str:
-    """The file's stem as a record name (letters, digits and _ only)."""
+    """The file's stem as a record name (letters, digits and _ only).
+
+    Parameters
+    ----------
+    label : str
+        The file's name or label.
+
+    Returns
+    -------
+    str
+        A valid record name.
+    """
     stem = re.sub(r"[^A-Za-z0-9_]", "_", Path(label).stem) or "record"
     return (stem if not stem[0].isdigit() else f"r_{stem}")[:MAX_NAME_LENGTH]

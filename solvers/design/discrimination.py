@@ -39,7 +39,20 @@ class PairFit:
 
 
 def rival_pairs(setup: DesignSetup, request: DesignRequest) -> list[Pair]:
-    """Both directions of the model against each rival."""
+    """Both directions of the model against each rival.
+
+    Parameters
+    ----------
+    setup : DesignSetup
+        The laid-out design (the model).
+    request : DesignRequest
+        Its rivals and outputs.
+
+    Returns
+    -------
+    list of Pair
+        (model, rival) and (rival, model) for each rival.
+    """
     main = setup.model
     pairs = []
     for k, rival in enumerate(request.rivals):
@@ -159,13 +172,40 @@ class Discriminated:
 
     @property
     def smallest(self) -> float:
-        """The smallest divergence over the pairs."""
+        """The smallest divergence over the pairs.
+
+        Returns
+        -------
+        float
+            The smallest divergence over the pairs.
+        """
         return min(f.divergence for f in self.fits)
 
 
 def fit_pairs(pairs: list[Pair], main: Candidate, U: np.ndarray, time: np.ndarray, request: DesignRequest,
               starts: list[np.ndarray] | None = None) -> list[PairFit]:
-    """Every rival refitted to its truth on input U."""
+    """Every rival refitted to its truth on input U.
+
+    Parameters
+    ----------
+    pairs : list of Pair
+        The comparisons.
+    main : Candidate
+        The model whose input order U has.
+    U : numpy.ndarray
+        Inputs × samples.
+    time : numpy.ndarray
+        Sample times.
+    request : DesignRequest
+        Options.
+    starts : list of numpy.ndarray, optional
+        Each rival's parameters to start from (default its own).
+
+    Returns
+    -------
+    list of PairFit
+        One per pair.
+    """
     return [refit_rival(pair, main, U, time, request, pair.rival.p if starts is None else starts[k])
             for k, pair in enumerate(pairs)]
 

@@ -69,7 +69,22 @@ def information(model: Candidate, x0: np.ndarray, U: np.ndarray, time: np.ndarra
 
 
 def parameter_draws(setup: DesignSetup, request: DesignRequest, rng: np.random.Generator) -> list[np.ndarray]:
-    """The nominal parameters, and `robust_draws` draws from the covariance (clipped to the bounds)."""
+    """The nominal parameters, and `robust_draws` draws from the covariance (clipped to the bounds).
+
+    Parameters
+    ----------
+    setup : DesignSetup
+        The model and the covariance.
+    request : DesignRequest
+        `robust_draws`.
+    rng : numpy.random.Generator
+        Seeded.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Full parameter vectors, the nominal first.
+    """
     model = setup.model
     draws = [model.p]
     if request.robust_draws and setup.covariance is not None:
@@ -88,7 +103,17 @@ def _scale(model: Candidate) -> np.ndarray:
 
 
 def check_seen(setup: DesignSetup, U: np.ndarray, substeps: int) -> None:
-    """Refuse a design for a parameter the measured outputs do not depend on (under a rich input)."""
+    """Refuse a design for a parameter the measured outputs do not depend on (under a rich input).
+
+    Parameters
+    ----------
+    setup : DesignSetup
+        The laid-out design.
+    U : numpy.ndarray
+        A rich input inside the limits.
+    substeps : int
+        RK4 steps per sample.
+    """
     scale = _scale(setup.model)
     F = information(setup.model, setup.x0, U, setup.time, substeps)
     rel = np.diag(F) * scale ** 2
@@ -154,7 +179,26 @@ def solve_information_design(setup: DesignSetup, request: DesignRequest, starts:
 
 def exact_criterion(setup: DesignSetup, request: DesignRequest, U: np.ndarray,
                     time: Optional[np.ndarray] = None, x0: Optional[np.ndarray] = None) -> float:
-    """The criterion of input U at the nominal parameters (E: the largest eigenvalue itself)."""
+    """The criterion of input U at the nominal parameters (E: the largest eigenvalue itself).
+
+    Parameters
+    ----------
+    setup : DesignSetup
+        The laid-out design.
+    request : DesignRequest
+        The criterion.
+    U : numpy.ndarray
+        Inputs × samples.
+    time : numpy.ndarray, optional
+        Sample times (default the design's).
+    x0 : numpy.ndarray, optional
+        Initial state (default the design's).
+
+    Returns
+    -------
+    float
+        The criterion.
+    """
     F = information(setup.model, setup.x0 if x0 is None else x0, U, setup.time if time is None else time,
                     request.options.substeps)
     return criterion_value(request.criterion, F, _scale(setup.model), setup.interest)
@@ -186,5 +230,24 @@ def check_identifiable(setup: DesignSetup, U: np.ndarray, substeps: int) -> None
 
 
 def stderrs(setup: DesignSetup, U: np.ndarray, time: np.ndarray, x0: np.ndarray, substeps: int) -> Optional[np.ndarray]:
-    """Predicted standard errors of the free parameters for input U."""
+    """Predicted standard errors of the free parameters for input U.
+
+    Parameters
+    ----------
+    setup : DesignSetup
+        The laid-out design.
+    U : numpy.ndarray
+        Inputs × samples.
+    time : numpy.ndarray
+        Sample times.
+    x0 : numpy.ndarray
+        Initial state.
+    substeps : int
+        RK4 steps per sample.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        One per free parameter; None where the information is singular.
+    """
     return predicted_stderrs(information(setup.model, x0, U, time, substeps))

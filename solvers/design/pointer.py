@@ -17,7 +17,20 @@ from greyfit.schemas.model import Model
 
 
 def with_estimates(model: Model, fit: FitResult) -> dict[str, Any]:
-    """The model as a dict whose parameter values are the fit's estimates (inside their bounds)."""
+    """The model as a dict whose parameter values are the fit's estimates (inside their bounds).
+
+    Parameters
+    ----------
+    model : Model
+        The model.
+    fit : FitResult
+        Its fit.
+
+    Returns
+    -------
+    dict
+        The model's JSON body.
+    """
     body = model.model_dump(exclude_none=True)
     for par in body.get("parameters", []):
         est = fit.parameters.get(par["name"])

@@ -33,7 +33,13 @@ class Candidate:
 
     @property
     def free_names(self) -> list[str]:
-        """Names of the free parameters."""
+        """Names of the free parameters.
+
+        Returns
+        -------
+        list of str
+            The free parameters' names.
+        """
         return [self.cm.parameters[i] for i in self.free]
 
 
@@ -144,7 +150,22 @@ def _covariance(request: DesignRequest, model: Candidate) -> Optional[np.ndarray
 
 
 def initial_state(cm: CompiledModel, given: dict[str, float], field: str) -> np.ndarray:
-    """The initial state vector (0 where not given)."""
+    """The initial state vector (0 where not given).
+
+    Parameters
+    ----------
+    cm : CompiledModel
+        The model.
+    given : dict
+        State name -> value.
+    field : str
+        Where the values sit in the request (for errors).
+
+    Returns
+    -------
+    numpy.ndarray
+        One value per state.
+    """
     for name in given:
         if name not in cm.states:
             raise DataError(f"{name!r} is not a state of the model", f"{field}.{name}")
@@ -173,7 +194,22 @@ def design_setup(request: DesignRequest) -> DesignSetup:
 
 
 def baseline_inputs(request: DesignRequest, inputs: list[str], baseline: Experiment) -> np.ndarray:
-    """The baseline's inputs as a matrix on its own samples (held inputs from the request where absent)."""
+    """The baseline's inputs as a matrix on its own samples (held inputs from the request where absent).
+
+    Parameters
+    ----------
+    request : DesignRequest
+        Held inputs' values.
+    inputs : list of str
+        The model's inputs in order.
+    baseline : Experiment
+        The baseline record.
+
+    Returns
+    -------
+    numpy.ndarray
+        Inputs × samples.
+    """
     n = len(baseline.time)
     U = np.zeros((len(inputs), n))
     for i, name in enumerate(inputs):
@@ -194,7 +230,18 @@ def baseline_inputs(request: DesignRequest, inputs: list[str], baseline: Experim
 
 
 def baseline_time(baseline: Experiment) -> np.ndarray:
-    """The baseline's sample times, checked increasing."""
+    """The baseline's sample times, checked increasing.
+
+    Parameters
+    ----------
+    baseline : Experiment
+        The baseline record.
+
+    Returns
+    -------
+    numpy.ndarray
+        Its sample times.
+    """
     time = np.asarray(baseline.time, dtype=float)
     if not np.all(np.isfinite(time)) or np.any(np.diff(time) <= 0):
         raise DataError("time must be finite and strictly increasing", "baseline.time")

@@ -34,11 +34,28 @@ class Signal:
 
     @property
     def nz(self) -> int:
-        """Number of decision variables."""
+        """Number of decision variables.
+
+        Returns
+        -------
+        int
+            Number of decision variables.
+        """
         return len(self.free) * self.basis.shape[0]
 
     def inputs(self, z):
-        """U (inputs × samples) of z, symbolic or numeric."""
+        """U (inputs × samples) of z, symbolic or numeric.
+
+        Parameters
+        ----------
+        z : numpy.ndarray or casadi.MX
+            The decision variables.
+
+        Returns
+        -------
+        numpy.ndarray or casadi.MX
+            Inputs × samples.
+        """
         nf, m = len(self.free), self.basis.shape[0]
         numeric = isinstance(z, np.ndarray)
         Z = np.reshape(z, (nf, m)) if numeric else ca.reshape(z, m, nf).T
@@ -52,7 +69,18 @@ class Signal:
         return ca.DM(self.fixed) + ca.DM(place) @ free_rows
 
     def constraints(self, z) -> tuple[ca.MX, np.ndarray, np.ndarray]:
-        """g(z), lbg, ubg: sample bounds (multisine) and rates of change."""
+        """g(z), lbg, ubg: sample bounds (multisine) and rates of change.
+
+        Parameters
+        ----------
+        z : casadi.MX
+            The decision variables.
+
+        Returns
+        -------
+        tuple of (casadi.MX, numpy.ndarray, numpy.ndarray)
+            g(z) and its lower and upper bounds.
+        """
         U = self.inputs(z)
         rows, lb, ub = [], [], []
         for i, r in enumerate(self.free):
@@ -71,7 +99,18 @@ class Signal:
         return ca.vertcat(*rows), np.concatenate(lb), np.concatenate(ub)
 
     def start(self, rng: np.random.Generator) -> np.ndarray:
-        """A seeded starting z inside the bounds."""
+        """A seeded starting z inside the bounds.
+
+        Parameters
+        ----------
+        rng : numpy.random.Generator
+            Seeded.
+
+        Returns
+        -------
+        numpy.ndarray
+            A starting z.
+        """
         m = self.basis.shape[0]
         Z = np.empty((m, len(self.free)))
         for i in range(len(self.free)):
@@ -85,7 +124,18 @@ class Signal:
         return Z.T.reshape(-1)
 
     def project(self, U: np.ndarray) -> np.ndarray:
-        """The z whose signal is closest to the free rows of U (least squares), clipped to z's bounds."""
+        """The z whose signal is closest to the free rows of U (least squares), clipped to z's bounds.
+
+        Parameters
+        ----------
+        U : numpy.ndarray
+            Inputs × samples.
+
+        Returns
+        -------
+        numpy.ndarray
+            The z closest to U.
+        """
         Z, *_ = np.linalg.lstsq(self.basis.T, U[self.free, :].T, rcond=None)
         return np.clip(Z.T.reshape(-1), self.lbz, self.ubz)
 
@@ -99,7 +149,18 @@ def _rate_limited_levels(rng: np.random.Generator, m: int, lo: float, hi: float,
 
 
 def design_grid(request: DesignRequest) -> np.ndarray:
-    """The sample times 0, Ts, 2Ts, ... up to the duration."""
+    """The sample times 0, Ts, 2Ts, ... up to the duration.
+
+    Parameters
+    ----------
+    request : DesignRequest
+        Its duration and sample time.
+
+    Returns
+    -------
+    numpy.ndarray
+        The sample times.
+    """
     n = int(np.floor(request.duration / request.sample_time + 1e-9)) + 1
     return np.arange(n) * request.sample_time
 
@@ -154,7 +215,18 @@ def _hold_basis(request: DesignRequest, n: int) -> np.ndarray:
 
 
 def default_frequencies(request: DesignRequest) -> np.ndarray:
-    """Eight frequencies log-spaced from 1/duration to a fifth of the sampling rate (Hz)."""
+    """Eight frequencies log-spaced from 1/duration to a fifth of the sampling rate (Hz).
+
+    Parameters
+    ----------
+    request : DesignRequest
+        Its duration and sample time.
+
+    Returns
+    -------
+    numpy.ndarray
+        Frequencies in Hz.
+    """
     return np.geomspace(1.0 / request.duration, 0.2 / request.sample_time, 8)
 
 

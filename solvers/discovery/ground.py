@@ -41,8 +41,8 @@ MULTISTART_STARTS = 8
 MULTISTART_MAX_ITER = 100   # per start ...
 MULTISTART_ITER_FACTOR = 3  # ... and at most this many times the base fit's iterations
 MULTISTART_MIN_ITER = 30
-MULTISTART_CPU_FACTOR = 6.0  # the safety net: about a base fit per start, with room for a harder one
-MULTISTART_CPU_FLOOR_S = 5.0
+MULTISTART_CPU_FACTOR = 20.0  # the safety net: 8 starts at up to 2.5 base fits each (a start far off costs more)
+MULTISTART_CPU_FLOOR_S = 10.0
 
 
 def solid_ground(fit_req: FitRequest, base: FitResult, clock: Clock,

@@ -87,6 +87,18 @@ def build_all(jobs: list[dict]) -> int:
 
 
 def main(argv: list[str]) -> int:
+    """Build the compile jobs a command handed over (their file named on the command line), then exit.
+
+    Parameters
+    ----------
+    argv : list of str
+        The command line: the program and the jobs file.
+
+    Returns
+    -------
+    int
+        The exit code (0 when every build ended).
+    """
     path = Path(argv[1])
     try:
         jobs = json.loads(path.read_text())

@@ -56,7 +56,20 @@ def fit_ar(r: np.ndarray, max_order: int = MAX_ORDER) -> tuple[np.ndarray, float
 
 
 def whiten(x: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """A(q) x along the first axis, the first p rows dropped (they lack their past)."""
+    """A(q) x along the first axis, the first p rows dropped (they lack their past).
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        Series along the first axis.
+    a : numpy.ndarray
+        A(q)'s coefficients, a[0] = 1.
+
+    Returns
+    -------
+    numpy.ndarray
+        The whitened rows.
+    """
     p = a.size - 1
     out = x[p:].copy()
     for i in range(1, p + 1):
@@ -65,7 +78,20 @@ def whiten(x: np.ndarray, a: np.ndarray) -> np.ndarray:
 
 
 def autocovariance(a: np.ndarray, variance: float) -> np.ndarray:
-    """γ(0), γ(1), ... of the AR process A(q) v = e, Var e = `variance`, until it has decayed."""
+    """γ(0), γ(1), ... of the AR process A(q) v = e, Var e = `variance`, until it has decayed.
+
+    Parameters
+    ----------
+    a : numpy.ndarray
+        A(q)'s coefficients, a[0] = 1.
+    variance : float
+        The innovation's variance.
+
+    Returns
+    -------
+    numpy.ndarray
+        γ(0), γ(1), ...
+    """
     psi = [1.0]
     while len(psi) < MAX_LAGS:   # impulse response of 1/A(q)
         nxt = -sum(a[i] * psi[-i] for i in range(1, min(a.size, len(psi) + 1)))
@@ -77,7 +103,20 @@ def autocovariance(a: np.ndarray, variance: float) -> np.ndarray:
 
 
 def coloured_meat(jac: np.ndarray, gamma: np.ndarray) -> np.ndarray:
-    """Jᵀ Σ J for stationary noise of autocovariance `gamma` along the rows of `jac`."""
+    """Jᵀ Σ J for stationary noise of autocovariance `gamma` along the rows of `jac`.
+
+    Parameters
+    ----------
+    jac : numpy.ndarray
+        The Jacobian, one row per sample.
+    gamma : numpy.ndarray
+        The noise's autocovariance γ(0), γ(1), ...
+
+    Returns
+    -------
+    numpy.ndarray
+        Jᵀ Σ J.
+    """
     meat = gamma[0] * (jac.T @ jac)
     for k in range(1, min(gamma.size, jac.shape[0])):
         cross = jac[k:].T @ jac[:-k]

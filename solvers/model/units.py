@@ -31,7 +31,18 @@ class _Unknowable(Exception):
 def read_unit(text: str) -> Optional[Unit]:
     """``{"N": 1, "s": 1, "m": -1}`` for ``"N s/m"`` (``*`` or a space multiply; what follows ``/``
     divides; ``^2``, ``**2`` or ``2`` after a symbol is a power; ``1`` is dimensionless); None where
-    it does not read."""
+    it does not read.
+
+    Parameters
+    ----------
+    text : str
+        The unit as written.
+
+    Returns
+    -------
+    Unit or None
+        The exponents by symbol.
+    """
     out: Unit = {}
     numerator, _, denominator = text.replace("·", " ").replace("**", "^").partition("/")
     for part, sign in ((numerator, 1), (denominator, -1)):
@@ -47,7 +58,18 @@ def read_unit(text: str) -> Optional[Unit]:
 
 
 def write_unit(unit: Unit) -> str:
-    """``"kg/(m^2 s^2)"``-style text of a unit (``"1"`` when dimensionless)."""
+    """``"kg/(m^2 s^2)"``-style text of a unit (``"1"`` when dimensionless).
+
+    Parameters
+    ----------
+    unit : Unit
+        Exponents by symbol.
+
+    Returns
+    -------
+    str
+        The unit as text.
+    """
     def power(symbol: str, exponent: Fraction) -> str:
         return symbol if exponent == 1 else f"{symbol}^{exponent}"
     up = " ".join(power(s, e) for s, e in sorted(unit.items()) if e > 0)

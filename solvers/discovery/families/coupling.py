@@ -92,9 +92,14 @@ class CouplingLaw(NeedsTracedEquation):
                 continue
             stem = f"{p}_{a}_{b}{label}"
             text = law.format(d=d)
-            out.append(Candidate(
+            c = Candidate(
                 self.name, reg, f"{p} -> {p} + {stem}*{text}",
                 f"the coupling {p}·({d}) gains {what.format(d=d)}",
                 bind(self, parameter=p, law=text, stem=stem), family=f"{self.name}:{a}:{b}:{p}:{label}",
-                modifies=p, variables=variables))
+                modifies=p, variables=variables)
+            # a power of the difference added to a linear coupling is a member of the series that
+            # approximates any smooth law of it (as the power laws are): it names no mechanism, and a
+            # named law of the same variables (radiation's T⁴, drag) is refitted beside it
+            c.approximating = True
+            out.append(c)
         return out

@@ -12,7 +12,7 @@ def add_keys(sub) -> None:
                                    "(GREYFIT_DATABASE_URL, else the SQLite store in --data-dir). Each client sees "
                                    "only its own jobs; a revoked key is refused at once by every server.")
     p.add_argument("--data-dir", default=None, help="the server's data folder (default: GREYFIT_DATA_DIR or ./data)")
-    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION")
+    actions = p.add_subparsers(dest="action", required=True, metavar="ACTION", help="add, list or revoke")
     p_add = actions.add_parser("add", help="make a key for a new client; the key is printed once, on stdout")
     p_add.add_argument("name", help="the client's name: 1 to 64 letters, digits, '.', '_' or '-'")
     actions.add_parser("list", help="the keys' names, when each was made and revoked (never a key)")

@@ -14,7 +14,7 @@ import pytest
 from tests.solvers.test_validation import DUFFING_TRUTH, duffing_input, duffing_model, record, simulate_duffing
 
 ROOT = Path(__file__).resolve().parents[2]
-FIGURES = ("compare_estimation", "compare_validation", "residuals", "parameters", "correlation")
+FIGURES = ("compare_estimation", "compare_validation", "residuals_time", "residuals", "parameters", "correlation")
 
 
 def browser() -> str:
@@ -78,7 +78,7 @@ def test_report_page_loads_in_headless_chromium_with_every_figure_rendered(repor
     dom = chromium(exe, "--dump-dom", page.as_uri())
     assert dom.returncode == 0, dom.stderr[-2000:]
     html = dom.stdout
-    assert 'data-figures="5"' in html, html[:500]
+    assert f'data-figures="{len(FIGURES)}"' in html, html[:500]
     for name in FIGURES:
         m = re.search(rf'<figure id="fig-{name}"[^>]*>\s*<img[^>]*data-rendered="(\d+)x(\d+)"', html)
         assert m, f"figure {name} missing or not decoded by the browser"

@@ -3,6 +3,7 @@ import numpy as np
 import pytest
 
 from greyfit.schemas import FitRequest
+from greyfit.schemas.text_report import converged
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.inference.statistics import student_t_quantile
 from tests.systems import MSD_TRUTH, msd_experiment, msd_model, simulate_msd
@@ -23,7 +24,9 @@ def msd_fit(seed, method="single_shooting", **model_kw):
 @pytest.mark.slow
 def test_reported_stderr_matches_monte_carlo_spread():
     results = [msd_fit(seed) for seed in range(200)]
-    assert all(r.success for r in results)
+    assert all(converged(r) for r in results)
+    # the verdict's tests each run at a false-alarm rate of about 0.5-1 %: a few right fits may be suspect
+    assert sum(not r.success for r in results) <= 4
     for name in ("c", "k"):
         values = np.array([r.parameters[name].value for r in results])
         reported = np.mean([r.parameters[name].stderr for r in results])

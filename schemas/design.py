@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import math
-from typing import Literal, Optional
+from typing import Annotated, Literal, Optional
 
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
@@ -114,7 +114,7 @@ class DesignRequest(BaseModel):
         default="piecewise_constant",
         description="piecewise constant on the hold grid, or a sum of sines at `frequencies` (levels held "
                     "for one sample)")
-    frequencies: Optional[list[float]] = Field(
+    frequencies: Optional[list[Annotated[float, Field(gt=0, allow_inf_nan=False)]]] = Field(
         default=None, max_length=64, description="multisine: the frequencies in Hz (default: eight, "
                                                  "log-spaced from 1/duration to a fifth of the sampling rate)")
     robust_draws: int = Field(

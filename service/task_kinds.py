@@ -126,7 +126,8 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              elsewhere="Decimate the sine-test records, or submit it as a job: POST /v1/frequency-fits/jobs",
              operation="create_frequency_fit", job_operation="create_frequency_fit_job", tag="frequency fits"),
     TaskKind("design", "greyfit.schemas.design:DesignRequest", "greyfit.schemas.design:DesignResult",
-             "greyfit.solvers.design:design_experiment", sync_path="/v1/designs", jobs_path="/v1/designs/jobs",
+             "greyfit.solvers.design:design_experiment", caps_cpu=False,   # bounded by its iterations and starts
+             sync_path="/v1/designs", jobs_path="/v1/designs/jobs",
              job_body="greyfit.schemas.design:DesignJobCreate",
              limits="greyfit.service.limits:check_design_limits", values="greyfit.service.limits:design_values",
              example=Example("msd_design", "The input that shrinks the mass-spring-damper's intervals most "

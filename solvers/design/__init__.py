@@ -35,6 +35,7 @@ from greyfit.solvers.design.setup import (
     design_setup,
     initial_state,
 )
+from greyfit.solvers.errors import DataError, FitError
 
 __all__ = ["design_experiment"]
 
@@ -156,10 +157,20 @@ def design_experiment(request: DesignRequest) -> DesignResult:
     started = clock.perf_counter()
     rng = np.random.default_rng(request.options.seed)
     setup = design_setup(request)
-    if request.criterion == "T":
-        fields = _discrimination_result(setup, request, rng)
-    else:
-        fields = _information_result(setup, request, rng)
+    try:
+        with np.errstate(over="raise", invalid="ignore", divide="ignore"):
+            if request.criterion == "T":
+                fields = _discrimination_result(setup, request, rng)
+            else:
+                fields = _information_result(setup, request, rng)
+    except (RuntimeError, ValueError, FloatingPointError, OverflowError, np.linalg.LinAlgError) as exc:
+        if isinstance(exc, FitError):
+            raise
+        # CasADi and numpy fail this way on limits and values no simulation survives (an input of 1e300,
+        # a hold of a nanosecond over hours): the request's numbers, not a server fault
+        raise DataError(f"the design could not be computed with these limits and values ({type(exc).__name__}: "
+                        f"{str(exc).splitlines()[0][:200] if str(exc) else 'no message'}); check the inputs' "
+                        "limits, the duration and sample time, and the parameters' values", "inputs") from exc
     notes = ["the initial state is taken as known; the noise as white with the given standard deviations"]
     if request.robust_draws:
         notes.append(f"the criterion is averaged over the estimates and {request.robust_draws} draws from the "

@@ -162,7 +162,7 @@ def design_grid(request: DesignRequest) -> np.ndarray:
         The sample times.
     """
     n = int(np.floor(request.duration / request.sample_time + 1e-9)) + 1
-    return np.arange(n) * request.sample_time
+    return np.round(np.arange(n) * request.sample_time, 12)   # 0.3, not 0.30000000000000004
 
 
 def make_signal(request: DesignRequest, inputs: list[str], time: np.ndarray) -> Signal:

@@ -15,7 +15,12 @@ from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.catch_all import LINE_UP, catch_all_cap, line_up, prefer_law
 from greyfit.solvers.discovery.confirm import LoopState, continues_in_time, off_on_validation, profile_decides
 from greyfit.solvers.discovery.effects import Candidate
-from greyfit.solvers.discovery.ground import MULTISTART_CPU_FLOOR_S, MULTISTART_MIN_ITER, multistart_bounds
+from greyfit.solvers.discovery.ground import (
+    MULTISTART_CPU_FACTOR,
+    MULTISTART_CPU_FLOOR_S,
+    MULTISTART_MIN_ITER,
+    multistart_bounds,
+)
 from greyfit.solvers.discovery.scoring import RegressionScorer
 from greyfit.solvers.discovery.screening import Scored
 from greyfit.solvers.fit import fit_model
@@ -151,7 +156,7 @@ def test_the_multistart_is_bounded_relative_to_the_base_fit():
     req = FitRequest.model_validate({"model": _model(), "experiments": [_body(0.0, False, n=50)["experiments"][0]]})
     base = SimpleNamespace(solver=SimpleNamespace(iterations=12))
     cpu, iters = multistart_bounds(req, base, Clock(300.0), base_cpu_s=4.0)
-    assert cpu == pytest.approx(24.0) and iters == 36
+    assert cpu == pytest.approx(MULTISTART_CPU_FACTOR * 4.0) and cpu < 300.0 and iters == 36
     cpu, iters = multistart_bounds(req, SimpleNamespace(solver=SimpleNamespace(iterations=2)), Clock(300.0), 0.1)
     assert cpu == pytest.approx(MULTISTART_CPU_FLOOR_S) and iters == MULTISTART_MIN_ITER
 

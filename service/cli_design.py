@@ -25,8 +25,22 @@ def cmd_design(args) -> int:
     from greyfit.service.cli import emit
     from greyfit.service.json_parsing import validate_strict
     from greyfit.solvers.design import design_experiment
-    result = design_experiment(validate_strict(DesignRequest, design_body(args)))
+    request = validate_strict(DesignRequest, design_body(args))
+    result = design_experiment(request)
     emit(result, args)
+    return _write_report(result, request, args.report) if args.report else 0
+
+
+def _write_report(result, request, out: str) -> int:
+    """The design's page (designed input, predicted outputs, predicted gain) written to `out`."""
+    from greyfit.schemas.report import ReportRequest
+    from greyfit.service.report import ReportDependencyMissing, write_report
+    try:
+        paths = write_report(ReportRequest(result=result, request=request), Path(out), ("png",))
+    except ReportDependencyMissing as exc:
+        print(f"greyfit: {exc}", file=sys.stderr)
+        return 2
+    print(f"greyfit: report written to {paths[-1]}", file=sys.stderr)
     return 0
 
 
@@ -41,5 +55,8 @@ def add_design(sub) -> None:
                    help="a FitResult JSON: its estimates, covariance and model are designed for (the request then "
                         "needs only the limits, outputs and duration)")
     p.add_argument("--criterion", choices=["D", "A", "E", "T"], help="override the request's criterion")
+    p.add_argument("--report", metavar="DIR",
+                   help="also write the design's report (report.html and PNG figures: the designed input beside "
+                        "the baseline's, the predicted outputs, the predicted gain) to DIR")
     add_output_options(p, "design", fail_on=False)
     p.set_defaults(func=cmd_design)

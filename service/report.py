@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from greyfit.schemas.design import DesignRequest, DesignResult
 from greyfit.schemas.discovery import DiscoveryResult
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.frequency import FrequencyFitRequest
@@ -313,8 +314,11 @@ def build_report(req: ReportRequest, svg: bool = False) -> Report:
     """Render every figure the result (and request) allow, as PNG and, if `svg`, SVG too; notes say
     what could not be drawn."""
     from greyfit.service.report_discovery import discovery_figures
-    plt = _pyplot()
     result, request = req.result, req.request
+    if isinstance(result, DesignResult):
+        from greyfit.service.report_design import design_report
+        return design_report(result, request if isinstance(request, DesignRequest) else None, req.title, svg)
+    plt = _pyplot()
     discovery = isinstance(result, DiscoveryResult)
     fit = result.fit if discovery else result
     model = _report_model(result, request)

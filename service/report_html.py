@@ -143,7 +143,29 @@ def discovery_html(result: DiscoveryResult) -> str:
     rejected = "".join(f"<li>{_e(r.effect)} (<code>{_e(r.term)}</code>): <b>{_e(r.reason)}</b>: {_e(r.detail)}</li>"
                        for r in result.rejected)
     return (f"<h2>Discovery</h2><p>{_e(result.conclusion)}</p><ul class='steps'>{steps}</ul>"
-            + (f"<p>not kept:</p><ul>{rejected}</ul>" if rejected else "") + _before_after(result))
+            + (f"<p>not kept:</p><ul>{rejected}</ul>" if rejected else "") + _before_after(result)
+            + _next_experiment(result))
+
+
+def _next_experiment(result: DiscoveryResult) -> str:
+    """For each ambiguous step, the design request that would settle it: the experiment is the user's
+    to run, so the page gives the body to send (POST /v1/designs, or `greyfit design --report`, whose
+    page draws the designed input and its predicted gain)."""
+    import json
+    items = []
+    for s in result.steps:
+        if s.design is None:
+            continue
+        rivals = ", ".join(r.get("name", "?") for r in s.design.get("rivals", []) if isinstance(r, dict))
+        items.append(f"<li>{_e(s.effect)} in {_e(s.equation)} against {_e(rivals or 'its runners-up')}: "
+                     f"<details><summary>the design request</summary><pre class='design-request'>"
+                     f"{_e(json.dumps(s.design, indent=1)[:20000])}</pre></details></li>")
+    if not items:
+        return ""
+    return ("<h2>The next experiment</h2><p>These records cannot tell the rivals apart. Send a body below to "
+            "<code>POST /v1/designs</code> (or save it and run <code>greyfit design BODY.json --report DIR</code>) "
+            "for the input that separates them, with its predicted divergence; its report draws the input.</p>"
+            f"<ul class='next-experiment'>{''.join(items)}</ul>")
 
 
 def summary_html(fit: FitResult, discovery: Optional[DiscoveryResult], model) -> str:

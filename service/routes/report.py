@@ -5,11 +5,19 @@ from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
 from sqlalchemy import and_, select
 
+from greyfit.schemas.design import DesignRequest
 from greyfit.schemas.frequency import FrequencyFitRequest
 from greyfit.schemas.report import ReportRequest
 from greyfit.service.deps import client_of, require_api_key
 from greyfit.service.json_body import StrictJSONRoute
-from greyfit.service.limits import check_frequency_limits, check_limits, data_values, frequency_values
+from greyfit.service.limits import (
+    check_design_limits,
+    check_frequency_limits,
+    check_limits,
+    data_values,
+    design_values,
+    frequency_values,
+)
 from greyfit.service.problems import PROBLEM
 from greyfit.service.query import QueryInt
 from greyfit.service.routes.jobs import JOB_ID, MAX_INDEX
@@ -35,6 +43,8 @@ def _check_report(body: ReportRequest, settings: Settings) -> None:
     """The request that comes with a result is simulated again: the fits' limits apply to it."""
     if isinstance(body.request, FrequencyFitRequest):
         check_frequency_limits(body.request, settings, "request.")
+    elif isinstance(body.request, DesignRequest):
+        check_design_limits(body.request, settings, "request.")
     elif body.request is not None:
         check_limits(body.request, settings, "request.")
 
@@ -42,6 +52,8 @@ def _check_report(body: ReportRequest, settings: Settings) -> None:
 def _report_values(body: ReportRequest) -> int:
     if isinstance(body.request, FrequencyFitRequest):
         return frequency_values(body.request)
+    if isinstance(body.request, DesignRequest):
+        return design_values(body.request)
     return data_values(body.request) if body.request is not None else 0
 
 

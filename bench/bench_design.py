@@ -14,8 +14,10 @@ discrimination
              A mass-spring-damper with Coulomb friction (the truth) or quadratic damping, both small,
              recorded with one step; the loop (POST /v1/discover's `discover`) runs on the step record and
              on a record of the T-optimal input designed against the rivals the loop sets beside a
-             velocity law (the other friction law and a cubic power of the velocity). Per truth: how often the loop
-             names the truth `identified` on each record.
+             velocity law (the other friction law and a cubic power of the velocity), of the same length,
+             and again of the length the design says settles the closest pair with probability 0.9
+             (`duration_to_settle`, at most 4x): the user following the design's advice. Per truth: how
+             often the loop names the truth `identified` on each record.
 
     python bench/bench_design.py [--seeds 10] [--draws 10] [--tables information,discrimination]
 """
@@ -137,8 +139,28 @@ def _named(result, truth: str) -> bool:
     return any(want in s.effect and s.verdict == "identified" for s in result.steps)
 
 
+def _t_design(true_model: dict, rivals: list[str], sizes: dict, duration: float, ts: float, sigma: float):
+    return design_experiment(DesignRequest.model_validate(
+        {"model": true_model, "criterion": "T",
+         "rivals": [{"name": r, "model": _friction_model(r, sizes[r])} for r in rivals],
+         "inputs": {"u": {"lower": -0.6, "upper": 0.6}}, "outputs": {"y": sigma}, "duration": duration,
+         "sample_time": ts, "hold": 0.25, "options": {"starts": 1}}))
+
+
+def _named_on(record: dict, true_model: dict, truth: str, sigma: float, rng) -> tuple[bool, bool]:
+    sim = simulate_request(SimulateRequest.model_validate({"model": true_model, "experiments": [record]}))
+    clean = np.asarray(sim.experiments[0].outputs["y"])
+    y = clean + sigma * rng.standard_normal(clean.size)
+    result = discover(DiscoverRequest.model_validate(
+        {"model": _friction_model(None), "experiments": [{**record, "outputs": {"y": list(y)}}]}))
+    return _named(result, truth), bool(result.ambiguous)
+
+
 def discrimination_row(truth: str, seeds: int) -> tuple:
-    on_step, on_design, ambiguous_step = 0, 0, 0
+    """Per seed: the loop on a step record, on the T-optimal record of the same length, and on the
+    T-optimal record of the length the design says settles the closest pair with probability 0.9
+    (`duration_to_settle`, at most 4x), designed again with it: the user following the design's advice."""
+    on_step, on_design, on_advised, ambiguous_step, predicted, lengths = 0, 0, 0, 0, [], []
     for seed in range(seeds):
         rng = np.random.default_rng(2000 + seed)
         sizes = {"coulomb": rng.uniform(0.05, 0.12), "quadratic": rng.uniform(0.3, 0.6), "cubic": 0.5}
@@ -146,24 +168,27 @@ def discrimination_row(truth: str, seeds: int) -> tuple:
         # the rivals the loop sets beside a velocity law: the other named friction and a power of v
         rivals = [r for r in ("coulomb", "quadratic", "cubic") if r != truth]
         ts, n, sigma = 0.05, 241, 0.005
+        duration = ts * (n - 1)
         times = [round(ts * i, 12) for i in range(n)]
         step = {"name": "step", "time": times, "inputs": {"u": [0.6] * n}, "initial_state": {"x": 0.0, "v": 0.0}}
-        design = design_experiment(DesignRequest.model_validate(
-            {"model": true_model, "criterion": "T",
-             "rivals": [{"name": r, "model": _friction_model(r, sizes[r])} for r in rivals],
-             "inputs": {"u": {"lower": -0.6, "upper": 0.6}}, "outputs": {"y": sigma}, "duration": times[-1],
-             "sample_time": ts, "hold": 0.25, "options": {"starts": 1, "rounds": 2, "max_iterations": 60}}))
-        for record, counter in ((step, "step"), (design.experiment.model_dump(), "design")):
-            sim = simulate_request(SimulateRequest.model_validate({"model": true_model, "experiments": [record]}))
-            y = np.asarray(sim.experiments[0].outputs["y"]) + sigma * rng.standard_normal(n)
-            result = discover(DiscoverRequest.model_validate(
-                {"model": _friction_model(None), "experiments": [{**record, "outputs": {"y": list(y)}}]}))
-            if counter == "step":
-                on_step += _named(result, truth)
-                ambiguous_step += bool(result.ambiguous)
-            else:
-                on_design += _named(result, truth)
-    return truth, seeds, on_step, ambiguous_step, on_design, wilson(on_design, seeds)
+        named, ambiguous = _named_on(step, true_model, truth, sigma, rng)
+        on_step += named
+        ambiguous_step += ambiguous
+        design = _t_design(true_model, rivals, sizes, duration, ts, sigma)
+        on_design += _named_on(design.experiment.model_dump(), true_model, truth, sigma, rng)[0]
+        closest = min(design.discrimination, key=lambda d: d.expected_delta_bic)
+        if closest.duration_to_settle is not None:
+            longer = round(min(closest.duration_to_settle, 4 * duration) / 0.25) * 0.25   # whole holds
+            design = _t_design(true_model, rivals, sizes, max(longer, duration), ts, sigma)
+            closest = min(design.discrimination, key=lambda d: d.expected_delta_bic)
+        predicted.append(closest.settle_probability or 0.0)
+        lengths.append(design.experiment.time[-1])
+        named_advised = _named_on(design.experiment.model_dump(), true_model, truth, sigma, rng)[0]
+        on_advised += named_advised
+        print(f"  {truth} seed {seed}: step {named}, designed {duration:.0f} s, advised "
+              f"{lengths[-1]:.1f} s (P {predicted[-1]:.2f}) named {named_advised}", file=sys.stderr, flush=True)
+    return (truth, seeds, on_step, ambiguous_step, on_design, on_advised, wilson(on_advised, seeds),
+            float(np.mean(predicted)), float(np.median(lengths)))
 
 
 def main() -> None:
@@ -172,6 +197,7 @@ def main() -> None:
     ap.add_argument("--draws", type=int, default=10)
     ap.add_argument("--tables", default="information,discrimination")
     ap.add_argument("--families", default=",".join(FAMILIES))
+    ap.add_argument("--truths", default="coulomb,quadratic", help="the discrimination table's rows")
     args = ap.parse_args()
     tables = args.tables.split(",")
     if "information" in tables:
@@ -184,11 +210,12 @@ def main() -> None:
                   f"| {wall:.1f} |", flush=True)
     if "discrimination" in tables:
         print("\n| truth | seeds | named on the step record | ambiguous there | named on the designed record "
-              "| 95 % CI |")
-        print("|---|---|---|---|---|---|")
-        for truth in ("coulomb", "quadratic"):
-            t, n, s, amb, d, (lo, hi) = discrimination_row(truth, args.seeds)
-            print(f"| {t} | {n} | {s}/{n} | {amb}/{n} | {d}/{n} | {lo:.2f}-{hi:.2f} |", flush=True)
+              "(same length) | named on the advised length | 95 % CI | predicted P(settled), mean | median length s |")
+        print("|---|---|---|---|---|---|---|---|---|")
+        for truth in args.truths.split(","):
+            t, n, s, amb, d, a, (lo, hi), p, length = discrimination_row(truth, args.seeds)
+            print(f"| {t} | {n} | {s}/{n} | {amb}/{n} | {d}/{n} | {a}/{n} | {lo:.2f}-{hi:.2f} | {p:.2f} "
+                  f"| {length:.1f} |", flush=True)
 
 
 if __name__ == "__main__":

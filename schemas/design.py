@@ -171,6 +171,14 @@ class Discrimination(BaseModel):
     expected_delta_bic_baseline: Optional[float] = Field(
         default=None, description="the same on the baseline's input, where given")
     rival_parameters: dict[str, float] = Field(description="the rival's parameters imitating the truth best")
+    settle_probability: Optional[float] = Field(
+        default=None, description="the chance that a record made with the designed input gives a ΔBIC above the "
+                                  "discovery loop's ambiguity margin (10) for this pair: Φ((expected ΔBIC − 10)/"
+                                  "(2√divergence)), the noise's cross term being normal with variance 4·divergence")
+    duration_to_settle: Optional[float] = Field(
+        default=None, description="where settle_probability is below 0.9: the duration (s) at which it would reach "
+                                  "0.9 with the same amplitude, taking the divergence as growing in proportion to the "
+                                  "record's length (design again with it); null when the design settles it")
 
 
 class DesignResult(BaseModel):

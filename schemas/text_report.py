@@ -278,5 +278,12 @@ def design_report(result: "DesignResult") -> str:
         rows += [[d.truth, d.rival, _num(d.divergence, ".4g"), _num(d.divergence_baseline, ".4g"),
                   _num(d.expected_delta_bic, ".4g")] for d in result.discrimination]
         lines += ["[[Discrimination]]"] + _table(rows, {2, 3, 4})
+        closest = min(result.discrimination, key=lambda d: d.expected_delta_bic)
+        if closest.settle_probability is not None:
+            more = ("" if closest.duration_to_settle is None else
+                    f"; about {closest.duration_to_settle:.3g} s at this amplitude would make it 0.9 (design again "
+                    "with that duration)")
+            lines.append(f"{INDENT}the closest pair ({closest.truth} vs {closest.rival}) is settled (ΔBIC > 10) "
+                         f"with probability {closest.settle_probability:.2f}{more}")
     lines += [f"{INDENT}note: {n}" for n in result.notes]
     return "\n".join(lines)

@@ -171,10 +171,11 @@ def design_html(result: DesignResult) -> str:
             f"Ipopt {_e(result.status)} after {result.iterations} iterations{gain}</p>")
     if result.criterion == "T":
         rows = [[_e(d.truth), _e(d.rival), _n(d.divergence, ".4g"), _n(d.divergence_baseline, ".4g"),
-                 _n(d.expected_delta_bic, ".4g"), _n(d.expected_delta_bic_baseline, ".4g")]
+                 _n(d.expected_delta_bic, ".4g"), _n(d.expected_delta_bic_baseline, ".4g"),
+                 _n(d.settle_probability, ".2f"), _n(d.duration_to_settle, ".3g")]
                 for d in result.discrimination]
         table = _table("discrimination", ["truth", "rival", "divergence", "baseline", "expected ΔBIC",
-                                          "baseline ΔBIC"], rows)
+                                          "baseline ΔBIC", "P(settled)", "duration for 0.9 [s]"], rows)
     else:
         rows = []
         for name, p in result.parameters.items():

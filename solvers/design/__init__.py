@@ -14,6 +14,7 @@ import numpy as np
 
 from greyfit.schemas.design import DesignRequest, DesignResult, Discrimination, PredictedParameter
 from greyfit.schemas.experiment import Experiment
+from greyfit.solvers.design.criteria import SETTLE_PROBABILITY, divergence_to_settle, settle_probability
 from greyfit.solvers.design.discrimination import (
     Pair,
     PairFit,
@@ -102,13 +103,24 @@ def _information_result(setup: DesignSetup, request: DesignRequest, rng: np.rand
                 status=solved.status, iterations=solved.iterations)
 
 
+def _to_settle(divergence: float, penalty: float, duration: float) -> tuple[float, Optional[float]]:
+    """The pair's chance to be settled, and the duration that would make it 0.9 (None if it is)."""
+    p = settle_probability(divergence, penalty)
+    if p >= SETTLE_PROBABILITY:
+        return p, None
+    needed = divergence_to_settle(penalty)
+    return p, duration * needed / max(divergence, 1e-12)
+
+
 def _discrimination_rows(pairs: list[Pair], fits: list[PairFit], base_fits: Optional[list[PairFit]],
-                         n_values: int, n_base: Optional[int]) -> list[Discrimination]:
+                         n_values: int, n_base: Optional[int], duration: float) -> list[Discrimination]:
     rows = []
     for k, (pair, fit) in enumerate(zip(pairs, fits)):
         extra = len(pair.rival.free) - len(pair.truth.free)
         base = base_fits[k] if base_fits is not None else None
+        settle, to_settle = _to_settle(fit.divergence, extra * math.log(n_values), duration)
         rows.append(Discrimination(
+            settle_probability=settle, duration_to_settle=to_settle,
             rival=pair.rival.name, truth=pair.truth.name, divergence=fit.divergence,
             divergence_baseline=None if base is None else base.divergence,
             expected_delta_bic=fit.divergence + extra * math.log(n_values),
@@ -129,7 +141,8 @@ def _discrimination_result(setup: DesignSetup, request: DesignRequest, rng: np.r
         n_base = len(tb) * len(request.outputs)
         objective_b = -min(f.divergence for f in base_fits)
         improvement = kept.smallest / max(-objective_b, 1e-300)
-    rows = _discrimination_rows(pairs, kept.fits, base_fits, len(setup.time) * len(request.outputs), n_base)
+    rows = _discrimination_rows(pairs, kept.fits, base_fits, len(setup.time) * len(request.outputs), n_base,
+                                float(setup.time[-1] - setup.time[0]))
     return dict(experiment=_experiment(setup, request, U), objective=-kept.smallest,
                 objective_baseline=objective_b, discrimination=rows, improvement=improvement,
                 status=kept.status, iterations=kept.iterations)

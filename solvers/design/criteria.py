@@ -8,6 +8,8 @@ expands cofactors.
 """
 from __future__ import annotations
 
+import math
+
 import casadi as ca
 import numpy as np
 
@@ -16,6 +18,58 @@ import numpy as np
 RIDGE = 1e-10
 # E-optimality: the largest eigenvalue of the covariance as the trace of its 2^k-th power's root
 E_POWER_DOUBLINGS = 3
+# the whitened ΔBIC the discovery loop needs to name one law over another (its AMBIGUOUS_BIC; a test
+# keeps the two equal without the design importing the loop)
+SETTLE_BIC = 10.0
+SETTLE_PROBABILITY = 0.9      # the chance a record should give of settling the closest pair
+_Z_SETTLE = 1.2815515655446004   # Φ⁻¹(0.9)
+
+
+def settle_probability(divergence: float, penalty: float, margin: float = SETTLE_BIC) -> float:
+    """The chance that a record settles a pair: its realised ΔBIC above `margin`.
+
+    On a record the rival's χ² exceeds the truth's by the divergence D (the noise-free gap) plus a
+    cross term 2·Σ gap·noise/σ², which is normal with variance 4D; ΔBIC adds the parameter-count
+    `penalty`. So P = Φ((D + penalty − margin) / (2√D)), to first order in the refits' own noise.
+
+    Parameters
+    ----------
+    divergence : float
+        Σ((y_truth − y_rival)/σ)² with the rival refitted (D).
+    penalty : float
+        (rival's free parameters − truth's)·ln N.
+    margin : float, optional
+        The ΔBIC that settles it (the loop's ambiguity margin).
+
+    Returns
+    -------
+    float
+        A probability in [0, 1].
+    """
+    if divergence <= 0:
+        return 0.0 if penalty <= margin else 1.0
+    z = (divergence + penalty - margin) / (2.0 * math.sqrt(divergence))
+    return 0.5 * math.erfc(-z / math.sqrt(2.0))
+
+
+def divergence_to_settle(penalty: float, margin: float = SETTLE_BIC) -> float:
+    """The divergence at which `settle_probability` reaches `SETTLE_PROBABILITY`.
+
+    Parameters
+    ----------
+    penalty : float
+        (rival's free parameters − truth's)·ln N.
+    margin : float, optional
+        The ΔBIC that settles it.
+
+    Returns
+    -------
+    float
+        D with (D + penalty − margin)/(2√D) = Φ⁻¹(0.9): √D = z + √(z² + margin − penalty); 0 when the
+        penalty alone settles it.
+    """
+    slack = _Z_SETTLE ** 2 + margin - penalty
+    return 0.0 if slack <= 0 else (_Z_SETTLE + math.sqrt(slack)) ** 2
 
 
 def _cholesky(a: ca.SX) -> ca.SX:

@@ -193,3 +193,39 @@ def test_the_pointer_of_an_ambiguous_step_is_a_design_request_that_runs():
     body["options"] = {"starts": 1, "rounds": 1, "max_iterations": 20}
     result = design_experiment(DesignRequest.model_validate(body))
     assert {d.truth for d in result.discrimination} == {"coulomb", "quadratic"}
+
+
+def test_the_settle_probability_is_the_monte_carlo_rate_of_records_that_settle_the_pair():
+    """A record made with the designed input settles the pair (rival's χ² above the truth's by more than
+    the loop's margin) at the rate the design predicts; the margin is the loop's own."""
+    from greyfit.solvers.design.criteria import SETTLE_BIC
+    from greyfit.solvers.discovery.discriminate import AMBIGUOUS_BIC
+    assert SETTLE_BIC == AMBIGUOUS_BIC
+    sigma = 0.035   # noise chosen so that the divergence sits where the chance is neither 0 nor 1
+    linear = {"name": "linear", "states": ["x", "v"], "inputs": ["u"],
+              "parameters": [{"name": "c", "value": 0.8, "lower": 0, "upper": 10},
+                             {"name": "k", "value": 5.0, "lower": 0, "upper": 50}],
+              "equations": {"x": "v", "v": "u - c*v - k*x"}, "outputs": {"y": "x"}}
+    quadratic = {**linear, "name": "quadratic", "equations": {"x": "v", "v": "u - c*v*abs(v) - k*x"}}
+    result = design_experiment(DesignRequest.model_validate(
+        {"model": linear, "criterion": "T", "rivals": [{"name": "quadratic", "model": quadratic}],
+         "inputs": {"u": {"lower": -1.0, "upper": 1.0}}, "outputs": {"y": sigma}, "duration": 6.0,
+         "sample_time": 0.1, "hold": 0.5, "initial_state": {"x": 0.0, "v": 0.0},
+         "options": {"starts": 1, "rounds": 1, "max_iterations": 30}}))
+    pair = next(d for d in result.discrimination if d.truth == "linear")
+    assert 0.3 < pair.settle_probability < 0.97, pair
+    record = result.experiment.model_dump()
+    clean = np.asarray(simulate_request(SimulateRequest.model_validate(
+        {"model": linear, "experiments": [record]})).experiments[0].outputs["y"])
+    rng, settled, draws = np.random.default_rng(11), 0, 60
+    for _ in range(draws):
+        y = clean + sigma * rng.standard_normal(clean.size)
+        chi2 = {}
+        for model in (linear, quadratic):
+            fit = fit_model(FitRequest.model_validate(
+                {"model": model, "experiments": [{**record, "outputs": {"y": list(y)}}],
+                 "options": {"input_interpolation": "zoh"}}))
+            chi2[model["name"]] = clean.size * fit.metrics.rmse["y"] ** 2 / sigma ** 2
+        settled += chi2["quadratic"] - chi2["linear"] > SETTLE_BIC
+    # 60 draws: the rate's standard error is at most 0.065; the formula is first order in the refits' noise
+    assert settled / draws == pytest.approx(pair.settle_probability, abs=0.17)

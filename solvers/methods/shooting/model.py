@@ -7,6 +7,7 @@ solver (`hybrid.py`) solves multiple shooting with the gaps' curvature (`curvatu
 from __future__ import annotations
 
 import threading
+import weakref
 from collections import OrderedDict
 
 import casadi as ca
@@ -37,6 +38,11 @@ MAP_MODE = "serial"
 _STATES: "OrderedDict[tuple, tuple]" = OrderedDict()
 _STATES_LOCK = threading.Lock()
 STATES_KEPT_BYTES = 16 * 1024 * 1024
+
+
+def _forget_states(key: tuple) -> None:
+    with _STATES_LOCK:
+        _STATES.pop(key, None)
 
 
 class OutputErrorModel:
@@ -240,17 +246,19 @@ class OutputErrorModel:
         key = (id(step), id(d), x0.tobytes(), p.tobytes())
         with _STATES_LOCK:
             known = _STATES.get(key)
-        # the entry holds its step and record, so an id in a key is never reused while it lives
-        if known is not None and known[0] is step and known[1] is d:
+        # the entry holds its step, and its record weakly (it is dropped with the record, so an id in a
+        # key is never reused while it lives, and a fit's record does not outlive the fit here)
+        if known is not None and known[0] is step and known[1]() is d:
             return known[2].copy()
         u0, u1, t0, dt = self.step_inputs(d, 0, d.n - 1)
         xs, = step(x0, u0, u1, p, t0, dt, n=d.n - 1, accumulate=True)
         states = np.hstack([x0, xs])
         if states.nbytes <= STATES_KEPT_BYTES:
             with _STATES_LOCK:
-                _STATES[key] = (step, d, states)
+                _STATES[key] = (step, weakref.ref(d), states)
                 while len(_STATES) > 4:
                     _STATES.popitem(last=False)
+            weakref.finalize(d, _forget_states, key)
         return states.copy()
 
     def numeric_outputs(self, e: int, states: np.ndarray, p: np.ndarray) -> np.ndarray:

@@ -349,7 +349,14 @@ def remember_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]], out: tu
         _ROWS[key] = (oem.cm, _records(oem), out)
         while len(_ROWS) > 4:
             _ROWS.popitem(last=False)
+    # forgotten with the fit's records (a long record's Jacobian is its size times the unknowns)
+    weakref.finalize(oem.data[0].y, _forget_rows, key)
     return tuple(a.copy() for a in out)
+
+
+def _forget_rows(key: tuple) -> None:
+    with _ROWS_LOCK:
+        _ROWS.pop(key, None)
 
 
 # the last condensed Jacobians, by everything they are computed from (the kernel, the point and a
@@ -363,18 +370,22 @@ def _records(oem) -> tuple[_Same, ...]:
 
 
 class _Same:
-    """Equal when it holds the same object: a key part that compares identities, not contents."""
+    """Equal when it holds the same live object: a key part that compares identities, not contents.
+    It holds the object weakly, so a remembered Jacobian does not keep its fit's records alive."""
 
-    __slots__ = ("obj",)
+    __slots__ = ("ref", "ident")
 
     def __init__(self, obj: object):
-        self.obj = obj
+        self.ref, self.ident = weakref.ref(obj), id(obj)
 
     def __eq__(self, other: object) -> bool:
-        return isinstance(other, _Same) and other.obj is self.obj
+        if not isinstance(other, _Same):
+            return False
+        mine = self.ref()
+        return mine is not None and mine is other.ref()
 
     def __hash__(self) -> int:
-        return id(self.obj)
+        return self.ident
 
 
 def _rows_key(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> tuple:
@@ -467,6 +478,26 @@ class SinglePass:
         """
         with self._lock:
             self._attached[float(record[-1])] = record
+
+    def forget(self, token: float) -> None:
+        """Drop what is bound to `token` (its record's copies, the folds' buffers, its last point).
+
+        The model that owns the token calls it when it goes (`structured._token_record`): a record
+        bound here is 150 MB at 10⁶ samples, and keeping the last two, as this did, made a process
+        that fits one long record after another peak higher at each.
+
+        Parameters
+        ----------
+        token : float
+            The token of a model's record.
+        """
+        tail = np.float64(token).tobytes()   # a point's key ends with its record's token
+        with self._lock:
+            self._records.pop(token, None)
+            if self._point is not None and self._point[0].endswith(tail):
+                self._point = None
+            if self._rows is not None and self._rows[0].endswith(tail):
+                self._rows = None
 
     def _record(self, p: np.ndarray) -> list[dict]:
         """The record whose token `p` ends with, bound to the two folds (once per token)."""

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import os
 import threading
+import weakref
 from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -474,7 +475,14 @@ def _token_record(oem) -> tuple[float, np.ndarray]:
     every solver of it shares its points."""
     if oem.single_pass_token is None:
         oem.single_pass_token = single_pass.new_token()
+        # what the passes bound to this token goes with the model (its fit), not when later fits push it out
+        weakref.finalize(oem, _forget_token, oem.single_pass_token)
     return oem.single_pass_token, np.append(_data_vector(oem), oem.single_pass_token)
+
+
+def _forget_token(token: float) -> None:
+    for _, sp in list(_PASSES.values()):
+        sp.forget(token)
 
 
 def _single_shooting_terms(oem, folds: dict[str, Fold], theta, pv, pvec) -> tuple[_Terms, tuple]:

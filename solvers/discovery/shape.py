@@ -25,7 +25,7 @@ import numpy as np
 from greyfit.schemas.discovery import Discrepancy, DiscrepancyEquation
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.discovery.screening import fitted_values
-from greyfit.solvers.discovery.shape_kalman import Linearised, best_intensity, log_likelihood, smooth
+from greyfit.solvers.discovery.shape_kalman import Linearised, best_intensity, imprint, log_likelihood, smooth
 from greyfit.solvers.discovery.shape_relate import (
     MAX_PUBLIC_SAMPLES,
     ShapeEstimate,
@@ -62,6 +62,7 @@ class Channel:
     q: float = 0.0
     sigma2: float = 0.0
     tracks: list[Track] = field(default_factory=list)
+    lins: list = field(default_factory=list)   # the last linearisations smoothed on (for `imprint`)
     explained: float = 0.0      # share of the weighted output residual's sum of squares it removes
     residual_rms: dict = field(default_factory=dict)
 
@@ -243,6 +244,7 @@ def _estimate_channel(sm: ShapeModel, ch: Channel, q: float | None = None) -> No
         ch.log_likelihood, ch.sigma2 = log_likelihood(lins, q)
     s = disturbance_scale(sm, ch)
     nx = sm.cm.nx
+    ch.lins = lins
     for tr, lin in zip(ch.tracks, lins):
         z = smooth(lin, ch.q)
         tr.x = tr.x + z[:nx]
@@ -268,6 +270,9 @@ def _to_estimate(sm: ShapeModel, ch: Channel, related: bool = True) -> ShapeEsti
                         linear=[np.vstack([x, u]).T for x, u in zip(states, inputs)],
                         linear_names=list(cm.states) + list(cm.inputs),
                         log_likelihood=ch.log_likelihood, q=ch.q, residual_share=ch.explained)
+    if ch.lins:
+        scale, lins, q = disturbance_scale(sm, ch), ch.lins, ch.q
+        est.imprint = lambda cols: [s_ * scale for s_ in imprint(lins, q, [c / scale for c in cols])]
     if related:
         relate(est)
     return est

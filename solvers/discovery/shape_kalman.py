@@ -194,3 +194,47 @@ def best_intensity(lins: list[Linearised], grid=tuple(10.0 ** np.arange(-8, 5, 2
         q0 = max(scored, key=lambda s: s[1])[0]
         scored += [(q, *log_likelihood(lins, q)) for q in (q0 / step, q0 * step)]
     return max(scored, key=lambda s: s[1])
+
+
+def imprint(lins: list[Linearised], q: float, columns: list[np.ndarray]) -> list[np.ndarray]:
+    """What the smoother would estimate if each column were the true disturbance: S·g.
+
+    The smoother is linear in the residual, so a disturbance g (in the smoother's units) that makes
+    the output residual r_g (δx_{k+1} = A_k δx_k + b_k g_k, r_g = H_k δx_k + h_d g_k, masked) is seen as
+    S·g: smoothed in time as the learned disturbance itself is. A law is then compared with the learned
+    disturbance on the same footing: a jump (sign(v) at each reversal) is spread over the samples
+    around it in both, where a law compared raw would lose to any smooth curve.
+
+    Parameters
+    ----------
+    lins : list of Linearised
+        The linearisations the disturbance was estimated on, one per experiment.
+    q : float
+        The random-walk intensity it was estimated with.
+    columns : list of numpy.ndarray
+        Per experiment, (n, k): k disturbances in the smoother's units.
+
+    Returns
+    -------
+    list of numpy.ndarray
+        Per experiment, (n, k): each column's smoothed estimate.
+    """
+    out = []
+    for lin, g in zip(lins, columns):
+        nx, ny, n = lin.b.shape[0], lin.r.shape[0], lin.n
+        g = np.asarray(g, dtype=float).reshape(n, -1)
+        a = lin.a.reshape(nx, nx, n).transpose(1, 0, 2)     # A_k[row, col]: vec is column-major
+        h = lin.h.reshape(nx, ny, n).transpose(1, 0, 2)
+        dx = np.zeros((nx, g.shape[1]))
+        resp = np.empty((ny, n, g.shape[1]))
+        for k in range(n):
+            resp[:, k] = h[:, :, k] @ dx + np.outer(lin.hd, g[k])
+            dx = a[:, :, k] @ dx + np.outer(lin.b[:, k], g[k])
+        smoothed = np.empty_like(g)
+        zero = np.zeros_like(lin.c)
+        for j in range(g.shape[1]):
+            seen = Linearised(a=lin.a, b=lin.b, c=zero, h=lin.h, hd=lin.hd, r=lin.mask * resp[:, :, j],
+                              mask=lin.mask, p0=lin.p0)
+            smoothed[:, j] = smooth(seen, q)[nx]
+        out.append(smoothed)
+    return out

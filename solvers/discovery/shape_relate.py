@@ -12,6 +12,7 @@ variable they zigzag.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import Callable, Optional
 
 import numpy as np
 
@@ -40,6 +41,8 @@ class ShapeEstimate:
     linear_names: list[str] = field(default_factory=list)   # the columns of `linear` (states, then inputs)
     law_grid: np.ndarray = field(default_factory=lambda: np.zeros(0))     # `variable` from its min to its max
     law_values: np.ndarray = field(default_factory=lambda: np.zeros(0))   # the law at `law_grid`
+    # per experiment (n, k) columns -> what the smoother would estimate were each the disturbance
+    imprint: Optional[Callable[[list[np.ndarray]], list[np.ndarray]]] = None
 
 
 def candidate_variables(state_names, states, input_names, inputs) -> dict[str, list[np.ndarray]]:
@@ -236,11 +239,17 @@ def shape_agreement(estimate: ShapeEstimate, candidate: list[np.ndarray] | np.nd
         a law far below it does not have the shape of the missing term (it approximates, at best).
         0 when g is constant or not finite.
     """
-    g = np.concatenate([np.ravel(c) for c in (candidate if isinstance(candidate, list) else [candidate])])
+    terms = [np.ravel(c) for c in (candidate if isinstance(candidate, list) else [candidate])]
+    g = np.concatenate(terms)
     d = np.concatenate(estimate.d)
     if g.size != d.size or not np.all(np.isfinite(g)) or np.std(g) == 0:
         return 0.0
-    share, _ = explained_share(d, np.column_stack([g, np.concatenate(estimate.linear)]))
+    per_exp = [np.column_stack([t, lin]) for t, lin in zip(terms, estimate.linear)]
+    if estimate.imprint is not None and len(per_exp) == len(estimate.d) and \
+            all(c.shape[0] == e.size for c, e in zip(per_exp, estimate.d)):
+        # the law and the linear terms as the smoother would have seen them (see `shape_kalman.imprint`)
+        per_exp = estimate.imprint(per_exp)
+    share, _ = explained_share(d, np.vstack(per_exp))
     return float(min(max(share, 0.0), 1.0))
 
 

@@ -220,3 +220,34 @@ def test_a_base_fit_at_a_local_minimum_is_restarted_before_screening():
     _, kept, notes = solid_ground(tiny, base, Clock(1e6))
     assert kept is base and len(notes) == 1 and "cut off by its CPU limit" in notes[0], notes
     assert "no better minimum" not in notes[0]
+
+
+def test_a_law_is_compared_with_the_learned_shape_as_the_smoother_sees_it():
+    """On a record whose speed reverses every few samples (a designed input), d̂ smears each jump of
+    Coulomb's sign(v) over the samples around it; compared raw, the right law explained less of d̂ than
+    a smooth curve and was labelled `approximates` (the loop then named Coulomb on 5 of 10 designed
+    records where it beat every rival by ΔBIC 80-500). Its imprint S·g, the estimate the smoother
+    makes of g itself, is what d̂ is compared with now; a wrong law ranks below it."""
+    from bench.bench_design import _friction_model
+    from greyfit.schemas.simulate import SimulateRequest
+    from greyfit.solvers.discovery.shape_test import SHAPE_DISAGREEMENT
+    from greyfit.solvers.simulation.simulate import simulate_request
+    rng = np.random.default_rng(1)
+    n, ts, sigma = 241, 0.05, 0.005
+    t = np.round(ts * np.arange(n), 10)
+    u = np.repeat(rng.uniform(-0.6, 0.6, n // 5 + 1), 5)[:n]
+    record = {"name": "r", "time": t.tolist(), "inputs": {"u": u.tolist()}, "initial_state": {"x": 0.0, "v": 0.0}}
+    truth = _friction_model("coulomb", 0.08)
+    y = np.asarray(simulate_request(SimulateRequest.model_validate(
+        {"model": truth, "experiments": [record]})).experiments[0].outputs["y"]) + sigma * rng.standard_normal(n)
+    req, fit = _fit(_friction_model(None), [{**record, "outputs": {"y": y.tolist()}}])
+    est = next(e for e in estimate_shape(req, fit).estimates if e.equation == "v")
+    v = est.variables["v"][0]
+    coulomb, quadratic = [np.tanh(v / 0.02)], [v * np.abs(v)]
+    seen = shape_agreement(est, coulomb)
+    assert seen >= est.share_explained - SHAPE_DISAGREEMENT + 0.2   # not `approximates`, by a margin
+    assert seen > shape_agreement(est, quadratic) + 0.03   # laws are told apart by refit; the right one ranks first here too
+    imprint, est.imprint = est.imprint, None
+    raw = shape_agreement(est, coulomb)
+    est.imprint = imprint
+    assert raw < seen - 0.3   # what the raw comparison lost

@@ -47,7 +47,7 @@ _SOLVERS: "OrderedDict[tuple, tuple]" = OrderedDict()
 CPU_LIMIT_STEPS_PER_OCTAVE = 8
 
 
-def cpu_limit(seconds: float) -> float:
+def ipopt_cpu_limit(seconds: float) -> float:
     """The CPU limit an Ipopt instance is built with: `seconds` floored to a geometric grid.
 
     Parameters
@@ -768,7 +768,7 @@ def attach_solver(oem, problem: LeastSquaresProblem, single: bool = False) -> Le
     def make_solver(max_iter: int | None = None, max_cpu_time: float | None = None):
         """`max_iter`, `max_cpu_time`: instead of the request's (a phase of a hybrid solve)."""
         iters = o.max_iter if max_iter is None else max_iter
-        cpu = cpu_limit(o.max_cpu_time if max_cpu_time is None else max_cpu_time)
+        cpu = ipopt_cpu_limit(o.max_cpu_time if max_cpu_time is None else max_cpu_time)
         folds: dict[str, Fold] = {}
         stages: dict[str, _Stage] = {}
         if folded:   # the folds move from a stand-in to gcc's loops by themselves: never remade

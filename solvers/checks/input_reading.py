@@ -24,7 +24,7 @@ import numpy as np
 from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.step_choice import at_estimate
-from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
+from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.preprocess import held_inputs
 from greyfit.solvers.data.refine import (
     DEFAULT_FACTOR,
@@ -148,20 +148,25 @@ def linear_reading(request: FitRequest, result: FitResult) -> LinearReading | No
 def _weighted_residuals_on_finer_grid(fitted: OutputErrorModel, stepper: OutputErrorModel, theta_s: np.ndarray,
                                       x0s: list[dict[str, float]], factor: int) -> tuple[np.ndarray, np.ndarray]:
     """Weighted (simulated − measured) at the measured samples with the inputs read as cubics and as
-    ramps on the grid `factor` times finer: `stepper`'s step (the finer grid's substeps) integrates,
+    ramps on the grid `factor` times finer: `stepper`'s step (the finer grid's substeps; raises
+    RuntimeError where it fails) integrates,
     the outputs are `fitted`'s at every `factor`-th state (the record's own times and inputs: both
     readings pass through the samples), so nothing of the record's outputs is spread on the finer
     grid. The same numbers as `_weighted_residual` of the finer records, at a quarter of its output
     evaluations and none of its missing-sample arrays."""
     cubic: list[np.ndarray] = []
     linear: list[np.ndarray] = []
+    step = stepper.numeric_functions()[0]
     for e, d in enumerate(fitted.data):
         p = np.asarray(fitted.layout.full(e, theta_s), dtype=float).ravel()
         x0 = np.array([x0s[e][s] for s in fitted.cm.states], dtype=float)
         t, u_cubic = cubic_on_finer_grid(d.t, d.u, factor)
+        t0, dt = t[None, :-1], np.diff(t)[None, :]
         for u, parts in ((u_cubic, cubic), (linear_on_finer_grid(d.t, d.u, factor), linear)):
-            stepper.data = [ExperimentData(d.name, t, u, d.y[:, :0], d.x0_known, {})]
-            states = stepper.numeric_states(0, x0, p)[:, ::factor]
+            # the step's loop itself, not `numeric_states`: its cache of the last four trajectories
+            # keeps the fit's own, which the lack-of-fit screen reads after this check
+            xs, = step(x0[:, None], u[:, :-1], u[:, 1:], p, t0, dt, n=t.size - 1, accumulate=True)
+            states = np.hstack([x0[:, None], xs[:, factor - 1::factor]])
             y = fitted.numeric_outputs(e, states, p)
             parts.append(((y - d.y) * fitted.weights[:, None]).T[d.mask.T])
     return np.concatenate(cubic), np.concatenate(linear)

@@ -186,13 +186,18 @@ def _weighted_residual(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dic
 
 def _predicted(p, moves: dict[str, float]):
     """The parameter `p`, started at its estimate, moved by the Gauss-Newton step that the linear
-    reading predicted (clipped into its bounds): the refit starts near its optimum."""
+    reading predicted (clipped into its bounds): the refit starts near its optimum. A move that
+    would take the start across zero or to less than half its size is not made: the start sets the
+    parameter's scale in the solver (`nominal_scale`), and the estimate's is the one to keep."""
     move = moves.get(p.name)
     if p.fixed or move is None or not math.isfinite(move):
         return p
     lo = -math.inf if p.lower is None else p.lower
     hi = math.inf if p.upper is None else p.upper
-    return p.model_copy(update={"value": float(min(max(p.value + move, lo), hi))})
+    value = float(min(max(p.value + move, lo), hi))
+    if value * p.value <= 0 or abs(value) < 0.5 * abs(p.value):
+        return p
+    return p.model_copy(update={"value": value})
 
 
 def cubic_retry(request: FitRequest, result: FitResult, report: PreprocessingReport | None,

@@ -17,14 +17,14 @@ and is taken at its word.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from greyfit.schemas.fit import FitRequest, FitResult, FitWarning
 from greyfit.schemas.preprocess import PreprocessingReport
 from greyfit.solvers.checks.step_choice import at_estimate
-from greyfit.solvers.data.experiments import ExperimentData, prepare_experiments
+from greyfit.solvers.data.experiments import prepare_experiments
 from greyfit.solvers.data.preprocess import held_inputs
 from greyfit.solvers.data.refine import (
     DEFAULT_FACTOR,
@@ -53,6 +53,7 @@ class LinearReading:
     shifts: dict[str, float]     # parameter label -> |Δθ| / stderr
     worst: str                   # the label of the largest
     factor: int                  # the refinement that leaves about 0.1 standard errors
+    moves: dict[str, float] = field(default_factory=dict)   # label -> the predicted Δθ (physical)
 
     @property
     def shift(self) -> float:
@@ -73,15 +74,6 @@ def _applies(request: FitRequest, result: FitResult) -> bool:
             and all(p.time_varying is None for p in model.parameters)
             and result.covariance is not None and result.initial_states is not None
             and result.solver.return_status not in ("", None))
-
-
-def _finer(d: ExperimentData, factor: int) -> tuple[ExperimentData, ExperimentData]:
-    """The record on the finer grid with its inputs read as cubics, and as ramps."""
-    t, u_cubic = cubic_on_finer_grid(d.t, d.u, factor)
-    y = np.full((d.y.shape[0], t.size), np.nan)
-    y[:, ::factor] = d.y
-    return (ExperimentData(d.name, t, u_cubic, y, d.x0_known, {}),
-            ExperimentData(d.name, t, linear_on_finer_grid(d.t, d.u, factor), y, d.x0_known, {}))
 
 
 def _factor_keeping_step(substeps: int, wanted: int) -> int | None:
@@ -124,35 +116,60 @@ def linear_reading(request: FitRequest, result: FitResult) -> LinearReading | No
     theta_s = theta / layout.scale
     options = request.options
     substeps = max(1, math.ceil((options.substeps or 1) / DEFAULT_FACTOR))
-    fine = options.model_copy(update={"substeps": substeps})
-    pairs = [_finer(d, DEFAULT_FACTOR) for d in data]
     fitted = OutputErrorModel(cm, data, layout, options)
-    cubic = OutputErrorModel(cm, [c for c, _ in pairs], layout, fine)
-    linear = OutputErrorModel(cm, [lin for _, lin in pairs], layout, fine)
-    cubic.weights = linear.weights = fitted.weights
+    # the finer grid's step only (its weights and scales are the record's): the outputs are read at
+    # the measured samples, where both readings are the record's inputs at the record's times
+    stepper = OutputErrorModel(cm, data, layout, options.model_copy(update={"substeps": substeps}))
     # the fit's own Jacobian (its covariance's, asked again) for the step: the finer grid's ramps are
     # the record's, so it is the ramps' Jacobian at the measured samples up to the integration
     # error; the cubics' differs from it in second order only and cost a sensitivity pass of 4× the
     # samples (a fifth of a 40 000-sample fit)
     try:
         jac, _, _ = sensitivity_jacobian(fitted, theta_s, x0s)
-        r_cubic = _weighted_residual(cubic, theta_s, x0s)
-        r_linear = _weighted_residual(linear, theta_s, x0s)
+        r_cubic, r_linear = _weighted_residuals_on_finer_grid(fitted, stepper, theta_s, x0s, DEFAULT_FACTOR)
     except RuntimeError:
         return None
     delta = r_cubic - r_linear
     if not (np.all(np.isfinite(jac)) and np.all(np.isfinite(delta))):
         return None
     step = -np.linalg.lstsq(jac, delta, rcond=None)[0][:layout.size] * layout.scale
-    shifts = {}
+    shifts, moves = {}, {}
     for label, move in zip(layout.labels, step):
+        moves[label] = float(move)
         se = result.parameters[label].stderr
         if se is not None and se > 0 and result.parameters[label].at_bound is None:
             shifts[label] = float(abs(move) / se)
     if not shifts:
         return None
     worst = max(shifts, key=lambda k: shifts[k])
-    return LinearReading(shifts, worst, factor_for(shifts[worst]))
+    return LinearReading(shifts, worst, factor_for(shifts[worst]), moves)
+
+
+def _weighted_residuals_on_finer_grid(fitted: OutputErrorModel, stepper: OutputErrorModel, theta_s: np.ndarray,
+                                      x0s: list[dict[str, float]], factor: int) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted (simulated − measured) at the measured samples with the inputs read as cubics and as
+    ramps on the grid `factor` times finer: `stepper`'s step (the finer grid's substeps; raises
+    RuntimeError where it fails) integrates,
+    the outputs are `fitted`'s at every `factor`-th state (the record's own times and inputs: both
+    readings pass through the samples), so nothing of the record's outputs is spread on the finer
+    grid. The same numbers as `_weighted_residual` of the finer records, at a quarter of its output
+    evaluations and none of its missing-sample arrays."""
+    cubic: list[np.ndarray] = []
+    linear: list[np.ndarray] = []
+    step = stepper.numeric_functions()[0]
+    for e, d in enumerate(fitted.data):
+        p = np.asarray(fitted.layout.full(e, theta_s), dtype=float).ravel()
+        x0 = np.array([x0s[e][s] for s in fitted.cm.states], dtype=float)
+        t, u_cubic = cubic_on_finer_grid(d.t, d.u, factor)
+        t0, dt = t[None, :-1], np.diff(t)[None, :]
+        for u, parts in ((u_cubic, cubic), (linear_on_finer_grid(d.t, d.u, factor), linear)):
+            # the step's loop itself, not `numeric_states`: its cache of the last four trajectories
+            # keeps the fit's own, which the lack-of-fit screen reads after this check
+            xs, = step(x0[:, None], u[:, :-1], u[:, 1:], p, t0, dt, n=t.size - 1, accumulate=True)
+            states = np.hstack([x0[:, None], xs[:, factor - 1::factor]])
+            y = fitted.numeric_outputs(e, states, p)
+            parts.append(((y - d.y) * fitted.weights[:, None]).T[d.mask.T])
+    return np.concatenate(cubic), np.concatenate(linear)
 
 
 def _weighted_residual(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dict[str, float]]) -> np.ndarray:
@@ -165,6 +182,22 @@ def _weighted_residual(oem: OutputErrorModel, theta_s: np.ndarray, x0s: list[dic
         y = oem.numeric_outputs(e, oem.numeric_states(e, x0, p), p)
         parts.append(((y - d.y) * oem.weights[:, None]).T[d.mask.T])
     return np.concatenate(parts)
+
+
+def _predicted(p, moves: dict[str, float]):
+    """The parameter `p`, started at its estimate, moved by the Gauss-Newton step that the linear
+    reading predicted (clipped into its bounds): the refit starts near its optimum. A move that
+    would take the start across zero or to less than half its size is not made: the start sets the
+    parameter's scale in the solver (`nominal_scale`), and the estimate's is the one to keep."""
+    move = moves.get(p.name)
+    if p.fixed or move is None or not math.isfinite(move):
+        return p
+    lo = -math.inf if p.lower is None else p.lower
+    hi = math.inf if p.upper is None else p.upper
+    value = float(min(max(p.value + move, lo), hi))
+    if value * p.value <= 0 or abs(value) < 0.5 * abs(p.value):
+        return p
+    return p.model_copy(update={"value": value})
 
 
 def cubic_retry(request: FitRequest, result: FitResult, report: PreprocessingReport | None,
@@ -214,7 +247,8 @@ def cubic_retry(request: FitRequest, result: FitResult, report: PreprocessingRep
             detail={"inputs": inputs, "parameter": reading.worst, "shift_in_stderr": reading.shift,
                     "shifts": reading.shifts})]
     refined = refine_request(request, factor)
-    model = refined.model.model_copy(update={"parameters": [at_estimate(p, result) for p in refined.model.parameters]})
+    model = refined.model.model_copy(update={"parameters": [_predicted(at_estimate(p, result), reading.moves)
+                                                            for p in refined.model.parameters]})
     note = (f"{report.interpolation_note}; read as linear, they moved {reading.worst} by {reading.shift:.2g} "
             f"standard errors (a cubic reading of the same samples), so the fit was refitted with the inputs read "
             f"as cubics between samples ({factor} points per sample interval)")

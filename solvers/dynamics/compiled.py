@@ -210,7 +210,12 @@ def cache_dir() -> Path:
     pathlib.Path
         ``$GREYFIT_CACHE_DIR/compiled``, or ``~/.cache/greyfit/compiled`` when the variable is unset.
     """
-    return Path(os.environ.get("GREYFIT_CACHE_DIR") or Path.home() / ".cache" / "greyfit") / "compiled"
+    return _cache_dir(os.environ.get("GREYFIT_CACHE_DIR") or "", os.environ.get("HOME", ""))
+
+
+@functools.lru_cache(maxsize=8)
+def _cache_dir(asked: str, home: str) -> Path:   # asked for every Function a fit looks up (~40 a fit)
+    return Path(asked or Path.home() / ".cache" / "greyfit") / "compiled"
 
 
 def compiler() -> str | None:

@@ -242,6 +242,36 @@ def test_the_input_readings_simulated_residual_is_the_rows_residual(cache):
     assert np.abs(res).max() > 0.1                     # away from the optimum: a real residual
 
 
+def test_the_input_readings_two_readings_are_the_residuals_of_the_finer_records(cache):
+    """The input reading simulates both readings on the finer grid but reads the outputs at the
+    measured samples only: the same rows as the residual of the finer records themselves (outputs
+    missing between the samples), two records, a missing sample, per-record parameters."""
+    from greyfit.solvers.checks.input_reading import _weighted_residual, _weighted_residuals_on_finer_grid
+    from greyfit.solvers.data.experiments import ExperimentData
+    from greyfit.solvers.data.refine import cubic_on_finer_grid, linear_on_finer_grid
+
+    oem = _oem()
+    theta = np.array([0.9, 1.1, 0.95])
+    x0s = [{"x": 0.13, "v": 0.0}, {"x": 0.1, "v": 0.0}]
+    fine = oem.options.model_copy(update={"substeps": 1})
+    cubic, linear = _weighted_residuals_on_finer_grid(oem, OutputErrorModel(oem.cm, oem.data, oem.layout, fine),
+                                                       theta, x0s, 4)
+    for reading, got in ((lambda d: cubic_on_finer_grid(d.t, d.u, 4)[1], cubic),
+                         (lambda d: linear_on_finer_grid(d.t, d.u, 4), linear)):
+        records = []
+        for d in oem.data:
+            t, _ = cubic_on_finer_grid(d.t, d.u, 4)
+            y = np.full((d.y.shape[0], t.size), np.nan)
+            y[:, ::4] = d.y
+            records.append(ExperimentData(d.name, t, reading(d), y, d.x0_known, {}))
+        finer = OutputErrorModel(oem.cm, records, oem.layout, fine)
+        finer.weights = oem.weights
+        expected = _weighted_residual(finer, theta, x0s)
+        assert got.shape == expected.shape == (61 * 2 - 1 + 47 * 2,)
+        assert np.allclose(got, expected, rtol=0, atol=1e-13 * np.abs(expected).max())
+    assert np.abs(cubic - linear).max() > 0                # the readings differ between the samples
+
+
 def test_a_simulation_asked_again_is_the_same_and_a_copy(cache, monkeypatch):
     """The optimum is simulated by the residual channels, the screen and its scorer: the second ask
     of a record, x0 and parameters is served from the last simulations (a copy: changing it changes
@@ -263,3 +293,14 @@ def test_a_simulation_asked_again_is_the_same_and_a_copy(cache, monkeypatch):
     assert np.array_equal(oem.numeric_states(0, x0, p), second)   # simulated anew: the same numbers
     other = oem.numeric_states(0, x0, p * 1.1)
     assert not np.allclose(other, second)
+
+
+def test_a_retrys_cpu_budget_keeps_the_structures_solver():
+    """Ipopt's CPU limit is fixed when its instance is made: a retry's budget (the fit's CPU time
+    left) is floored to a grid so that budgets a few milliseconds apart share one instance, never
+    above what was asked."""
+    for asked in (120.0, 119.97, 60.0, 20.0, 1.0, 0.05, 1e-4):
+        got = structured.ipopt_cpu_limit(asked)
+        assert asked / 2 ** (1 / structured.CPU_LIMIT_STEPS_PER_OCTAVE) < got <= asked
+    assert structured.ipopt_cpu_limit(120.0) == structured.ipopt_cpu_limit(119.97)
+    assert structured.ipopt_cpu_limit(1.0) == 1.0

@@ -264,3 +264,22 @@ def test_profile_under_coloured_noise_follows_the_hac_interval():
         assert abs(end - wald) < 0.15 * (p.ci95[1] - p.ci95[0]), (prof.lower, prof.upper, p.ci95)
     white = fit({"model": thermal_model(), "experiments": [thermal_record(11)], "options": {"profile": ["C"]}})
     assert white.profile["C"].noise_adjustment is None
+
+
+def test_the_default_refit_started_at_the_predicted_step_lands_where_the_refit_from_the_estimates_does(monkeypatch):
+    """`auto` refits on the cubic reading from the linear fit's estimates moved by the Gauss-Newton
+    step its decision predicted: the same optimum, standard errors, verdict and warnings as the refit
+    started at the estimates themselves (how it was done before)."""
+    from greyfit.solvers.checks import input_reading
+    body = SCENARIOS["pendulum"]("correct", 4)
+    predicted = fit(body)
+    assert predicted.preprocessing.input_interpolation == {"u": "cubic"} and predicted.preprocessing.input_refinement
+    monkeypatch.setattr(input_reading, "_predicted", lambda p, moves: p)
+    at_estimates = fit(body)
+    assert at_estimates.preprocessing.input_refinement == predicted.preprocessing.input_refinement
+    for name, p in at_estimates.parameters.items():
+        assert predicted.parameters[name].value == pytest.approx(p.value, rel=1e-4), name
+        if p.stderr is not None:
+            assert predicted.parameters[name].stderr == pytest.approx(p.stderr, rel=1e-3), name
+    assert predicted.quality == at_estimates.quality
+    assert sorted(codes(predicted)) == sorted(codes(at_estimates))

@@ -89,7 +89,8 @@ def _with_validation(request: FitRequest, result: FitResult) -> tuple[FitRequest
     model the validation residual's part due to the estimates' error is projected out with it.
 
     A validation record joins only where it gives every state's initial value (nothing of it is then
-    estimated), the model estimates no initial state of the fitted records either, and its name is new.
+    estimated), the model estimates no initial state of the fitted records either, its name is new,
+    and the joined screen stays within `MAX_SCREENED_VALUES`.
     """
     states = request.model.states
     names = {e.name for e in request.experiments}
@@ -97,6 +98,9 @@ def _with_validation(request: FitRequest, result: FitResult) -> tuple[FitRequest
     fitted_x0_free = any(s not in e.initial_state for e in request.experiments for s in states)
     if not usable or fitted_x0_free or len({v.name for v in usable}) < len(usable):
         return request, result
+    samples = sum(len(e.time) for e in list(request.experiments) + usable)
+    if samples * (sum(not p.fixed for p in request.model.parameters) + len(states)) > MAX_SCREENED_VALUES:
+        return request, result   # the fitted records alone, as large a screen as a fit may run
     joined = request.model_copy(update={"experiments": list(request.experiments) + usable, "validation": []})
     x0 = dict(result.initial_states)
     x0.update({v.name: dict(v.initial_state) for v in usable})

@@ -202,3 +202,41 @@ def whitened_score_p_value(r: np.ndarray, jac: np.ndarray, groups: np.ndarray, g
     coef, *_ = np.linalg.lstsq(g0, r0, rcond=None)
     explained = float((g0 @ coef) @ r0)
     return chi2_sf(explained / (float(r0 @ r0) / r0.size), g.shape[1])
+
+
+MIN_SERIES = 50   # rows of one (record, channel) series below which no AR model is fitted to it
+
+
+def noise_model_meat(jac: np.ndarray, res: np.ndarray, groups: np.ndarray | None, sample_keys: np.ndarray,
+                     experiment_keys: np.ndarray) -> np.ndarray | None:
+    """Jᵀ Σ J under an AR(p) model of each (record, channel) series of the residual (`fit_ar`).
+
+    The parametric long-run variance of the score: its colour is read from the residual, the series
+    that is coloured, rather than from the score.
+
+    Parameters
+    ----------
+    jac : numpy.ndarray
+        The weighted residual Jacobian, one row per residual, shape (n, k).
+    res : numpy.ndarray
+        The weighted residual, shape (n,).
+    groups : numpy.ndarray or None
+        Per row, its channel (None: one channel).
+    sample_keys, experiment_keys : numpy.ndarray
+        Per row, its sample (increasing in time) and its record.
+
+    Returns
+    -------
+    numpy.ndarray or None
+        Jᵀ Σ J, shape (k, k); None where a series is shorter than `MIN_SERIES` rows.
+    """
+    channel = np.zeros(res.size, dtype=int) if groups is None else groups
+    order = np.lexsort((sample_keys, channel, experiment_keys))
+    key = experiment_keys[order] * (int(channel.max(initial=0)) + 1) + channel[order]
+    meat = np.zeros((jac.shape[1], jac.shape[1]))
+    for rows in np.split(order, np.flatnonzero(np.diff(key)) + 1):
+        if rows.size < MIN_SERIES:
+            return None
+        a, variance = fit_ar(res[rows])
+        meat += coloured_meat(jac[rows], autocovariance(a, variance))
+    return meat

@@ -85,3 +85,34 @@ def test_a_missing_effect_under_a_coloured_residual_is_still_found():
     case = make_case("saturable", 1)
     r = fit(case.declared)
     assert case.block == "pk_two_compartment" and "missing_effect_likely" in codes(r) and r.quality == "suspect"
+
+
+def test_a_small_quadratic_loss_is_found_when_the_validation_record_is_screened_too():
+    """A DC motor with a small unmodelled quadratic loss on the shaft (the `quadratic` scenario): the
+    declared model absorbs it on the fitted record; screened with the validation record, which drives
+    the shaft through other speeds, the score test names the missing ω|ω| term."""
+    case = make_case("quadratic", 13)
+    r = fit(case.declared)
+    assert case.block == "dc_motor" and "d" in case.extra
+    (w,) = [w for w in r.warnings if w.code == "missing_effect_likely"]
+    assert w.detail["records"] == 2 and "validation record" in w.message
+    assert w.detail["candidates"][0]["effect"] == "quadratic_drag" and w.detail["candidates"][0]["p_value"] < 1e-5
+    assert r.quality == "suspect"
+
+
+def test_a_right_model_of_a_held_out_block_is_good_with_the_validation_record_screened():
+    """An RC ladder (a block no check was developed on), the right model: the screen reads both records
+    and finds nothing, and the intervals hold the truth."""
+    case = make_case("right_heldout", 0)
+    r = fit(case.declared)
+    assert case.block == "rc_ladder"
+    assert "missing_effect_likely" not in codes(r) and r.quality == "good" and covered(r, case.truth) == 1.0
+
+
+def test_a_loss_no_screened_effect_names_is_found_on_a_held_out_block():
+    """The RC ladder with a leak growing as v2^1.5 (no screened law is that power): the screen's nearest
+    law (a quadratic one) explains enough of the residual, and the fit is not `good`."""
+    case = make_case("power_loss", 3)
+    r = fit(case.declared)
+    assert case.block == "rc_ladder" and case.extra == ["g15"]
+    assert "missing_effect_likely" in codes(r) and r.quality == "suspect"

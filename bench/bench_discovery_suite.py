@@ -72,8 +72,9 @@ from tests import suite_systems as ss  # noqa: E402
 from tests.systems import MSD_TRUTH  # noqa: E402
 
 N_DUFFING = 1001
-# a generated effect and the library's name of the same law: Monod kinetics is a saturable rate
-SAME_LAW = {"monod": ("saturable_rate",)}
+# a generated effect and the library's name of the same law: Monod kinetics is a saturable rate, a thrust
+# ∝ u·|u| a law of the input
+SAME_LAW = {"monod": ("saturable_rate",), "thrust": ("input_law",)}
 EFFECTS = ss.MSD_EFFECTS
 
 

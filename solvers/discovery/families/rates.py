@@ -6,7 +6,9 @@ A model whose rates are linear in a concentration, a population or a level can o
 its declared rate constant absorbs the law's slope at small x, and is off wherever x spans K. The law
 is offered in the equation of every state that is a positive quantity on the fitted trajectory
 (`base.keeps_positive`), at a few starting half-saturation constants K (fractions and multiples of the
-state's median); the refit estimates K with Vm.
+state's median); the refit estimates K with Vm. A saturating curve is the shape of many concave laws
+(an orifice's √x among them), so the family is an approximating one: the named laws of the same state
+are refitted beside it, and where it wins over one it `approximates`.
 """
 from __future__ import annotations
 
@@ -68,7 +70,7 @@ class SaturableRate(TermFamily):
         -------
         list of Candidate
             Per positive state, one candidate per K in `SCALES` times its median, variants of one
-            family the refit chooses among.
+            family the refit chooses among, each marked approximating.
         """
         out: list[Candidate] = []
         for x in ctx.force_equations():
@@ -87,6 +89,9 @@ class SaturableRate(TermFamily):
                               f"a saturable rate of {x} (Michaelis–Menten): −Vm·{x}/(K + {x}), K from "
                               f"{fmt(half)}", -1.0, (x,), refit_variants=True)
                 if c is not None:
+                    # the shape of many concave laws (Michaelis–Menten, an orifice's √x, a Hill law):
+                    # a series member, refitted beside the named laws of x and `approximates` over them
+                    c.approximating = True
                     c.term = f"- Vm_{x}*{x}/(K_{x} + {x})"
                     c.key = f"{c.family}|{c.term}|{fmt(half)}"
                     c.apply = bind(self, equation=x, state=x, half=half, top=max(top, 10 * half))

@@ -36,8 +36,9 @@ Per configuration it prints:
 
 `--generated` runs the procedural generator instead (bench/discovery_generator.py: random chains of
 mechanical, thermal, electrical, fluid, chemical and biological blocks, 2-5 states, a missing effect
-in the library (`in`), outside it (`out`) or none (`none`)), and prints per group the share right
-(in: the true effect on the true equation, the declared parameters within 5 %), honest (out: nothing
+in the library (`in`), outside it (`out`), beyond even its generic families (`beyond`) or none
+(`none`)), and prints per group the share right (in: the true effect on the true equation, the
+declared parameters within 5 %), honest (out, beyond: nothing
 added or flagged — `unexplained`, `approximates` or `ambiguous` — or the right law from a family
 that is it (Monod kinetics as a saturable rate, a dead zone), with every declared parameter within
 10 %) or with nothing added (none), and the share passing a wrong law off as `identified`
@@ -253,7 +254,7 @@ def judge_generated(group: str, case: ss.Case, res) -> dict:
     wrong_unflagged = any(s not in correct for s in res.steps) and not flagged
     if group == "in":
         ok = bool(correct) and err <= 0.05
-    elif group == "out":
+    elif group in ("out", "beyond"):
         # honest: the right law (a generic family that is the law), or nothing added, or what was
         # added flagged; every declared parameter within 10 % either way
         ok = (bool(correct) or not res.steps or flagged) and err <= 0.10 and not wrong_unflagged

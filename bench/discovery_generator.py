@@ -14,6 +14,8 @@ values, the declared start 30 % off. The truth adds, by the configuration's grou
   tank; a sensor offset on a measured output; a parameter drifting in time);
 - `out`: one effect the library has no family for (Monod kinetics in a reactor or a population, a
   dead zone on the input, a thrust ∝ u·|u| on an oscillator);
+- `beyond`: one effect no family is (a Hill consumption of order 2, an input gain that drops above a
+  knee): what the generic families add must be flagged;
 - `none`: nothing (a complete model).
 
 Truth is simulated with scipy interval by interval (the input is held), independently of greyfit;
@@ -35,6 +37,9 @@ IN_LIBRARY = {"mech": ("coulomb", "quadratic_drag", "cubic_stiffness"), "thermal
 # a sensor gain on a chain of linear blocks is the last block's input gain: not identifiable, not drawn
 OUT_OF_LIBRARY = {"mech": ("thrust", "dead_zone"), "reactor": ("monod",), "population": ("monod",),
                   "any": ("dead_zone",)}
+# beyond the library even with its generic families (which only approximate them): a Hill law of
+# order 2 (a sigmoidal consumption), an input whose gain drops by 60 % above a knee
+BEYOND = {"reactor": ("hill",), "population": ("hill",), "any": ("knee",)}
 
 
 @dataclass
@@ -55,6 +60,7 @@ class System:
     equation: str | None = None
     sensor: tuple[str, str, float] | None = None     # (output, "offset"/"gain", size)
     dead_zone: float = 0.0
+    knee: float = 0.0                                # the input's gain drops to 0.4 above it
     drift: tuple[str, float] | None = None           # (parameter, relative change per unit time)
 
 
@@ -90,13 +96,18 @@ def _dead(u: float, width: float) -> float:
     return float(np.sign(u) * max(abs(u) - width, 0.0)) if width > 0 else u
 
 
+def _knee(u: float, knee: float) -> float:
+    return u if knee <= 0 or abs(u) <= knee else float(np.sign(u) * (knee + 0.4 * (abs(u) - knee)))
+
+
 def generate(group: str, seed: int, n: int = 1000, dt: float = 0.05, noise: str = "ar1") -> Case:
     """One generated problem of a group ("in", "out", "none") and seed: its request and its truth.
 
     Parameters
     ----------
     group : str
-        "in" (a library effect missing), "out" (an effect outside the library missing), "none".
+        "in" (a library effect missing), "out" (an effect outside the library missing), "beyond" (one
+        that no family is), "none".
     seed : int
         The seed: the system, the effect, the inputs and the noise.
     n, dt : int, float
@@ -119,7 +130,7 @@ def generate(group: str, seed: int, n: int = 1000, dt: float = 0.05, noise: str 
 
 
 def _add_effect(sysm: System, group: str, rng: np.random.Generator) -> None:
-    table = IN_LIBRARY if group == "in" else OUT_OF_LIBRARY
+    table = {"in": IN_LIBRARY, "out": OUT_OF_LIBRARY, "beyond": BEYOND}[group]
     options = [(b, e) for b in sysm.blocks for e in table.get(b.kind, ())] + \
               [(None, e) for e in table["any"]]
     blk, effect = options[int(rng.integers(len(options)))]
@@ -142,6 +153,10 @@ def _add_effect(sysm: System, group: str, rng: np.random.Generator) -> None:
         sysm.dead_zone = float(rng.uniform(0.7, 1.0))
         sysm.equation = sysm.blocks[0].states[-1]
         return
+    if effect == "knee":
+        sysm.knee = float(rng.uniform(0.8, 1.2))   # a third to a half of the held levels above it
+        sysm.equation = sysm.blocks[0].states[-1]
+        return
     assert blk is not None
     eq = blk.states[-1]
     size = float(rng.uniform(0.3, 0.6))
@@ -153,6 +168,7 @@ def _add_effect(sysm: System, group: str, rng: np.random.Generator) -> None:
         "sqrt_flow": lambda x, d, t: -size * np.sqrt(max(x[0], 0.0)),
         "thrust": lambda x, d, t: 0.5 * d * abs(d),
         "monod": lambda x, d, t: -2 * size * max(x[0], 0.0) / (0.3 + max(x[0], 0.0)),
+        "hill": lambda x, d, t: -2 * size * max(x[0], 0.0) ** 2 / (0.5 ** 2 + max(x[0], 0.0) ** 2),
     }
     blk.extra, blk.extra_state = terms[effect], eq
     sysm.equation = eq
@@ -173,7 +189,7 @@ def _simulate(sysm: System, t: np.ndarray, u: np.ndarray, x0: np.ndarray) -> np.
     sizes = [len(b.states) for b in sysm.blocks]
 
     def rhs(tt, s, uu):
-        out, k, drive = [], 0, _dead(uu, sysm.dead_zone)
+        out, k, drive = [], 0, _knee(_dead(uu, sysm.dead_zone), sysm.knee)
         for b, m in zip(sysm.blocks, sizes):
             xb = s[k:k + m]
             out += _rhs_block(b, xb, drive, tt, sysm)

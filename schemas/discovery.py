@@ -12,10 +12,10 @@ from greyfit.schemas.model import Expression, Model, Name
 # the families of solvers/discovery/families, in the registry's order (schemas do not import
 # solvers: tests/solvers/test_discovery_families.py checks the two agree)
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "coupling_law", "offset", "sqrt_flow",
-                 "radiation", "arrhenius", "saturation", "output_offset", "output_gain", "output_abs",
-                 "output_saturation", "power_law", "input_law", "parameter_law", "parameter_step",
-                 "parameter_drift", "state_dependent", "input_delay", "sensor_lag", "input_lag",
-                 "extra_pole"]
+                 "radiation", "arrhenius", "saturable_rate", "saturation", "dead_zone", "output_offset",
+                 "output_gain", "output_abs", "output_saturation", "power_law", "input_law", "parameter_law",
+                 "parameter_step", "parameter_drift", "state_dependent", "input_delay", "sensor_lag",
+                 "input_lag", "extra_pole"]
 ALL_EFFECTS: tuple[Effect, ...] = get_args(Effect)
 
 

@@ -174,6 +174,8 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
         step = state.steps[idx]
         names = [p.name for p in step.parameters]
         t_value = t_value_of(state.fit, names) if all(n in state.fit.parameters for n in names) else None
+        if t_value is None and names and all(_at_zero(state.fit, n) for n in names):
+            t_value = 0.0   # driven onto its bound of 0 by a later effect: no standard error, no evidence
         if not names or t_value is None or t_value >= opts.min_t_value or state.refits_left <= 0:
             continue
         if not state.clock.allows():
@@ -196,6 +198,11 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
         del state.accepted[idx]
         state.model, state.fit, state.request = model, new_fit, new_req
         state.validation = timed_validation(request, state, model, new_fit)
+
+
+def _at_zero(fit: FitResult, name: str) -> bool:
+    p = fit.parameters.get(name)
+    return p is not None and abs(p.value) < 1e-6 and not p.stderr
 
 
 def new_parameters(fit: FitResult, names: list[str]) -> list[NewParameter]:

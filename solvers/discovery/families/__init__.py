@@ -13,12 +13,13 @@ from greyfit.solvers.discovery.families.drag import QuadraticDrag
 from greyfit.solvers.discovery.families.flow import SqrtFlow
 from greyfit.solvers.discovery.families.friction import Coulomb
 from greyfit.solvers.discovery.families.input_laws import InputLaw
-from greyfit.solvers.discovery.families.inputs import InputDelay, Saturation
+from greyfit.solvers.discovery.families.inputs import DeadZone, InputDelay, Saturation
 from greyfit.solvers.discovery.families.lags import ExtraPole, InputLag, SensorLag
 from greyfit.solvers.discovery.families.offsets import Offset
 from greyfit.solvers.discovery.families.parameter_laws import Arrhenius, ParameterLaw
 from greyfit.solvers.discovery.families.powers import PowerLaw
 from greyfit.solvers.discovery.families.radiation import Radiation
+from greyfit.solvers.discovery.families.rates import SaturableRate
 from greyfit.solvers.discovery.families.sensor import OutputAbs, OutputGain, OutputOffset, OutputSaturation
 from greyfit.solvers.discovery.families.stiffness import CubicStiffness
 from greyfit.solvers.discovery.families.switching import StateDependent
@@ -33,7 +34,9 @@ FAMILIES: tuple[Family, ...] = (
     SqrtFlow(),
     Radiation(),
     Arrhenius(),
+    SaturableRate(),
     Saturation(),
+    DeadZone(),
     OutputOffset(),
     OutputGain(),
     OutputAbs(),

@@ -335,3 +335,54 @@ def physical_variables(ctx: LibraryContext) -> set[str]:
         The model's state, input and constant names.
     """
     return set(ctx.states) | set(ctx.trace.cm.inputs) | set(ctx.model.constants)
+
+
+# a state "changes sign with substance" when at least this share of its samples lies beyond
+# `SIGN_MARGIN` of its RMS on each side: a population that dips a hair below 0 as its fit starts does not
+SIGN_SHARE = 0.05
+SIGN_MARGIN = 0.05
+
+
+def changes_sign(values: list[np.ndarray]) -> bool:
+    """Whether a fitted state takes both signs with substance: at least `SIGN_SHARE` of its samples
+    beyond ±`SIGN_MARGIN`·RMS on each side. A law of sign(x) (friction) acts only on such a state;
+    on one that keeps its sign (a level, a concentration, a population) sign(x) is a constant.
+
+    Parameters
+    ----------
+    values : list of numpy.ndarray
+        The state's samples, one array per experiment.
+
+    Returns
+    -------
+    bool
+        True when both sides hold a material share of the samples.
+    """
+    allv = np.concatenate(values)
+    rms = float(np.sqrt(np.mean(allv ** 2)))
+    if rms == 0 or not np.isfinite(rms):
+        return False
+    margin = SIGN_MARGIN * rms
+    return min(float(np.mean(allv > margin)), float(np.mean(allv < -margin))) >= SIGN_SHARE
+
+
+def keeps_positive(values: list[np.ndarray]) -> bool:
+    """Whether a fitted state is a positive quantity on these data: at most 1 % of its samples below
+    −`SIGN_MARGIN`·RMS and most of them above +`SIGN_MARGIN`·RMS (a level, a concentration, a population).
+
+    Parameters
+    ----------
+    values : list of numpy.ndarray
+        The state's samples, one array per experiment.
+
+    Returns
+    -------
+    bool
+        True when the state is (essentially) nonnegative and mostly away from 0.
+    """
+    allv = np.concatenate(values)
+    rms = float(np.sqrt(np.mean(allv ** 2)))
+    if rms == 0 or not np.isfinite(rms):
+        return False
+    margin = SIGN_MARGIN * rms
+    return float(np.mean(allv < -margin)) <= 0.01 and float(np.mean(allv > margin)) >= 0.5

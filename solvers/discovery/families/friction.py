@@ -4,7 +4,7 @@ from __future__ import annotations
 import numpy as np
 
 from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import TermFamily
+from greyfit.solvers.discovery.families.base import TermFamily, changes_sign
 
 WIDTHS = (0.001, 0.003, 0.01, 0.03)   # ε as fractions of the RMS of v: the refit chooses among them
 
@@ -13,7 +13,8 @@ class Coulomb(TermFamily):
     name = "coulomb"
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
-        """A friction term −Fc_v·tanh(v/ε) (Fc_v ≥ 0) in the equation of every velocity that changes sign.
+        """A friction term −Fc_v·tanh(v/ε) (Fc_v ≥ 0) in the equation of every velocity that changes sign
+        with substance (`base.changes_sign`).
 
         Parameters
         ----------
@@ -31,9 +32,11 @@ class Coulomb(TermFamily):
         for v in ctx.velocities:
             vals = ctx.state_values(v)
             allv = np.concatenate(vals)
-            if min(np.mean(allv > 0), np.mean(allv < 0)) < 0.02:
-                # on a quantity that keeps its sign, sign(v) is a constant: an offset, not friction
-                ctx.notes.append(f"coulomb on {v} not tried: {v} does not change sign (that would be an offset)")
+            if not changes_sign(vals):
+                # on a quantity that keeps its sign (or dips a hair below 0 where its fit starts),
+                # sign(v) is a constant: an offset, not friction
+                ctx.notes.append(f"coulomb on {v} not tried: {v} does not change sign with substance "
+                                 "(that would be an offset)")
                 continue
             rms = float(np.sqrt(np.mean(allv ** 2))) or 1.0
             # the smoothing width matters: one far from the data's own leaves a misfit near v = 0

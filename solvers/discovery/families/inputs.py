@@ -1,4 +1,5 @@
-"""What happens to an input before it acts: it saturates, or it acts whole samples late."""
+"""What happens to an input before it acts: it saturates, it passes through a dead zone, or it acts
+whole samples late."""
 from __future__ import annotations
 
 from typing import Any
@@ -95,6 +96,73 @@ class Saturation(NeedsInputs):
                                          f"input {u} saturates near ±{fmt(level)}",
                                          bind(self, input=u, level=float(level)), sign=1.0,
                                          family=f"saturation:{u}", variables=(u,)))
+        return out
+
+
+class DeadZone(NeedsInputs):
+    """An input that acts only beyond a band: a valve or an actuator with a dead zone, u replaced by
+    u − min(max(u, −w), w) (0 inside ±w, u ∓ w outside). The declared gain on u stays the gain beyond
+    the band; a model without the band can only lower that gain and add an offset to fit it."""
+
+    name = "dead_zone"
+    scope: Scope = "input"
+    generic = False
+
+    def rewrite(self, model: Model, **spec: Any) -> tuple[Model, list[str]]:
+        """`model` with input u replaced by u − min(max(u, −w), w), w a new parameter (the band's half-width).
+
+        Parameters
+        ----------
+        model : Model
+            The model to rewrite (not changed: a copy is returned).
+        **spec : Any
+            `input`: the input's name; `level`: the start value of w (> 0).
+
+        Returns
+        -------
+        tuple of (Model, list of str)
+            The rewritten model and the new parameter's name.
+
+        Raises
+        ------
+        ModelDefinitionError
+            When a rewritten expression does not parse.
+        """
+        u, level = spec["input"], spec["level"]
+        name = fresh_name(model, f"{u}_dead")
+        model = with_parameter(model, name, float(level), lower=0.0)
+        return replace_parameter(model, u, f"({u} - min(max({u}, -{name}), {name}))"), [name]
+
+    def candidates(self, ctx: LibraryContext) -> list[Candidate]:
+        """A dead zone of every input at 13 half-widths between the 2nd and the 60th percentile of |u|.
+
+        Parameters
+        ----------
+        ctx : LibraryContext
+            The model, the fitted trajectory and the discovery options.
+
+        Returns
+        -------
+        list of Candidate
+            Per input and half-width, a candidate whose regressor is the change −clip(u, −w, w) through
+            ∂f/∂u (half-widths where no traced equation feels the change are left out); the refit
+            estimates w from the best of them.
+        """
+        out: list[Candidate] = []
+        for k, u in enumerate(ctx.trace.cm.inputs):
+            vals = ctx.input_values(u)
+            mags = np.abs(np.concatenate(vals))
+            if mags.max() <= 0:
+                continue
+            for level in np.unique(np.quantile(mags, np.linspace(0.02, 0.6, 13))):
+                if level <= 0:
+                    continue
+                reg = _input_regressor(ctx, k, [-np.clip(x, -level, level) for x in vals])
+                if reg:
+                    out.append(Candidate(self.name, reg, f"{u} -> {u} - min(max({u}, -{u}_dead), {u}_dead)",
+                                         f"input {u} acts only beyond a dead zone of ±{fmt(level)}",
+                                         bind(self, input=u, level=float(level)), sign=1.0,
+                                         family=f"dead_zone:{u}", variables=(u,)))
         return out
 
 

@@ -255,7 +255,8 @@ def counted_refit(state: LoopState, req: FitRequest) -> FitResult | str:
 
 
 def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, fit: FitResult,
-                     experiments=None, neutral: set[str] | None = None) -> ValidationSummary | None:
+                     experiments=None, neutral: set[str] | None = None,
+                     fitted_with: FitRequest | None = None) -> ValidationSummary | None:
     """A model on the validation records, timed as validation.
 
     Parameters
@@ -273,6 +274,10 @@ def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, f
     neutral : set of str or None
         Parameters switched off there (record-specific terms); None: those of the steps so far
         (`off_on_validation`).
+    fitted_with : FitRequest or None
+        The request the model was fitted with (None: the search's current one): its RK4 substeps,
+        raised for a stiff term, simulate the validation records too. With the request's own, a
+        narrow tanh of Coulomb friction was simulated coarsely there and a better width refused.
 
     Returns
     -------
@@ -281,6 +286,9 @@ def timed_validation(request: DiscoverRequest, state: LoopState, model: Model, f
     """
     exps = request.validation if experiments is None else experiments
     off = off_on_validation(request, state, set()) if neutral is None else neutral
+    substeps = (fitted_with or state.request).options.substeps
+    if substeps > request.options.substeps:
+        request = request.model_copy(update={"options": request.options.model_copy(update={"substeps": substeps})})
     with state.clock.phase("validation"):
         return validate(request, model, fit, exps, off)
 
@@ -568,7 +576,7 @@ def validate_refit(request: DiscoverRequest, state: LoopState, r: Refitted) -> V
         if prior.transform_experiments and exps:
             exps = prior.transform_experiments(exps)
     neutral = off_on_validation(request, state, set(r.params) if c.record_specific else set(), "t" in c.variables)
-    return timed_validation(request, state, r.model, r.fit, exps, neutral)
+    return timed_validation(request, state, r.model, r.fit, exps, neutral, r.request)
 
 
 def bic(fit: FitResult) -> float:

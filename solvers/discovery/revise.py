@@ -135,7 +135,7 @@ def refine_width(request: DiscoverRequest, state: LoopState, sc: Scored, model_b
         new_fit = counted_refit(state, new_req)
         if isinstance(new_fit, str) or new_fit.quality == "failed" or bic(new_fit) >= bic(state.fit):
             return
-        new_validation = timed_validation(request, state, new_model, new_fit)
+        new_validation = timed_validation(request, state, new_model, new_fit, fitted_with=new_req)
         if validation_worse(state.validation, new_validation, opts.validation_tolerance):
             return
         step = state.steps[-1]
@@ -197,7 +197,7 @@ def drop_superseded(request: DiscoverRequest, state: LoopState) -> None:
         del state.steps[idx]
         del state.accepted[idx]
         state.model, state.fit, state.request = model, new_fit, new_req
-        state.validation = timed_validation(request, state, model, new_fit)
+        state.validation = timed_validation(request, state, model, new_fit, fitted_with=new_req)
 
 
 def _at_zero(fit: FitResult, name: str) -> bool:

@@ -57,8 +57,6 @@ def test_a_two_sample_lag_is_named_by_the_lack_of_fit_screen(system, lag):
     assert {"sensor_lag", "input_lag", "extra_pole"} & set(screened(r)), screened(r)
 
 
-@pytest.mark.xfail(reason="with the coupling and input laws and the refits below the screen in the library, "
-                   "its refit budget is spent before the extra pole is confirmed; open in issue 39", strict=False)
 @pytest.mark.slow
 def test_discovery_adds_the_extra_pole_and_estimates_its_time_constant():
     """Two measured nodes tell a lag between them from one on a sensor or the input: τ = 3 samples = 0.3 s."""

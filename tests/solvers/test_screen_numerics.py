@@ -77,8 +77,9 @@ def test_the_gram_prefilter_keeps_every_column_that_explains_enough():
     scorer = RegressionScorer(r, jac)
     share = (scorer.r0 @ effect) ** 2 / (scorer.project(effect) @ scorer.project(effect)) / scorer.rss0
     columns = [effect, jac @ [1.0, 2.0, -1.0],                       # strong; exactly in the span
-               jac @ [1.0, 2.0, -1.0] + 1e-5 * effect,              # in the span but for a trace of the effect
-               jac @ [1.0, 0.5, 0.0] + 1e-3 * rng.standard_normal(n)]
+               jac @ [1.0, 2.0, -1.0] + 1e-2 * effect,              # in the span but for a trace of the effect
+               jac @ [1.0, 0.5, 0.0] + 1e-3 * rng.standard_normal(n),
+               jac @ [1.0, 2.0, -1.0] + 1e-5 * effect]              # within IN_SPAN: integration-error level
     columns += [effect + s * rng.standard_normal(n) for s in np.linspace(0.5, 3.0, 25)]   # across the threshold
     columns += [rng.standard_normal(n) for _ in range(10)]
     full = scorer.score_many(columns)
@@ -95,6 +96,7 @@ def test_the_gram_prefilter_keeps_every_column_that_explains_enough():
                 assert b is not None and np.allclose(astuple(b), astuple(a), rtol=1e-9, atol=0)
     assert full[1] is None                                           # in J's span: nothing to score
     assert full[2] is not None and full[2].explained > 0.2          # the trace is all it has beyond J
+    assert full[4] is None   # 1e-5 of its norm beyond J: what sensitivities by another route differ by
 
 
 def test_columns_gathered_from_their_matrix_score_as_stacked_ones():

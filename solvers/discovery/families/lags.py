@@ -124,6 +124,32 @@ def input_rate(u: np.ndarray, t: np.ndarray) -> np.ndarray:
     return np.gradient(u, t)
 
 
+def inlined_equation(model: Model, eq: str):
+    """The AST of state `eq`'s equation with every definition it uses inlined (recursively).
+
+    Parameters
+    ----------
+    model : Model
+        The model.
+    eq : str
+        The state whose equation is read.
+
+    Returns
+    -------
+    tuple
+        The equation's AST, naming states, inputs, parameters, constants and t only.
+    """
+    node = parse(model.equations[eq], f"equations.{eq}")
+    defs = {k: parse(v, f"definitions.{k}") for k, v in model.definitions.items()}
+    for _ in range(len(defs) + 1):   # definitions refer to earlier ones only: this many passes suffice
+        used = names_in(node) & defs.keys()
+        if not used:
+            break
+        for name in used:
+            node = substitute(node, name, defs[name])
+    return node
+
+
 def _dt(ctx: LibraryContext) -> float:
     return float(np.median(np.concatenate([np.diff(t) for t in ctx.trace.t])))
 
@@ -272,15 +298,17 @@ class ExtraPole(NeedsTracedEquation):
         """
         eq, src = spec["equation"], spec["source"]
         model, w, tau = add_lag(model, f"{src}_to_{eq}", src, spec["dt"])
-        node = substitute(parse(model.equations[eq], f"equations.{eq}"), src, parse(w, "lag"))
+        node = substitute(inlined_equation(model, eq), src, parse(w, "lag"))
         return model.model_copy(update={"equations": {**model.equations, eq: unparse(node)}}), [tau]
 
     def candidates(self, ctx: LibraryContext) -> list[Candidate]:
         """A lag of every other state named in a traced equation's text, its column ∂f_i/∂x_j·(−dx_j/dt);
         not in a kinematic identity dx/dt = v (a position is the integral of its velocity, unlagged).
 
-        Only states the equation names itself (not through a definition) are lagged: the rewrite
-        substitutes in that equation's text, and the column must be the rewrite's.
+        A state the equation reaches through a definition is lagged alike: the rewrite substitutes in
+        the equation with its definitions inlined (a definition other equations share stays as it
+        is for them), so every spelling of the model, with or without intermediate definitions,
+        offers the same lags with the same columns.
 
         Parameters
         ----------
@@ -292,17 +320,14 @@ class ExtraPole(NeedsTracedEquation):
         list of Candidate
             One candidate per (equation, state) pair.
         """
-        model = ctx.model
-        through_definitions = set().union(*(names_in(parse(v, f"definitions.{k}"))
-                                            for k, v in model.definitions.items())) if model.definitions else set()
         rates = left_rates(ctx)
         dt = _dt(ctx)
         out = []
         for eq in ctx.force_equations():   # a kinematic identity dx/dt = v has no lag
             i = ctx.states.index(eq)
-            named = names_in(parse(model.equations[eq], f"equations.{eq}"))
+            named = names_in(inlined_equation(ctx.model, eq))
             for j, src in enumerate(ctx.states):
-                if j == i or src not in named or src in through_definitions:
+                if j == i or src not in named:
                     continue
                 cols = [jx[:, i, j] * -f[j] for jx, (f, _) in zip(ctx.trace.jx, rates)]
                 if not any(np.any(c != 0) for c in cols):
@@ -315,4 +340,4 @@ class ExtraPole(NeedsTracedEquation):
         return out
 
 
-__all__ = ["SensorLag", "InputLag", "ExtraPole", "add_lag", "left_rates", "input_rate"]
+__all__ = ["SensorLag", "InputLag", "ExtraPole", "add_lag", "left_rates", "input_rate", "inlined_equation"]

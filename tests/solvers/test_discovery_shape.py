@@ -246,7 +246,8 @@ def test_a_law_is_compared_with_the_learned_shape_as_the_smoother_sees_it():
     coulomb, quadratic = [np.tanh(v / 0.02)], [v * np.abs(v)]
     seen = shape_agreement(est, coulomb)
     assert seen >= est.share_explained - SHAPE_DISAGREEMENT + 0.2   # not `approximates`, by a margin
-    assert seen > shape_agreement(est, quadratic) + 0.03   # laws are told apart by refit; the right one ranks first here too
+    # laws are told apart by refit; the right one ranks first here too
+    assert seen > shape_agreement(est, quadratic) + 0.03
     imprint, est.imprint = est.imprint, None
     raw = shape_agreement(est, coulomb)
     est.imprint = imprint

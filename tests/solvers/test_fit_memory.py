@@ -60,7 +60,7 @@ def test_the_states_cache_holds_its_record_weakly():
     result = fit_model(request)
     assert result.parameters
     entries = list(shooting_model._STATES.values())
-    for step, record, states in entries:
+    for _step, record, states in entries:
         assert isinstance(record, weakref.ref) and isinstance(states, np.ndarray)
     del request, result, entries
     gc.collect()

@@ -57,8 +57,10 @@ def test_hardening_spring_is_found_as_cubic_stiffness():
 
 
 @pytest.mark.slow
-def test_complete_model_gets_nothing_added_over_ten_noise_seeds():
-    for seed in range(10):
+def test_complete_model_gets_nothing_added_over_two_noise_seeds():
+    # the rate over many seeds (0 of 100 runs add a term) is bench/bench_discovery_noise.py's,
+    # in docs/discovery-loop.md; here the decision on two records
+    for seed in range(2):
         res = msd_discover(None, seed=seed)
         assert res.steps == [], (seed, res.conclusion)
         assert res.conclusion.startswith("no significant missing effect"), res.conclusion

@@ -129,6 +129,11 @@ def fit_model(request: FitRequest) -> FitResult:
 
 
 def _fit_offline(request: FitRequest) -> FitResult:
+    """The attempts and what follows them, in order: prepare the request (preprocessing, substeps,
+    the input reading) → the first attempt (`_fit_chosen`: multiple shooting once more after a doubted
+    single-shooting answer of auto) → the substeps retry (`substeps_retry`) → the cubic-input retry
+    (`cubic_retry`), each retry a new attempt with the CPU time left (`_refit`) → validation records
+    → review (`review_fit`: lack of fit and input handling in the verdict)."""
     cpu0, started = time.process_time(), time.perf_counter()
     with stage("prepare"):
         prepared, preprocessing = read_cubic_inputs(*choose_substeps(*prepare_request(request)))
@@ -335,6 +340,7 @@ class _Fit:
             self._finish_result()
 
     def _estimates(self) -> None:
+        """Sets `theta`, `bounds`, `x0s`, `jacobian`, `free`, `ndata`, `nvarys`, `cost`, `channels`, `analyses`."""
         opts, built, layout, outcome = self.request.options, self.built, self.layout, self.outcome
         if not np.all(np.isfinite(outcome.w)):   # report the start rather than NaN estimates
             outcome.w, outcome.success = built.problem.initial_guess(layout.initial), False
@@ -355,6 +361,7 @@ class _Fit:
         self.analyses = residual_analyses(self.channels.channels, _segments(self.cm, self.data, self.channels))
 
     def _covariance(self) -> None:
+        """Sets `covariance` (robust where the residual is not white); adds the coloured-residual warnings."""
         opts, built, jp, keep = self.request.options, self.built, self.jacobian, self.free
         white = all(a.whiteness.passed or not a.whiteness.lags for a in self.analyses)
         robust = opts.robust_covariance == "always" or (opts.robust_covariance == "auto" and not white)

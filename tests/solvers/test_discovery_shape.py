@@ -117,12 +117,13 @@ def test_before_validation_is_the_validation_records_and_absent_without_them():
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("seed", [8])
+@pytest.mark.parametrize("seed", [1])
 def test_hysteresis_is_reported_unexplained_with_its_shape_and_nothing_named(seed):
     # seed 5 named a constant offset, seed 8 a power law v³ (after 546 s of CPU), though `unexplained`
     # was set: a law of the present variables removes a quarter of the residual's excess over the
     # noise of a disturbance no function of one variable explains; the shape test refuses it.
-    # One seed here; the rate over ten (10 of 10 unexplained, nothing named) is
+    # One seed here (seed 1: 52 s on the loaded machine, where 5 took 215 s and 8 186 s); the rate
+    # over ten seeds, 5 and 8 among them (10 of 10 unexplained, nothing named), is
     # bench/bench_discovery.py --library's, in docs/discovery.md
     body = {"model": ss.bouc_wen_model(), "method": "multiple_shooting",
             "experiments": [ss.bouc_wen_record(seed)], "validation": [ss.bouc_wen_record(seed + 1, name="val")]}

@@ -16,6 +16,13 @@ many seeds. Prints per (system, noise):
   sample size would pass at 1e-3 (the loop needs the Bonferroni level, ~1e-5).
 
     OPENBLAS_NUM_THREADS=1 python bench/bench_discovery_noise.py [--seeds 30] [--kinds white,lowpass,ar1]
+    OPENBLAS_NUM_THREADS=1 python bench/bench_discovery_noise.py --library [--seeds 10]
+
+`--library`: the complete models of the wider library instead (tests/discovery_systems.py `COMPLETE`:
+the heated block with its radiation declared, the oscillator with its μy²ẏ damping, the RLC circuit
+with its sensor offset; 500 samples, AR(1) noise ρ 0.8, inputs held and declared `zoh`, multiple
+shooting, as tests/solvers/test_discovery_library.py runs two seeds of them): per system the runs
+where anything was added, with its 95 % Wilson interval, and what was added.
 """
 from __future__ import annotations
 
@@ -28,9 +35,11 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from bench.rates import share  # noqa: E402
 from greyfit.schemas.discovery import DiscoverRequest  # noqa: E402
 from greyfit.solvers.discovery import confirm, discover  # noqa: E402
 from tests import coloured_records as cr  # noqa: E402
+from tests import discovery_systems as ds  # noqa: E402
 
 FIXED = {"cubic_stiffness", "quadratic_drag", "offset", "output_offset", "output_gain"}
 
@@ -41,13 +50,35 @@ def record(system: str, seed: int, kind: str, n: int | None) -> tuple[dict, dict
     return cr.duffing_complete_model(), cr.duffing_record(n or 801, seed, kind)
 
 
+def library_rows(seeds: int) -> None:
+    """Runs of `discover` on the wider library's complete models that added anything, per system."""
+    print(f"{'system':10} {'runs where a term was added':>30}  {'s/run':>5}  added")
+    for system, (model, record) in sorted(ds.COMPLETE.items()):
+        added: dict[str, int] = {}
+        runs_added = 0
+        t0 = time.perf_counter()
+        for seed in range(seeds):
+            res = discover(DiscoverRequest.model_validate({
+                "model": model, "experiments": [record(seed)], "method": "multiple_shooting",
+                "options": {"input_interpolation": "zoh"}}))
+            runs_added += bool(res.steps)
+            for s in res.steps:
+                added[s.effect] = added.get(s.effect, 0) + 1
+        print(f"{system:10} {share(runs_added, seeds):>30}  {(time.perf_counter() - t0) / seeds:5.1f}  "
+              f"{', '.join(f'{k}×{v}' for k, v in added.items()) or '-'}", flush=True)
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--seeds", type=int, default=30)
     ap.add_argument("--kinds", default="white,lowpass,ar1")
     ap.add_argument("--systems", default="msd,duffing")
     ap.add_argument("--samples", type=int, default=None, help="record length (default 1001 MSD, 801 Duffing)")
+    ap.add_argument("--library", action="store_true", help="the wider library's complete models instead")
     args = ap.parse_args()
+    if args.library:
+        library_rows(args.seeds)
+        return
 
     screens: list = []
     real_screen = confirm.screen

@@ -48,8 +48,8 @@ STEPS = [(FIT, "prepare_request"), (FIT, "choose_substeps"), (FIT, "compile_mode
          (FIT, "pre_fit_warnings"), (BATCH, "solve_from_starts"),
          (BATCH, "sensitivity_jacobian"), (FIT, "equation_error_bias_warnings"),
          (BATCH + ":EquationErrorFit", "channels"), (BATCH + ":OutputErrorFit", "channels"),
-         (FIT, "residual_analyses"), (FIT, "row_keys"), (FIT, "estimate_covariance"), (FIT, "_result"),
-         (FIT, "_quality_inputs"), (FIT, "assess_fit"), (FIT, "substeps_retry"), (FIT, "review_fit")]
+         (FIT, "residual_analyses"), (FIT, "row_keys"), (FIT, "estimate_covariance"), (FIT + ":_Fit", "_draft_result"),
+         (FIT + ":_Fit", "_quality_inputs"), (FIT, "assess_fit"), (FIT, "substeps_retry"), (FIT, "review_fit")]
 TOP = list(dict.fromkeys(name for _, name in STEPS))
 NESTED = [("greyfit.solvers.checks.quality", "finite_result", "assess_fit"),
           (VERDICT, "missing_effect_warnings", "review_fit"), (VERDICT, "noise_level_warnings", "review_fit")]

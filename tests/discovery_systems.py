@@ -162,3 +162,14 @@ def rlc_complete_model() -> dict:
     model["parameters"].append({"name": "bias", "value": 0.0})
     model["outputs"] = {"i": "i", "vc": "vc + bias"}
     return model
+
+
+# complete models (nothing missing) under AR(1) noise (ρ 0.8) and held inputs, 500 samples: the loop
+# must add nothing (tests/solvers/test_discovery_library.py on two seeds,
+# bench/bench_discovery_noise.py --library over many)
+COMPLETE = {
+    "block": (block_model(radiation=True), lambda seed: block_record(seed, n=500, rho=0.8)),
+    "oscillator": (amplitude_damping_complete_model(),
+                   lambda seed: amplitude_damping_record(seed, n=500, rho=0.8)),
+    "rlc": (rlc_complete_model(), lambda seed: rlc_record(seed, n=500, rho=0.8)),
+}

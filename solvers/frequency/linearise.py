@@ -154,35 +154,12 @@ class CompiledLinearisedModel(CompiledTransferFunction):
 
     # -- what CompiledTransferFunction asks -------------------------------------------------------
     def arguments(self, p):
-        """What the coefficient expressions take from the physical parameter vector.
-
-        Parameters
-        ----------
-        p : casadi.SX or casadi.MX or numpy.ndarray
-            The physical parameters (declaration order).
-
-        Returns
-        -------
-        casadi.SX or casadi.MX or numpy.ndarray
-            ``[p; x*(p)]`` with equilibrium "solve" (x* from the Newton rootfinder), else `p`.
-        """
+        """``[p; x*(p)]`` with equilibrium "solve" (x* from the Newton rootfinder), else `p`."""
         return ca.vertcat(p, self.equilibrium(p)) if self.solve else p
 
     def coefficient_function(self, name: str, poly: Poly) -> ca.Function:
-        """p (physical parameters) -> coefficient column, through x*(p) with equilibrium "solve".
-
-        Parameters
-        ----------
-        name : str
-            Name of the CasADi Function.
-        poly : list
-            SX coefficients of ``self.p`` (the parameters, and x* when solved for).
-
-        Returns
-        -------
-        casadi.Function
-            The physical parameters -> the coefficients as one column.
-        """
+        """p (physical parameters) -> coefficient column, through x*(p) with equilibrium "solve" (`poly`
+        in SX coefficients of ``self.p``: the parameters, and x* when solved for)."""
         inner = ca.Function(name + "_of_point", [self.p], [ca.vertcat(*poly)])
         if not self.solve:
             return inner
@@ -190,24 +167,9 @@ class CompiledLinearisedModel(CompiledTransferFunction):
         return ca.Function(name, [p], [inner(self.arguments(p))])
 
     def plant(self, constants: dict[str, float]) -> tuple[Poly, Poly]:
-        """Numerator and denominator of the linearised plant with these constant values (cached).
-
-        Parameters
-        ----------
-        constants : dict of str to float
-            Values that override the model's constants (one data set's).
-
-        Returns
-        -------
-        tuple of list
-            (num, den): SX coefficients of ``self.p``, descending powers of s.
-
-        Raises
-        ------
-        ModelDefinitionError
-            When the model does not compile or depends on t, or, with equilibrium "solve", when the
-            constants change the model's equations (`model.operating_point.equilibrium`).
-        """
+        """Numerator and denominator of the linearised plant with these constant values (cached); with
+        equilibrium "solve", constants that change the model's equations are a `ModelDefinitionError`
+        (`model.operating_point.equilibrium`): each data set would have its own equilibrium."""
         key = tuple(sorted(constants.items()))
         if key not in self._plants:
             cm = self._compiled(constants)
@@ -226,13 +188,8 @@ class CompiledLinearisedModel(CompiledTransferFunction):
         return not np.allclose(np.array(base.rhs(x, u, p, 0)), np.array(cm.rhs(x, u, p, 0)), equal_nan=True)
 
     def check_plant(self) -> None:
-        """Check that the chosen output responds to the chosen input at the operating point.
-
-        Raises
-        ------
-        ModelDefinitionError
-            When C adj(sI − A) B + D is identically zero (`model.output`).
-        """
+        """Check that the chosen output responds to the chosen input at the operating point (C adj(sI − A)
+        B + D not identically zero; else a `ModelDefinitionError` on `model.output`)."""
         num, _ = self.plant({})
         if not self._strip_leading(num):
             raise ModelDefinitionError(

@@ -192,26 +192,8 @@ class EquationErrorFit:
         return cls(build_equation_error(cm, data, layout, options), data, cm, layout)
 
     def solve(self, starts, options, cpu0):
-        """Solve by IRLS (affine residual with a TV penalty), the closed form (linear), or from every start.
-
-        Parameters
-        ----------
-        starts : list of numpy.ndarray
-            Physical parameter vectors, the user's guess first (`draw_starts`).
-        options : FitOptions
-            The request's options.
-        cpu0 : float
-            The process time the fit began at; its preparation counts against ``max_cpu_time``.
-
-        Returns
-        -------
-        outcome : NlpOutcome
-            The best outcome.
-        used : int
-            The number of starts that ran.
-        compiled : bool or None
-            Whether compiled C evaluated the model; None after IRLS.
-        """
+        """Solve by IRLS (affine residual with a TV penalty), the closed form (linear), or from every
+        start; `compiled` is None after IRLS."""
         if self.affine_solve is not None:
             affine = self.affine_solve(self.problem, self.layout, self.eep.linear)
             if affine:
@@ -224,22 +206,8 @@ class EquationErrorFit:
         return outcome, used, is_c
 
     def jacobian(self, theta_s, w, x0s):
-        """J and r of the equation-error residual at the solution, one row group per used equation.
-
-        Parameters
-        ----------
-        theta_s : numpy.ndarray
-            The scaled free parameters at the solution, shape (n θ,).
-        w : numpy.ndarray
-            The NLP's full decision vector at the solution.
-        x0s : list of dict
-            Not used: equation error estimates no initial state.
-
-        Returns
-        -------
-        Jacobian
-            Rows grouped by equation, columns the free parameters (no extra columns).
-        """
+        """J and r of the equation-error residual at the solution, one row group per used equation, no
+        extra columns (`x0s` is not used: equation error estimates no initial state)."""
         jac, res = self.problem.evaluate_jacobian(w)
         groups = np.concatenate([np.tile(np.arange(len(self.eep.equations)), ed.rows.size)
                                  for ed in self.eep.per_experiment])
@@ -247,23 +215,8 @@ class EquationErrorFit:
                         self.layout.scale, 0)
 
     def channels(self, theta, x0s, res):
-        """The solver's own weighted residual (measured − model), unweighted, per derivative.
-
-        Parameters
-        ----------
-        theta : numpy.ndarray
-            Not used: the solver's residual `res` is unweighted instead of evaluated again.
-        x0s : list of dict
-            Not used.
-        res : numpy.ndarray
-            The weighted residual at the solution (`Jacobian.res`).
-
-        Returns
-        -------
-        Residuals
-            Channels ``der(state)`` for the used equations; per experiment (measured derivative,
-            residual), NaN at the rows not used.
-        """
+        """The solver's own weighted residual `res`, unweighted, per derivative ``der(state)`` of the used
+        equations, NaN at the rows not used (`theta` and `x0s` are not used)."""
         eep, per, start = self.eep, [], 0
         neq = len(eep.equations)
         w = eep.weights[eep.equations][:, None]
@@ -279,30 +232,14 @@ class EquationErrorFit:
         return Residuals([f"der({self.cm.states[i]})" for i in eep.equations], per)
 
     def initial_states(self, x0s):
-        """The measured (or smoothed) states at each experiment's first usable row.
-
-        Parameters
-        ----------
-        x0s : list of dict
-            Not used.
-
-        Returns
-        -------
-        dict
-            Experiment name -> (state name -> value).
-        """
+        """The measured (or smoothed) states at each experiment's first usable row (`x0s` is not used)."""
         per = self.eep.per_experiment
         return {d.name: {s: float(per[e].x[i, per[e].rows[0]]) for i, s in enumerate(self.cm.states)}
                 for e, d in enumerate(self.data)}
 
     def solver_details(self):
-        """The derivative filter's note and whether the residual is linear in the parameters.
-
-        Returns
-        -------
-        dict
-            ``derivative_filter`` (str or None) and ``linear_in_parameters`` (bool).
-        """
+        """The derivative filter's note (``derivative_filter``) and whether the residual is linear in the
+        parameters (``linear_in_parameters``)."""
         return {"derivative_filter": self.eep.derivative_filter, "linear_in_parameters": self.eep.linear}
 
 
@@ -354,26 +291,7 @@ class OutputErrorFit:
         return cls(oem, builder(oem), builder, method, choice)
 
     def solve(self, starts, options, cpu0):
-        """Solve from every start; the best is polished with the exact Hessian when none converged.
-
-        Parameters
-        ----------
-        starts : list of numpy.ndarray
-            Physical parameter vectors, the user's guess first (`draw_starts`).
-        options : FitOptions
-            The request's options.
-        cpu0 : float
-            The process time the fit began at; its preparation counts against ``max_cpu_time``.
-
-        Returns
-        -------
-        outcome : NlpOutcome
-            The best outcome.
-        used : int
-            The number of starts that ran.
-        compiled : bool or None
-            Whether compiled C evaluated the model.
-        """
+        """Solve from every start; the best is polished with the exact Hessian when none converged."""
         # the exact form: the polish of a fit Gauss-Newton did not converge (multistart.py)
         self.run = solve_from_starts(self.problem, options, starts, False, cpu0,
                                      exact_form(self.builder, self.oem, self.problem))
@@ -381,22 +299,8 @@ class OutputErrorFit:
 
     def jacobian(self, theta_s, w, x0s):
         """Sensitivities of the simulated outputs at the solution: for multiple shooting the nodes
-        are eliminated this way (its gaps are zero there), free initial states become columns.
-
-        Parameters
-        ----------
-        theta_s : numpy.ndarray
-            The scaled free parameters at the solution, shape (n θ,).
-        w : numpy.ndarray
-            The NLP's full decision vector at the solution.
-        x0s : list of dict
-            Per experiment, state name -> initial value at the solution.
-
-        Returns
-        -------
-        Jacobian
-            Columns the free parameters, then the free initial states (`n_extra` of them).
-        """
+        are eliminated this way (its gaps are zero there); the free initial states are the `n_extra`
+        columns after the parameters."""
         oem, cm = self.oem, self.oem.cm
         theta = oem.layout.physical(theta_s)
         x0_free = [x0s[e][cm.states[i]] / oem.xscale[i] for e, f in enumerate(oem.free_x0) for i in f]
@@ -407,48 +311,17 @@ class OutputErrorFit:
                         np.concatenate([oem.layout.scale, x0_scale]), len(x0_free))
 
     def channels(self, theta, x0s, res):
-        """Simulate at the solution: residual (simulated − measured) per output.
-
-        Parameters
-        ----------
-        theta : numpy.ndarray
-            The physical free parameters at the solution, shape (n θ,).
-        x0s : list of dict
-            Per experiment, state name -> initial value at the solution.
-        res : numpy.ndarray
-            Not used: the residual is simulated again, unweighted.
-
-        Returns
-        -------
-        Residuals
-            The model's outputs; per experiment (measured, residual), and the simulated states.
-        """
+        """Simulate at the solution: residual (simulated − measured) per output, and the simulated states
+        (`res` is not used: the residual is simulated again, unweighted)."""
         cm, data = self.oem.cm, self.oem.data
         sims = self.oem.simulate(theta, [np.array([x0s[e][s] for s in cm.states]) for e in range(len(data))])
         per = [(d.y, ys - d.y) for d, (_, ys) in zip(data, sims)]
         return Residuals(list(cm.outputs), per, [xs for xs, _ in sims])
 
     def initial_states(self, x0s):
-        """The initial states at the solution, per experiment.
-
-        Parameters
-        ----------
-        x0s : list of dict
-            Per experiment, state name -> initial value at the solution.
-
-        Returns
-        -------
-        dict
-            Experiment name -> (state name -> initial value).
-        """
+        """The initial states at the solution, per experiment."""
         return {d.name: x0s[e] for e, d in enumerate(self.oem.data)}
 
     def solver_details(self):
-        """No derivative filter, no linearity flag: output error has neither.
-
-        Returns
-        -------
-        dict
-            ``derivative_filter`` and ``linear_in_parameters``, both None.
-        """
+        """No derivative filter, no linearity flag: output error has neither (both None)."""
         return {"derivative_filter": None, "linear_in_parameters": None}

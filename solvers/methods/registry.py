@@ -5,12 +5,14 @@ name comparisons in the checks, discovery and validation. Everything that depend
 asks its entry here: `family` says what kind of residual it minimises (equation error compares
 derivatives, output error simulates), `has_nodes` whether its solution is pieces joined at shooting
 nodes, `build` makes its problem for `fit_model`, and online estimators run their own `fit`. Adding a
-method is one class and one line in `METHODS`.
+method is one class and one line in `METHODS`: what kind of entry it is (batch or online) is read from
+the methods it has (the `BatchMethod` and `OnlineMethod` protocols, checked at run time), so neither
+this module nor its test names the classes.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Literal, Protocol
+from typing import TYPE_CHECKING, Literal, Protocol, runtime_checkable
 
 from greyfit.schemas.fit import FitMethod, FitOptions, FitRequest, FitResult
 
@@ -23,8 +25,9 @@ if TYPE_CHECKING:
 Family = Literal["equation_error", "output_error", "online", "frequency"]
 
 
-class BatchMethod(Protocol):
-    """A method `fit_model` solves as one least-squares NLP over all records."""
+@runtime_checkable
+class MethodEntry(Protocol):
+    """What every entry of `METHODS` says about its method (frequency-response fits have only this)."""
 
     @property
     def family(self) -> Family:
@@ -47,6 +50,11 @@ class BatchMethod(Protocol):
             True when the fitted pieces may fail to join into one simulation (a continuity gap).
         """
         ...
+
+
+@runtime_checkable
+class BatchMethod(MethodEntry, Protocol):
+    """A method `fit_model` solves as one least-squares NLP over all records."""
 
     def build(self, cm: CompiledModel, data: list[ExperimentData], layout: ParameterLayout,
               options: FitOptions) -> BatchFit:
@@ -71,30 +79,9 @@ class BatchMethod(Protocol):
         ...
 
 
-class OnlineMethod(Protocol):
+@runtime_checkable
+class OnlineMethod(MethodEntry, Protocol):
     """A method that runs over one record sample by sample and returns its own `FitResult`."""
-
-    @property
-    def family(self) -> Family:
-        """The kind of residual the method minimises.
-
-        Returns
-        -------
-        Family
-            'equation_error', 'output_error', 'online' or 'frequency'.
-        """
-        ...
-
-    @property
-    def has_nodes(self) -> bool:
-        """Whether the solution is trajectory pieces joined at shooting nodes (multiple shooting).
-
-        Returns
-        -------
-        bool
-            True when the fitted pieces may fail to join into one simulation (a continuity gap).
-        """
-        ...
 
     def fit(self, request: FitRequest) -> FitResult:
         """Estimate over the request's single experiment.
@@ -154,7 +141,7 @@ class _Frequency:
     has_nodes: bool = False
 
 
-METHODS: dict[FitMethod, _EquationError | _OutputError | _Online | _Frequency] = {
+METHODS: dict[FitMethod, MethodEntry] = {
     FitMethod.auto: _OutputError("auto"),
     FitMethod.equation_error: _EquationError(),
     FitMethod.single_shooting: _OutputError("single"),
@@ -232,7 +219,7 @@ def batch_method(method: FitMethod) -> BatchMethod:
         When `method` is an online or frequency-response method (a programming error, not bad input).
     """
     entry = METHODS[method]
-    if isinstance(entry, (_EquationError, _OutputError)):
+    if isinstance(entry, BatchMethod):   # structural: any entry with a `build`
         return entry
     raise TypeError(f"{method.value} is not a batch method")
 
@@ -251,4 +238,4 @@ def online_method(method: FitMethod) -> OnlineMethod | None:
         The entry whose `fit` runs the online estimator; None for batch and frequency methods.
     """
     entry = METHODS[method]
-    return entry if isinstance(entry, _Online) else None
+    return entry if isinstance(entry, OnlineMethod) else None   # structural: any entry with a `fit`

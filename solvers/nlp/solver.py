@@ -69,20 +69,8 @@ class LeastSquaresSolver:
         self.residual = ca.Function("residual", [w], [r])
 
     def solve(self, w0: np.ndarray, lbw: np.ndarray | None = None, ubw: np.ndarray | None = None) -> NlpOutcome:
-        """From w0, within the problem's bounds or those given (a profile fixes one entry).
-
-        Parameters
-        ----------
-        w0 : numpy.ndarray
-            Start decision vector, shape (n_w,); clipped into the bounds.
-        lbw, ubw : numpy.ndarray or None, optional
-            Lower and upper bounds on w, shape (n_w,); None uses the problem's `lbw`/`ubw`.
-
-        Returns
-        -------
-        NlpOutcome
-            The Ipopt outcome; a failed evaluation is an unsuccessful outcome, not an exception.
-        """
+        """From w0 (clipped into the bounds), within the problem's bounds or those given (a profile fixes
+        one entry); a failed evaluation is an unsuccessful outcome, not an exception."""
         return run_ipopt(self.solver, w0, self.problem, lbw=lbw, ubw=ubw)
 
 

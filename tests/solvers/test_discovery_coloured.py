@@ -33,8 +33,9 @@ def complete_record(system: str, seed: int, kind: str) -> tuple[dict, dict]:
 
 @pytest.mark.parametrize("system", ["msd", "duffing"])
 @pytest.mark.parametrize("kind", ["lowpass", "ar1"])
-def test_complete_models_under_coloured_noise_get_nothing_added_over_ten_seeds(system, kind):
-    for seed in range(10):
+def test_complete_models_under_coloured_noise_get_nothing_added_over_two_seeds(system, kind):
+    # the rate over many seeds (100 each) is bench/bench_discovery_noise.py's, in docs/discovery-loop.md
+    for seed in range(2):
         model, record = complete_record(system, seed, kind)
         res = run(model, record)
         assert res.steps == [], (system, kind, seed, res.conclusion)

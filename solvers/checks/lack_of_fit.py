@@ -30,7 +30,8 @@ from greyfit.solvers.inference.noise_model import whitened_score_p_value
 from greyfit.solvers.methods.registry import simulates_outputs
 
 SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
-                                   "output_offset", "output_gain", "sensor_lag", "input_lag", "extra_pole"]
+                                   "output_offset", "output_gain", "sensor_lag", "input_lag", "extra_pole",
+                                   "hidden_store"]
 SIGNIFICANCE = 0.001         # family-wise, over the candidates tried (the screen's Bonferroni): a
 #                              right model is flagged in about 0.1 % of fits, below the 1 % issue 38 allows
 #                              (at 0.01 one right model of 40 under AR(1) noise was flagged)

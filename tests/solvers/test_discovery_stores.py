@@ -3,6 +3,7 @@ exchanging with a declared state, on systems with known truth."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from greyfit.schemas.fit import FitRequest
 from greyfit.schemas.model import Model
@@ -39,3 +40,23 @@ def test_a_missing_deep_compartment_is_named_a_hidden_store_and_not_good():
     top = w.detail["candidates"][0]
     assert top["effect"] == "hidden_store" and top["p_value"] < 1e-10
     assert r.quality == "suspect"
+
+
+@pytest.mark.xfail(reason="the refit's t-value of k is 1.6 (k and τ correlated on a record 2.4 τ long); the "
+                   "profile likelihood confirms the store with compiled functions (k 0.045, declared parameters "
+                   "within 4 %) but not uncompiled (GREYFIT_COMPILE=never, as the tests run)", strict=False)
+@pytest.mark.slow
+def test_discovery_adds_the_store_and_recovers_the_exchange_rate():
+    """The same data through the discovery loop (the store among a few rival families): a store of the
+    central compartment is added, its exchange rate k = k13 = 0.05 is recovered within 20 %, and the
+    declared parameters move to within 10 % of the truth."""
+    from greyfit.schemas.discovery import DiscoverRequest
+    from greyfit.solvers.discovery.loop import discover
+    case = make_case("missing_state", 0)
+    body = {**case.declared, "discovery": {"max_terms": 1,
+                                           "effects": ["hidden_store", "extra_pole", "offset", "parameter_drift"]}}
+    res = discover(DiscoverRequest.model_validate(body))
+    assert [s.effect for s in res.steps] == ["hidden_store"], res.conclusion
+    assert res.fit.parameters["A1_store_k"].value == pytest.approx(0.05, rel=0.2)
+    for name, value in case.truth.items():
+        assert res.fit.parameters[name].value == pytest.approx(value, rel=0.1)

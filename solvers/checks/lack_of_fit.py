@@ -13,7 +13,8 @@ were not made on, often at other operating levels, roughly doubles what a small 
 No candidate needs to explain a least share of the residual (`MIN_EXPLAINED`): the level alone decides.
 
 Only the named laws are screened here (friction, drag, cubic stiffness, offsets, outflow, sensor
-gain and offset, and first-order lags of a sensor, an input or between two states): switch points,
+gain and offset, first-order lags of a sensor, an input or between two states, and a hidden store
+exchanging with a state at four time constants over the record): switch points,
 steps and drifts in time are one hypothesis per grid point and cost most of a full screen, and the
 discovery endpoint is the place to search them. Only the
 output-residual scores count: the equation-residual scores are made from smoothed derivatives, which

@@ -15,7 +15,7 @@ Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "coupling_law",
                  "radiation", "arrhenius", "saturable_rate", "saturation", "dead_zone", "output_offset",
                  "output_gain", "output_abs", "output_saturation", "power_law", "input_law", "parameter_law",
                  "parameter_step", "parameter_drift", "state_dependent", "input_delay", "sensor_lag",
-                 "input_lag", "extra_pole"]
+                 "input_lag", "extra_pole", "hidden_store"]
 ALL_EFFECTS: tuple[Effect, ...] = get_args(Effect)
 
 

@@ -13,7 +13,8 @@ were not made on, often at other operating levels, roughly doubles what a small 
 No candidate needs to explain a least share of the residual (`MIN_EXPLAINED`): the level alone decides.
 
 Only the named laws are screened here (friction, drag, cubic stiffness, offsets, outflow, sensor
-gain and offset, and first-order lags of a sensor, an input or between two states): switch points,
+gain and offset, first-order lags of a sensor, an input or between two states, and a hidden store
+exchanging with a state at four time constants over the record): switch points,
 steps and drifts in time are one hypothesis per grid point and cost most of a full screen, and the
 discovery endpoint is the place to search them. Only the
 output-residual scores count: the equation-residual scores are made from smoothed derivatives, which
@@ -30,7 +31,8 @@ from greyfit.solvers.inference.noise_model import whitened_score_p_value
 from greyfit.solvers.methods.registry import simulates_outputs
 
 SCREENED_EFFECTS: list[Effect] = ["coulomb", "quadratic_drag", "cubic_stiffness", "offset", "sqrt_flow",
-                                   "output_offset", "output_gain", "sensor_lag", "input_lag", "extra_pole"]
+                                   "output_offset", "output_gain", "sensor_lag", "input_lag", "extra_pole",
+                                   "hidden_store"]
 SIGNIFICANCE = 0.001         # family-wise, over the candidates tried (the screen's Bonferroni): a
 #                              right model is flagged in about 0.1 % of fits, below the 1 % issue 38 allows
 #                              (at 0.01 one right model of 40 under AR(1) noise was flagged)

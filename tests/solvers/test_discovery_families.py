@@ -21,7 +21,7 @@ def test_every_family_implements_the_protocol_and_says_what_it_supports():
         assert family.scope in ("equation", "parameter", "input", "output"), family.name
         assert family.__class__.__module__.startswith("greyfit.solvers.discovery.families."), family.name
     generic = {f.name for f in FAMILIES if f.generic}
-    assert generic == {"state_dependent", "input_delay", "sensor_lag", "input_lag", "extra_pole"}
+    assert generic == {"state_dependent", "input_delay", "sensor_lag", "input_lag", "extra_pole", "hidden_store"}
 
 
 def _screen(model: dict, record: dict, **opts):

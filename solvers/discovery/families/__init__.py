@@ -22,6 +22,7 @@ from greyfit.solvers.discovery.families.radiation import Radiation
 from greyfit.solvers.discovery.families.rates import SaturableRate
 from greyfit.solvers.discovery.families.sensor import OutputAbs, OutputGain, OutputOffset, OutputSaturation
 from greyfit.solvers.discovery.families.stiffness import CubicStiffness
+from greyfit.solvers.discovery.families.stores import HiddenStore
 from greyfit.solvers.discovery.families.switching import StateDependent
 from greyfit.solvers.discovery.families.time_varying import ParameterDrift, ParameterStep
 
@@ -51,6 +52,7 @@ FAMILIES: tuple[Family, ...] = (
     SensorLag(),
     InputLag(),
     ExtraPole(),
+    HiddenStore(),
 )
 # the user's candidates: always screened when given, not an entry of `effects`
 USER = Custom()

@@ -20,6 +20,7 @@ from greyfit.solvers.dynamics.compiled import compiled
 from greyfit.solvers.dynamics.function_cache import FunctionCache
 from greyfit.solvers.dynamics.integration import integrator_of, make_step
 from greyfit.solvers.methods.shooting import structured as shooting_structured
+from greyfit.solvers.methods.shooting.later_drops import LaterDrops
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.parameters import ParameterLayout
 from greyfit.solvers.nlp.problem import (
@@ -40,9 +41,7 @@ _STATES_LOCK = threading.Lock()
 STATES_KEPT_BYTES = 16 * 1024 * 1024
 
 
-def _forget_states(key: tuple) -> None:
-    with _STATES_LOCK:
-        _STATES.pop(key, None)
+_STATES_DROPS = LaterDrops(_STATES, _STATES_LOCK)   # entries go with their records (finalizers)
 
 
 class OutputErrorModel:
@@ -245,6 +244,7 @@ class OutputErrorModel:
         p = np.asarray(p, dtype=float)
         key = (id(step), id(d), x0.tobytes(), p.tobytes())
         with _STATES_LOCK:
+            _STATES_DROPS.drain()
             known = _STATES.get(key)
         # the entry holds its step, and its record weakly (it is dropped with the record, so an id in a
         # key is never reused while it lives, and a fit's record does not outlive the fit here)
@@ -255,10 +255,11 @@ class OutputErrorModel:
         states = np.hstack([x0, xs])
         if states.nbytes <= STATES_KEPT_BYTES:
             with _STATES_LOCK:
+                _STATES_DROPS.drain()
                 _STATES[key] = (step, weakref.ref(d), states)
                 while len(_STATES) > 4:
                     _STATES.popitem(last=False)
-            weakref.finalize(d, _forget_states, key)
+            weakref.finalize(d, _STATES_DROPS.drop, key)
         return states.copy()
 
     def numeric_outputs(self, e: int, states: np.ndarray, p: np.ndarray) -> np.ndarray:

@@ -25,12 +25,13 @@ from __future__ import annotations
 import itertools
 import threading
 import weakref
-from collections import OrderedDict
+from collections import OrderedDict, deque
 
 import casadi as ca
 import numpy as np
 
 from greyfit.solvers.dynamics.columns import Fold
+from greyfit.solvers.methods.shooting.later_drops import LaterDrops
 
 _TOKENS = itertools.count(1)
 
@@ -258,6 +259,7 @@ def condensed_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]]):
     theta_s = np.asarray(theta_s, dtype=float).ravel()
     key = _rows_key(oem, theta_s, x0s)
     with _ROWS_LOCK:
+        _ROWS_DROPS.drain()
         known = _ROWS.get(key)
     # the entry holds its model and records, so an id in a key is never reused while the entry lives
     if known is not None and known[0] is oem.cm and known[1] == _records(oem):   # the optimum's, asked again
@@ -346,23 +348,20 @@ def remember_rows(oem, theta_s: np.ndarray, x0s: list[dict[str, float]], out: tu
     """
     key = _rows_key(oem, np.asarray(theta_s, dtype=float).ravel(), x0s)
     with _ROWS_LOCK:
+        _ROWS_DROPS.drain()
         _ROWS[key] = (oem.cm, _records(oem), out)
         while len(_ROWS) > 4:
             _ROWS.popitem(last=False)
     # forgotten with the fit's records (a long record's Jacobian is its size times the unknowns)
-    weakref.finalize(oem.data[0].y, _forget_rows, key)
+    weakref.finalize(oem.data[0].y, _ROWS_DROPS.drop, key)
     return tuple(a.copy() for a in out)
-
-
-def _forget_rows(key: tuple) -> None:
-    with _ROWS_LOCK:
-        _ROWS.pop(key, None)
 
 
 # the last condensed Jacobians, by everything they are computed from (the kernel, the point and a
 # digest of the records, weights and parameter map): a fit's checks ask again at its optimum
 _ROWS: "OrderedDict[tuple, tuple]" = OrderedDict()
 _ROWS_LOCK = threading.Lock()
+_ROWS_DROPS = LaterDrops(_ROWS, _ROWS_LOCK)   # entries go with their records (finalizers)
 
 
 def _records(oem) -> tuple[_Same, ...]:
@@ -465,6 +464,7 @@ class SinglePass:
         self._point: tuple[bytes, tuple[float, np.ndarray, np.ndarray]] | None = None
         self._rows: tuple[bytes, list[tuple[np.ndarray, np.ndarray]]] | None = None
         self._lock = threading.RLock()   # the bound folds' buffers are rewritten per call
+        self._forgotten: deque[float] = deque()   # tokens whose models are gone (`forget`)
 
     def attach(self, record: np.ndarray) -> None:
         """Give the callbacks a record: the data vector (`structured._data_layout`) with its token
@@ -477,6 +477,7 @@ class SinglePass:
             The data vector and the token.
         """
         with self._lock:
+            self._drop_forgotten()
             self._attached[float(record[-1])] = record
 
     def forget(self, token: float) -> None:
@@ -491,8 +492,18 @@ class SinglePass:
         token : float
             The token of a model's record.
         """
-        tail = np.float64(token).tobytes()   # a point's key ends with its record's token
-        with self._lock:
+        # called from a finalizer, maybe inside this pass's own locked work: queued, never waited on
+        # (see `later_drops`); the next attach or evaluation drops it, before it binds a new record
+        self._forgotten.append(token)
+
+    def _drop_forgotten(self) -> None:
+        """Drop the queued tokens' records and points (the caller holds the lock)."""
+        while self._forgotten:
+            try:
+                token = self._forgotten.popleft()
+            except IndexError:
+                return
+            tail = np.float64(token).tobytes()   # a point's key ends with its record's token
             self._records.pop(token, None)
             if self._point is not None and self._point[0].endswith(tail):
                 self._point = None
@@ -501,6 +512,7 @@ class SinglePass:
 
     def _record(self, p: np.ndarray) -> list[dict]:
         """The record whose token `p` ends with, bound to the two folds (once per token)."""
+        self._drop_forgotten()
         token = float(p[-1])
         known = self._records.get(token)
         if known is not None:

@@ -508,7 +508,12 @@ def _token_record(oem) -> tuple[float, np.ndarray]:
 
 
 def _forget_token(token: float) -> None:
-    for _, sp in list(_PASSES.values()):
+    # a finalizer: `forget` only queues; the cache may change under us in another thread's hands
+    try:
+        passes = list(_PASSES.values())
+    except RuntimeError:   # changed while read: its passes drop the token when it is next seen
+        return
+    for _, sp in passes:
         sp.forget(token)
 
 

@@ -174,7 +174,12 @@ class Dispatcher:
         # tasks we were running (or had claimed for the next free worker) go back to the queue at
         # once, without counting an attempt; another server (or our restart) runs them
         self.ready.clear()
-        self.metrics.give_backs.labels("shutdown").inc(self.store.requeue_owned(self.owner))
+        try:
+            self.metrics.give_backs.labels("shutdown").inc(self.store.requeue_owned(self.owner))
+        except STORE_ERRORS:
+            # a store that is gone (an SQLite file deleted under the server) cannot take them back:
+            # their leases run out and a live server requeues them; the shutdown itself must finish
+            log.exception("could not hand the running tasks back at shutdown")
         for item in list(self.running.values()):
             if item[0] == "sync" and not item[1].done():
                 item[1].set_exception(RuntimeError("the server is shutting down"))

@@ -62,6 +62,9 @@ class System:
     dead_zone: float = 0.0
     knee: float = 0.0                                # the input's gain drops to 0.4 above it
     drift: tuple[str, float] | None = None           # (parameter, relative change per unit time)
+    # a sensor offset in the output's units, set by the first record: the sensor's, so the same on the
+    # validation record (sized on each record's own spread, it differed between them)
+    offset: float | None = None
 
 
 def _block(kind: str, i: int, rng: np.random.Generator) -> Block:
@@ -205,7 +208,11 @@ def _record(sysm: System, name: str, t: np.ndarray, u: np.ndarray, x0: np.ndarra
     for b in sysm.blocks:
         y = x[names.index(b.measured)]
         if sysm.sensor is not None and sysm.sensor[0] == b.measured:
-            y = y + sysm.sensor[2] * np.std(y) * 5 if sysm.sensor[1] == "offset" else y * (1 + sysm.sensor[2])
+            if sysm.sensor[1] == "offset":
+                sysm.offset = sysm.sensor[2] * float(np.std(y)) * 5 if sysm.offset is None else sysm.offset
+                y = y + sysm.offset
+            else:
+                y = y * (1 + sysm.sensor[2])
         outputs[b.measured] = noisy(y, noise, seed + len(outputs))
     return {"name": name, "time": t.tolist(), "inputs": {"u": u.tolist()}, "outputs": outputs}, x[:, -1]
 

@@ -51,6 +51,9 @@ class Candidate:
     # a member of a series that approximates many laws (a power, a smooth p(x)), not a law named for a
     # mechanism: refitted beside the named laws within the margin, never instead of them
     approximating: bool = False
+    # structural values chosen by search and not refitted as parameters (a step's switch times): each
+    # counts as a parameter when refits with different numbers of them are compared by BIC
+    searched: int = 0
 
     def __post_init__(self):
         self.key = self.key or f"{self.family}|{self.term}"

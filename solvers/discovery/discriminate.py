@@ -321,9 +321,9 @@ def variants_of(screening: Screening, sc: Scored) -> list[Scored]:
 
 def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[list[Scored]]:
     """The leader's variants and those of every significant candidate of another family within
-    `MARGIN` of its explained variance, by screening BIC drop; catch-alls only beside a catch-all
-    leader; an approximating series member whose projected column equals an earlier one's is the same
-    hypothesis.
+    `MARGIN` of its explained variance, by screening BIC drop (beside a catch-all leader, by the share
+    explained); catch-alls only beside a catch-all leader; an approximating series member whose
+    projected column equals an earlier one's is the same hypothesis.
 
     Parameters
     ----------
@@ -350,6 +350,12 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
             continue
         seen.add(c.family)
         pools[c.approximating].append(sc)
+    if lead.candidate.catch_all:
+        # symptoms compete on equal terms, the one that explains most first: the screen's rank puts a
+        # change in time behind other shapes while a refit-only law is pending, and a drift explaining
+        # 99 % of the residual was left out of the round a delay explaining 26 % led
+        for pool in pools.values():
+            pool.sort(key=lambda sc: -sc.score.explained)
     # named laws and approximating series in turn, each by screening rank: a power series that
     # screens best does not crowd the named law out of the refits (nor the other way round)
     turn = not lead.candidate.approximating
@@ -362,7 +368,45 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
             chosen.append(sc)
         turn = not turn
     chosen += named_beside_series(screening, chosen, state)
+    chosen += lines_beside_staircases(screening, chosen, state)
     return [variants_of(screening, sc) for sc in chosen]
+
+
+def lines_beside_staircases(screening: Screening, chosen: list[Scored], state: LoopState) -> list[Scored]:
+    """The simplest change in time of each parameter a chosen staircase (steps at searched
+    times) changes: its drift, refitted beside it, significant at the screen or not.
+
+    A parameter that drifts is approximated by a staircase as well as by its line, and the staircase's
+    columns, several and placed by search, screen higher on a residual the biased base fit has bent;
+    refitted side by side the line wins by BIC once the switch times count as parameters
+    (`whitened_bics`), and without it the staircase of another parameter of the same equation can take
+    the round.
+
+    Parameters
+    ----------
+    screening : Screening
+        The screen, ranked.
+    chosen : list of Scored
+        The candidates chosen so far.
+    state : LoopState
+        The search so far (families already tried are left out).
+
+    Returns
+    -------
+    list of Scored
+        One per staircase's parameter, the best screened first.
+    """
+    stairs = {sc.candidate.modifies for sc in chosen
+              if sc.candidate.record_specific and sc.candidate.searched > 0 and sc.candidate.modifies}
+    seen = {sc.candidate.family for sc in chosen}
+    out: list[Scored] = []
+    for sc in screening.scored:
+        c = sc.candidate
+        if (c.record_specific and c.searched == 0 and c.modifies in stairs and c.family not in seen
+                and c.family not in state.tried and sc.score.bic_drop > 0):
+            seen.add(c.family)
+            out.append(sc)
+    return out
 
 
 def named_beside_series(screening: Screening, chosen: list[Scored], state: LoopState) -> list[Scored]:
@@ -520,7 +564,8 @@ def whitened_bics(kept: list[Refitted], others: list[Refitted] | tuple = ()) -> 
             if e.size:
                 total += e.size * math.log(max(float(e @ e) / e.size, 1e-300))
                 n_all += e.size
-        out.append(total + r.fit.metrics.nvarys * math.log(max(n_all, 2)))
+        # a switch time placed by search is a parameter the refit does not carry
+        out.append(total + (r.fit.metrics.nvarys + r.sc.candidate.searched) * math.log(max(n_all, 2)))
     return out
 
 

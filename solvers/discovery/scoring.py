@@ -118,6 +118,43 @@ def _fast_length(n: int) -> int:
     return best
 
 
+def effective_n_of_series(resid: np.ndarray, series: list[np.ndarray] | None) -> np.ndarray:
+    """`effective_n` of residual rows that interleave several series (a multi-output record's rows are
+    sample-major: y1, y2, y3 at t0, then at t1, ...), column by column.
+
+    Read as one series, the lag-1 autocorrelation of interleaved rows is the correlation between
+    outputs, not along time: three outputs of AR(1) 0.8 noise that barely correlate with one another
+    read as white, and a candidate that leaves them so scored its BIC drop on n rows where another,
+    explaining five times more, scored it on n/50. Each series' variance inflation n_j/n_eff_j is
+    weighted by its share of the residual sum of squares: n_eff = n / Σ_j w_j n_j/n_eff_j, the single
+    series' value where there is one.
+
+    Parameters
+    ----------
+    resid : numpy.ndarray
+        (n,) or (n, k) residual rows.
+    series : list of numpy.ndarray or None
+        Row indices of each series; None (or one series): the rows are one series.
+
+    Returns
+    -------
+    numpy.ndarray
+        (k,) effective sample sizes ((1,) for a 1-d `resid`).
+    """
+    r = resid.reshape(resid.shape[0], -1)
+    if series is None or len(series) < 2:
+        return effective_n_many(r)
+    n = r.shape[0]
+    rss = np.einsum("ij,ij->j", r, r)
+    inflation = np.zeros(r.shape[1])
+    for rows in series:
+        part = r[rows]
+        rss_j = np.einsum("ij,ij->j", part, part)
+        inflation += np.where(rss > 0, rss_j / np.maximum(rss, 1e-300), 1.0 / len(series)) \
+            * rows.size / np.maximum(effective_n_many(part), 1.0)
+    return n / np.maximum(inflation, 1e-300)
+
+
 def effective_n_many(resid: np.ndarray, max_lag: int = 100) -> np.ndarray:
     """`effective_n` of every column of `resid` (n, k), the autocorrelations by one FFT.
 
@@ -199,8 +236,13 @@ class RegressionScorer:
         """
         return self.q.shape[1]
 
+    # row indices of each series the rows interleave (outputs of one record); None: one series
+    series: list[np.ndarray] | None = None
+
     def _n_eff(self, resid: np.ndarray) -> float:
-        return max(effective_n(resid), self.n_base + 10.0)
+        if self.series is None:
+            return max(effective_n(resid), self.n_base + 10.0)
+        return max(float(effective_n_of_series(resid, self.series)[0]), self.n_base + 10.0)
 
     def project(self, g: np.ndarray) -> np.ndarray:
         """Column(s) with the linearised free parameters regressed out.
@@ -373,7 +415,7 @@ class RegressionScorer:
                 resid1[:, enough], rss1[enough]
             if not enough.any():
                 return out
-        n_eff = np.maximum(effective_n_many(resid1), self.n_base + 10.0)
+        n_eff = np.maximum(effective_n_of_series(resid1, self.series), self.n_base + 10.0)
         dof = np.maximum(n_eff - self.n_base - 1, 1.0)
         f_stat = (self.rss0 - rss1) / np.maximum(rss1 / dof, 1e-300)
         bic_drop = n_eff * np.log(self.rss0 / np.maximum(rss1, 1e-300)) - np.log(n_eff)

@@ -169,7 +169,7 @@ class EquationScorer(RegressionScorer):
         self.trace, self.equations = trace, equations
         cm = trace.cm
         free_idx = [cm.parameters.index(name) for name in trace.free]
-        rows_r, rows_j, self.weights = [], [], {}
+        rows_r, rows_j, labels, self.weights = [], [], [], {}
         for i in equations:
             r_all = np.concatenate([r[i] for r in trace.residual])
             sd = np.nanstd(r_all)
@@ -178,9 +178,14 @@ class EquationScorer(RegressionScorer):
             for i in equations:
                 rows_r.append(trace.residual[e][i] * self.weights[i])
                 rows_j.append(trace.jp[e][:, i, free_idx] * self.weights[i])
+                labels.append(np.full(trace.residual[e][i].size, i))
         r = np.concatenate(rows_r)
         jac = np.vstack(rows_j)
         self.ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
+        kept = np.concatenate(labels)[self.ok]
+        # one series per equation: their rows follow one another, and a series' autocorrelation is
+        # read on its own rows, not across the seam into the next equation's
+        self.series = [np.flatnonzero(kept == i) for i in equations] if len(equations) > 1 else None
         super().__init__(r[self.ok], jac[self.ok])
 
     def parameter_moves(self, delta: np.ndarray) -> dict[str, float]:

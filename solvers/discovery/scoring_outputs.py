@@ -91,6 +91,10 @@ class OutputScorer(RegressionScorer):
             self.states.append(states)
         ok = np.isfinite(r) & np.all(np.isfinite(jac), axis=1)
         self.ok = ok
+        # the rows interleave the outputs sample by sample: each output is a series of its own
+        kept = np.asarray(self.groups)[ok]
+        labels = np.unique(kept)
+        self.series = [np.flatnonzero(kept == g) for g in labels] if labels.size > 1 else None
         # measured − model, as the equation residual: β > 0 then means "add +β·g to the model"
         super().__init__(-r[ok], jac[ok])
 

@@ -72,9 +72,11 @@ def test_duffing_measured_in_position_finds_the_cubic_spring_with_default_option
 
 @pytest.mark.slow
 @pytest.mark.xfail(strict=False, reason=(
-    'after the merges (hidden_store, saturable_rate, sqrt_flow beside a declared flow, imprint scoring) '
-    'the loop names a sensor gain `approximates` on the lower level before the orifice outflows; the '
-    'refit order among the new families is open (issue 39)'))
+    'both tanks drain through orifices; in the round where √h2 is refitted beside a gain error of the '
+    'level sensor both pass, the gain by ΔBIC 62 more, and it is then labelled `approximates` (it explains '
+    "52 % of the learned disturbance); the orifice of h1 was refitted as a contender and stopped at the "
+    "contenders' iteration cap (no verdict). Choosing among passing refits by what explains the "
+    'disturbance, or refitting a capped contender in full, is open'))
 def test_two_tanks_lower_level_only_sqrt_outflows_are_found():
     # single shooting: multiple shooting of this linear model from an unmeasured upper tank is the
     # degenerate case of the trust issue (#8)

@@ -39,9 +39,6 @@ def test_a_dead_zone_on_the_input_is_named_with_its_width_and_the_gain_right():
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=(
-    'after the merges a second saturable rate (on n2, approximates) is added beside the right one on n1; '
-    'superseded-step pruning does not yet drop it (issue 39)'))
 def test_monod_kinetics_is_a_saturable_rate_with_the_declared_rates_right():
     # two populations, the first consumed at a Monod rate -Vm·n1/(0.3 + n1) beside its declared -b1·n1
     case, res = _discover("out", 9)

@@ -7,7 +7,12 @@ from dataclasses import astuple
 import numpy as np
 import pytest
 
-from greyfit.solvers.discovery.scoring import RegressionScorer, effective_n, effective_n_many
+from greyfit.solvers.discovery.scoring import (
+    RegressionScorer,
+    effective_n,
+    effective_n_many,
+    effective_n_of_series,
+)
 
 
 def _direct_effective_n(r: np.ndarray, max_lag: int = 100) -> float:
@@ -41,6 +46,31 @@ def test_effective_n_is_its_definition(n, phi):
     assert np.allclose([effective_n(r[:, j]) for j in range(4)], want, rtol=1e-10)
     if phi >= 0.8:
         assert np.all(want < n / 3)   # the coloured case is not trivially n
+
+
+def test_interleaved_outputs_are_read_as_the_series_they_are():
+    """Three independent AR(1) 0.8 outputs, rows sample-major as a multi-output record has them: each
+    series' effective size is n_j (1 − φ)/(1 + φ) ≈ n_j/9, so the pooled one is about n/9; read as one
+    interleaved series the lag-1 correlation is between outputs (about 0) and it came out n."""
+    rng = np.random.default_rng(3)
+    n, phi = 3000, 0.8
+    e = rng.standard_normal((n, 3))
+    x = np.empty_like(e)
+    x[0] = e[0]
+    for i in range(1, n):
+        x[i] = phi * x[i - 1] + e[i]
+    x *= np.array([1.0, 2.0, 0.5])   # unequal scales: the weights are each series' share of the RSS
+    rows = x.reshape(-1)             # y1, y2, y3 at t0, then at t1, ...
+    series = [np.arange(j, rows.size, 3) for j in range(3)]
+    pooled = float(effective_n_of_series(rows, series)[0])
+    ideal = rows.size * (1 - phi) / (1 + phi)
+    assert pooled == pytest.approx(ideal, rel=0.25)
+    assert effective_n(rows) > 0.9 * rows.size   # the reading this replaces: the colour unseen
+    # the weighted mean of per-series inflations, checked against its definition
+    inflation = sum(float(rows[s] @ rows[s]) / float(rows @ rows) * s.size / effective_n(rows[s]) for s in series)
+    assert pooled == pytest.approx(rows.size / inflation, rel=1e-10)
+    # one series: the plain effective size
+    assert float(effective_n_of_series(x[:, 0], None)[0]) == pytest.approx(effective_n(x[:, 0]), rel=1e-12)
 
 
 def test_score_pass_leaves_out_only_columns_too_weak_to_count():

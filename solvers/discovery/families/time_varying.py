@@ -146,7 +146,8 @@ class ParameterStep:
         return Candidate(self.name, final, f"{name} -> {name} + steps at t = {when}",
                          f"{name} changes value at t = {when} s", bind(self, parameter=name, taus=taus),
                          family=f"parameter_step:{name}", tries=tries, record_specific=True,
-                         multiplicity=multiplicity, modifies=name, variables=("t",))
+                         multiplicity=multiplicity, modifies=name, variables=("t",),
+                         searched=len(taus))
 
 
 def _select_switches(ctx: LibraryContext, base, grid: np.ndarray, t_all: np.ndarray) -> list[int]:

@@ -343,19 +343,13 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
     chosen = [lead]
     seen = {lead.candidate.family}
     pools: dict[bool, list[Scored]] = {False: [], True: []}   # named laws, approximating series
-    for sc in screening.scored:
+    for sc in _one_per_family(screening, lead):
         c = sc.candidate
         if (not sc.significant or c.family in seen or c.family in state.tried or sc.score.explained < floor
                 or (c.catch_all and not lead.candidate.catch_all) or c.refit_only):
             continue
         seen.add(c.family)
         pools[c.approximating].append(sc)
-    if lead.candidate.catch_all:
-        # symptoms compete on equal terms, the one that explains most first: the screen's rank puts a
-        # change in time behind other shapes while a refit-only law is pending, and a drift explaining
-        # 99 % of the residual was left out of the round a delay explaining 26 % led
-        for pool in pools.values():
-            pool.sort(key=lambda sc: -sc.score.explained)
     # named laws and approximating series in turn, each by screening rank: a power series that
     # screens best does not crowd the named law out of the refits (nor the other way round)
     turn = not lead.candidate.approximating
@@ -370,6 +364,29 @@ def contenders(screening: Screening, lead: Scored, state: LoopState) -> list[lis
     chosen += named_beside_series(screening, chosen, state)
     chosen += lines_beside_staircases(screening, chosen, state)
     return [variants_of(screening, sc) for sc in chosen]
+
+
+def _one_per_family(screening: Screening, lead: Scored) -> list[Scored]:
+    """The screen's candidates in the order contenders are drawn from them: beside a named law, the
+    screen's rank; beside a catch-all, each family's variant on the leader's residual (else its
+    first) by the share it explains.
+
+    Symptoms compete on equal terms, the one that explains most of the same residual first: the screen's
+    rank puts a change in time behind other shapes while a refit-only law is pending, and a drift
+    explaining 99 % of the output residual was left out of the round a delay explaining 26 % led (the
+    drift's first variant in rank was the one on the equation residuals, explaining less).
+    """
+    if not lead.candidate.catch_all:
+        return screening.scored
+    best: dict[str, Scored] = {}
+    for sc in screening.scored:
+        if not sc.significant:
+            continue
+        fam, held = sc.candidate.family, best.get(sc.candidate.family)
+        if held is None or (sc.scored_on == lead.scored_on,
+                            sc.score.explained) > (held.scored_on == lead.scored_on, held.score.explained):
+            best[fam] = sc
+    return sorted(best.values(), key=lambda sc: (sc.scored_on != lead.scored_on, -sc.score.explained))
 
 
 def lines_beside_staircases(screening: Screening, chosen: list[Scored], state: LoopState) -> list[Scored]:

@@ -10,6 +10,7 @@ from greyfit.solvers.inference.robust_covariance import hac_meat
 from greyfit.solvers.inference.statistics import student_t_quantile
 
 CONDITION_LIMIT = 1e12
+ABSORBED = 1e-8   # share of the noise left in the residual below which it reads no size
 
 
 @dataclass
@@ -219,14 +220,17 @@ def noise_model_floor(inv: np.ndarray, jac: np.ndarray, residual: np.ndarray, mo
     Returns
     -------
     numpy.ndarray
-        The floor's variances, shape (k,); 0 where the model predicts no residual.
+        The floor's variances, shape (k,); 0 where the model predicts (almost) no residual.
     """
     b = jac @ inv   # a_i as columns
     expected = (model.variance - 2 * np.einsum("ti,ti->t", b, model.sigma_jac)
                 + np.einsum("ti,ti->t", b @ model.meat, b))
     weights = (b * b).T
     seen, predicted = weights @ (residual * residual), weights @ np.clip(expected, 0.0, None)
-    size = np.divide(seen, predicted, out=np.zeros_like(seen), where=predicted > 0)
+    # where the fit absorbs (nearly) all of the noise at a parameter's samples, as when it has as
+    # many samples as parameters there, its residual there is rounding and says nothing of the size
+    readable = predicted > ABSORBED * (weights @ model.variance)
+    size = np.divide(seen, predicted, out=np.zeros_like(seen), where=readable)
     return np.einsum("ij,jk,ki->i", inv, model.meat, inv) * size
 
 

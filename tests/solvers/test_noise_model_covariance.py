@@ -141,3 +141,25 @@ def test_a_noise_free_fit_whose_error_sits_at_one_step_keeps_its_quiet_segments_
     assert np.median(stationary[quiet] / truth[quiet]) > 1e-3   # the stationary model's size
     assert np.max(se[quiet] / truth[quiet]) < 1e-4
     assert se[~quiet][0] > 0.05 * abs(estimate[~quiet][0] - 1.5)
+
+
+def test_a_parameter_that_interpolates_its_own_sample_gets_no_floor():
+    """A column that is one sample's indicator (no other column there) absorbs that sample's
+    residual whole: nothing of the noise's size is left to read there, and its floor is 0; the other
+    column's floor is the AR model's variance to within the sampling of one record."""
+    from greyfit.solvers.inference.covariance import noise_model_floor
+    rng = np.random.default_rng(2)
+    n = 400
+    t = np.arange(n)
+    alone = t == 120
+    jac = np.column_stack([np.where(alone, 0.0, np.sin(2 * np.pi * t / 50)), alone.astype(float)])
+    v = _ar1(rng, n)
+    inv = np.linalg.inv(jac.T @ jac)
+    r = v - jac @ (inv @ jac.T @ v)
+    assert abs(r[120]) < 1e-12
+    model = noise_model_meat(jac, r, None, t, np.zeros(n, int))
+    assert model is not None
+    floor = noise_model_floor(inv, jac, r, model)
+    assert floor[1] == 0.0
+    stationary = inv[0, 0] ** 2 * model.meat[0, 0]
+    assert 0.5 * stationary < floor[0] < 2 * stationary

@@ -5,11 +5,12 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from greyfit.solvers.inference.noise_model import noise_model_meat
+from greyfit.solvers.inference.noise_model import NoiseModelMeat, noise_model_meat
 from greyfit.solvers.inference.robust_covariance import hac_meat
 from greyfit.solvers.inference.statistics import student_t_quantile
 
 CONDITION_LIMIT = 1e12
+ABSORBED = 1e-8   # share of the noise left in the residual below which it reads no size
 
 
 @dataclass
@@ -174,11 +175,11 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     if not (np.all(np.isfinite(hac)) and np.all(np.diag(hac) > 0)):
         return CovarianceEstimate(names, cov, stderr, ci, "the robust covariance is degenerate; the "
                                   "classical one is reported", condition)
-    ar_meat = noise_model_meat(j, residual, groups, sample_keys, experiment_keys)
+    model = noise_model_meat(j, residual, groups, sample_keys, experiment_keys)
     floored = False
-    if ar_meat is not None:
-        by_ar = (inv @ ar_meat @ inv * (ndata / dof) * np.outer(sc, sc))[:npar, :npar]
-        hac, floored = floor_variances(hac, by_ar)
+    if model is not None:
+        floor = noise_model_floor(inv, j, residual, model)[:npar] * (ndata / dof) * sc[:npar] ** 2
+        hac, floored = floor_variances(hac, floor)
     r_stderr, r_ci = _intervals(hac, cols[:npar], labels, values, level, dof)
     note = (f"stderr, ci95 and covariance are HAC (Newey-West, Bartlett kernel, bandwidth "
             f"{bandwidth:.1f} samples) because the residual is not white"
@@ -187,21 +188,67 @@ def estimate_covariance(jac: np.ndarray, residual: np.ndarray, labels: list[str]
     return CovarianceEstimate(names, hac, r_stderr, r_ci, note, condition, [], cov, stderr, bandwidth)
 
 
-def floor_variances(hac: np.ndarray, by_ar: np.ndarray) -> tuple[np.ndarray, bool]:
-    """`hac` with each variance raised to at least `by_ar`'s, its correlations kept.
+def noise_model_floor(inv: np.ndarray, jac: np.ndarray, residual: np.ndarray, model: NoiseModelMeat) -> np.ndarray:
+    """Variances of the estimates under the AR noise model, each at the residual's size where that
+    parameter's sensitivity lies.
+
+    A stationary AR model of the residual has one size for the whole series. Where the residual is
+    not stationary in size, that size is wrong for the parameters that live where the residual is
+    quiet: on a noise-free fit of a piecewise-constant stiffness whose 3-sample segments miss its
+    steps, the three samples at each step hold nearly all of the residual and the stationary model
+    spreads their power over every sample; where most segments lie the residual is 15 times (up to
+    600 times) smaller than that, and 7 quiet segments got standard errors larger than their values
+    (up to 600 times the HAC's) when their estimates were right to 0.2 %. So the AR model's
+    variance of parameter i, a_iᵀ Σ a_i (a_i = row i of (JᵀJ)⁻¹Jᵀ), is scaled by
+    Σ_t a_it² r_t² / Σ_t a_it² E[r_t²]: the residual's size seen through the parameter's own
+    weights over the size the AR model predicts there, E[r rᵀ] = (I − H) Σ (I − H) with H the hat
+    matrix, so that the fit's own absorption of coloured noise (strong on a short record, where the
+    floor matters) is in both. Under the AR model the ratio is 1 in expectation and the floor is its
+    variance, as before; where the residual's size moves, the floor follows it, as the HAC does.
+
+    Parameters
+    ----------
+    inv : numpy.ndarray
+        (JᵀJ)⁻¹, shape (k, k).
+    jac : numpy.ndarray
+        The Jacobian, shape (n, k).
+    residual : numpy.ndarray
+        The residual, shape (n,).
+    model : NoiseModelMeat
+        Jᵀ Σ J, Σ J and Σ's diagonal under the AR noise model (`noise_model_meat`).
+
+    Returns
+    -------
+    numpy.ndarray
+        The floor's variances, shape (k,); 0 where the model predicts (almost) no residual.
+    """
+    b = jac @ inv   # a_i as columns
+    expected = (model.variance - 2 * np.einsum("ti,ti->t", b, model.sigma_jac)
+                + np.einsum("ti,ti->t", b @ model.meat, b))
+    weights = (b * b).T
+    seen, predicted = weights @ (residual * residual), weights @ np.clip(expected, 0.0, None)
+    # where the fit absorbs (nearly) all of the noise at a parameter's samples, as when it has as
+    # many samples as parameters there, its residual there is rounding and says nothing of the size
+    readable = predicted > ABSORBED * (weights @ model.variance)
+    size = np.divide(seen, predicted, out=np.zeros_like(seen), where=readable)
+    return np.einsum("ij,jk,ki->i", inv, model.meat, inv) * size
+
+
+def floor_variances(hac: np.ndarray, floor: np.ndarray) -> tuple[np.ndarray, bool]:
+    """`hac` with each variance raised to at least `floor`, its correlations kept.
 
     The prewhitened Bartlett estimator reads the score's colour from a VAR(1) fitted to the score
     itself, which on a short record (121 samples of AR(1) 0.8 noise) is biased towards white and
-    leaves intervals that hold the truth in 88 % of fits; the covariance under an AR model of the
-    residual (`noise_model_meat`) reads the colour from the residual, which is what is coloured.
-    Each standard error is the larger of the two (issue 38, bench/bench_trust.py).
+    leaves intervals that hold the truth in 88 % of fits; the colour of an AR model of the residual
+    (`noise_model_floor`) is read from the residual, which is what is coloured. Each standard error
+    is the larger of the two (bench/bench_trust.py).
 
     Parameters
     ----------
     hac : numpy.ndarray
         The HAC covariance, shape (k, k).
-    by_ar : numpy.ndarray
-        The covariance under the AR noise model, shape (k, k).
+    floor : numpy.ndarray
+        The least variance of each estimate, shape (k,).
 
     Returns
     -------
@@ -211,11 +258,11 @@ def floor_variances(hac: np.ndarray, by_ar: np.ndarray) -> tuple[np.ndarray, boo
         Whether some variance was raised.
     """
     d_hac = np.sqrt(np.diag(hac))
-    d_ar = np.sqrt(np.clip(np.diag(by_ar), 0.0, None))
-    if not (np.all(np.isfinite(d_ar)) and np.all(d_hac > 0)):
+    d_floor = np.sqrt(np.clip(floor, 0.0, None))
+    if not (np.all(np.isfinite(d_floor)) and np.all(d_hac > 0)):
         return hac, False
-    d = np.maximum(d_hac, d_ar)
-    return hac / np.outer(d_hac, d_hac) * np.outer(d, d), bool(np.any(d_ar > d_hac))
+    d = np.maximum(d_hac, d_floor)
+    return hac / np.outer(d_hac, d_hac) * np.outer(d, d), bool(np.any(d_floor > d_hac))
 
 
 def _intervals(cov: np.ndarray, cols, labels, values, level: float, dof: int):

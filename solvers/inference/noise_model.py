@@ -10,6 +10,7 @@ differently. Everything here is linear algebra on the fit's own Jacobian and res
 from __future__ import annotations
 
 import math
+from typing import NamedTuple
 
 import numpy as np
 
@@ -207,8 +208,39 @@ def whitened_score_p_value(r: np.ndarray, jac: np.ndarray, groups: np.ndarray, g
 MIN_SERIES = 50   # rows of one (record, channel) series below which no AR model is fitted to it
 
 
+def toeplitz_times(x: np.ndarray, gamma: np.ndarray) -> np.ndarray:
+    """Σ x for stationary noise of autocovariance `gamma` along the rows of `x` (Σ_ts = γ(|t − s|)).
+
+    Parameters
+    ----------
+    x : numpy.ndarray
+        One row per sample, shape (n, k).
+    gamma : numpy.ndarray
+        The noise's autocovariance γ(0), γ(1), ...
+
+    Returns
+    -------
+    numpy.ndarray
+        Σ x, shape (n, k).
+    """
+    out = gamma[0] * x
+    for k in range(1, min(gamma.size, x.shape[0])):
+        out[k:] += gamma[k] * x[:-k]
+        out[:-k] += gamma[k] * x[k:]
+    return out
+
+
+class NoiseModelMeat(NamedTuple):
+    """Jᵀ Σ J under an AR model of each (record, channel) series of the residual, with the pieces
+    the floor of the HAC standard errors reads (`covariance.noise_model_floor`)."""
+
+    meat: np.ndarray        # Jᵀ Σ J, (k, k)
+    sigma_jac: np.ndarray   # Σ J, (n, k)
+    variance: np.ndarray    # Σ's diagonal: the AR model's γ(0) of each row's series, (n,)
+
+
 def noise_model_meat(jac: np.ndarray, res: np.ndarray, groups: np.ndarray | None, sample_keys: np.ndarray,
-                     experiment_keys: np.ndarray) -> np.ndarray | None:
+                     experiment_keys: np.ndarray) -> NoiseModelMeat | None:
     """Jᵀ Σ J under an AR(p) model of each (record, channel) series of the residual (`fit_ar`).
 
     The parametric long-run variance of the score: its colour is read from the residual, the series
@@ -227,16 +259,19 @@ def noise_model_meat(jac: np.ndarray, res: np.ndarray, groups: np.ndarray | None
 
     Returns
     -------
-    numpy.ndarray or None
-        Jᵀ Σ J, shape (k, k); None where a series is shorter than `MIN_SERIES` rows.
+    NoiseModelMeat or None
+        Jᵀ Σ J, Σ J and Σ's diagonal; None where a series is shorter than `MIN_SERIES` rows.
     """
     channel = np.zeros(res.size, dtype=int) if groups is None else groups
     order = np.lexsort((sample_keys, channel, experiment_keys))
     key = experiment_keys[order] * (int(channel.max(initial=0)) + 1) + channel[order]
-    meat = np.zeros((jac.shape[1], jac.shape[1]))
+    sigma_jac = np.zeros(jac.shape)
+    variance = np.zeros(res.size)
     for rows in np.split(order, np.flatnonzero(np.diff(key)) + 1):
         if rows.size < MIN_SERIES:
             return None
-        a, variance = fit_ar(res[rows])
-        meat += coloured_meat(jac[rows], autocovariance(a, variance))
-    return meat
+        a, innovation = fit_ar(res[rows])
+        gamma = autocovariance(a, innovation)
+        sigma_jac[rows] = toeplitz_times(jac[rows], gamma)
+        variance[rows] = gamma[0]
+    return NoiseModelMeat(jac.T @ sigma_jac, sigma_jac, variance)

@@ -9,11 +9,6 @@ from tests.systems import SEAT_TRUTH, seat_experiment, seat_k4_step, seat_model,
 
 
 @pytest.mark.slow
-@pytest.mark.xfail(strict=False, reason=(
-    "the HAC standard errors are now floored at an AR noise model's (short coloured records, issue 38); "
-    'on this noise-free equation-error fit of 333 k4 segments the floor makes 7 segments '
-    'parameter_uncertain, so the fit is suspect; the estimates are unchanged; the floor should not apply '
-    "where the residual is the derivative filter's error, not noise"))
 def test_seat_k4_steps_come_out_as_steps():
     """Seed 000 Case 1 (noise-free states and derivatives, as in the paper): k4 switches
     0.9e5 -> 1.8e5 -> 0.9e5 -> 1.8e5 N/m at 0.25/0.5/0.75 s. 333 segments of 3 ms, not aligned

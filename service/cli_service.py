@@ -150,18 +150,18 @@ def _run_batch(pool, todo: list[tuple[int, str]], args, out, counts: dict, total
         outcomes = pool.poll()
         pool.started()   # (a start matters to the job store's attempts only)
         for key, outcome in outcomes:
-            if outcome["status"] == "not_started":   # its worker was replaced before it began
+            if outcome.status == "not_started":   # its worker was replaced before it began
                 queue.appendleft((int(key), next(line for i, line in todo if i == int(key))))
                 continue
-            if "seconds" in outcome:
-                task_seconds = outcome["seconds"] if task_seconds is None else \
-                    0.8 * task_seconds + 0.2 * outcome["seconds"]
-            if outcome["status"] == "succeeded":
+            if outcome.seconds is not None:
+                task_seconds = outcome.seconds if task_seconds is None else \
+                    0.8 * task_seconds + 0.2 * outcome.seconds
+            if outcome.status == "succeeded" and outcome.result_json is not None:
                 counts["succeeded"] += 1
-                counts["flagged"] += flags_quality(outcome["result_json"], args.fail_on)
-                out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome["result_json"]}}}\n')
+                counts["flagged"] += flags_quality(outcome.result_json, args.fail_on)
+                out.write(f'{{"line": {int(key)}, "status": "succeeded", "result": {outcome.result_json}}}\n')
             else:
-                out.write(json.dumps({"line": int(key), **outcome}) + "\n")
+                out.write(json.dumps({"line": int(key), **outcome.as_dict()}) + "\n")
             counts["finished"] += 1
         if outcomes:
             out.flush()

@@ -1,6 +1,6 @@
 """Fits as tasks on a Dask distributed cluster (GREYFIT_EXECUTOR=dask): the scale-out executor.
 
-It offers the dispatcher the interface of the local worker pool (service/executors.py). Three things
+It answers the dispatcher's `WorkerPool` Protocol (service/pool.py), as the local worker pool does. Three things
 a Dask cluster does not tell a client by itself are made explicit here:
 
 - **When a task starts.** The scheduler queues a task until a worker thread is free, which may be
@@ -27,20 +27,21 @@ import logging
 import threading
 import time
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Any, Optional
 
+from greyfit.service.outcome import Outcome, lost, timed_out
+from greyfit.service.pool import QueueingPool, TaskRequest
 from greyfit.service.tasks import run_task
 
 log = logging.getLogger("greyfit.dask")
 
-Outcome = dict[str, Any]
 START_TOPIC = "greyfit-task-start"
 RECONNECT_PAUSE = 1.0     # between two attempts of the background reconnection
 CLUSTER_INFO_SECONDS = 1.0   # the cluster's worker and thread counts are read from the scheduler this often
 
 
-def run_on_worker(dask_key: str, kind: str, request: Any, cpu_seconds: float) -> Outcome:
+def run_on_worker(dask_key: str, kind: str, request: TaskRequest, cpu_seconds: float) -> Outcome:
     """Run one task on a Dask worker, saying first that it started.
 
     Parameters
@@ -49,23 +50,21 @@ def run_on_worker(dask_key: str, kind: str, request: Any, cpu_seconds: float) ->
         The task's Dask key, which the start event names (the client maps it back to its task).
     kind : str
         The task kind (service/task_kinds.py).
-    request : Any
+    request : dict or str
         The task's request, as JSON text or a dict.
     cpu_seconds : float
         The CPU-time limit, passed to the fit's own Ipopt `max_cpu_time`.
 
     Returns
     -------
-    dict
+    Outcome
         The task's outcome, with the seconds it ran.
     """
     from distributed import get_worker
 
     get_worker().log_event(START_TOPIC, {"key": dask_key})
     started = time.monotonic()
-    outcome = run_task(kind, request, cpu_seconds)
-    outcome["seconds"] = time.monotonic() - started
-    return outcome
+    return replace(run_task(kind, request, cpu_seconds), seconds=time.monotonic() - started)
 
 
 @dataclass
@@ -73,10 +72,6 @@ class _Submitted:
     future: Any
     dask_key: str
     started: Optional[float] = None   # monotonic time its start event arrived; None while it waits
-
-
-def _lost(detail: str) -> Outcome:
-    return {"status": "failed", "error": {"type": "WorkerLost", "field": None, "retry": True, "detail": detail}}
 
 
 class DaskExecutor:
@@ -173,7 +168,11 @@ class DaskExecutor:
     def queue_room(self) -> int:
         return 0   # the scheduler queues; a task is submitted when a thread is free
 
-    def submit(self, key: str, kind: str, request: Any) -> None:
+    def queueing(self) -> Optional[QueueingPool]:
+        """None: the scheduler queues the tasks, a worker holds none behind its own."""
+        return None
+
+    def submit(self, key: str, kind: str, request: TaskRequest) -> None:
         self._subscribe()   # before the task: its start event must find the subscription
         dask_key = f"greyfit-{key}-{time.time_ns()}-{next(self._counter)}"
         fut = self.client.submit(run_on_worker, dask_key, kind, request, self.cpu_seconds, pure=False,
@@ -214,17 +213,15 @@ class DaskExecutor:
                 try:
                     done.append((key, fut.result()))
                 except Exception as exc:  # the worker died, the scheduler was lost, or the task errored there
-                    done.append((key, _lost(f"dask: {type(exc).__name__}: {exc}")))
+                    done.append((key, lost(f"dask: {type(exc).__name__}: {exc}")))
             elif entry.started is None and unready is not None:
                 self._cancel_quietly(fut)
                 self._forget(key)
-                done.append((key, _lost(f"{unready}: nothing can start the task now")))
+                done.append((key, lost(f"{unready}: nothing can start the task now")))
             elif entry.started is not None and time.monotonic() - entry.started > self.wall_seconds:
                 self._cancel_quietly(fut)
                 self._forget(key)
-                done.append((key, {"status": "failed", "error": {
-                    "type": "Timeout", "field": None,
-                    "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
+                done.append((key, timed_out(f"exceeded the wall-time limit of {self.wall_seconds:g} s")))
         return done
 
     def wait(self, timeout: float) -> None:

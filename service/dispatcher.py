@@ -37,9 +37,12 @@ import threading
 import time
 import uuid
 from collections import deque
+from dataclasses import dataclass
 from typing import Optional
 
 from greyfit.service.metrics import Metrics
+from greyfit.service.outcome import Outcome, TaskError, lost
+from greyfit.service.pool import QueueingPool, TaskRequest, WorkerPool
 from greyfit.service.settings import Settings
 from greyfit.service.store import STORE_ERRORS, JobStore, TaskRow
 
@@ -53,25 +56,44 @@ QUEUE_SECONDS = 0.1       # work queued on a local worker behind the task it run
 MAX_QUEUED = 8            # tasks queued on a worker at most
 
 
-def _is_retry(outcome: dict) -> bool:
-    """A failure outside the task (its worker was lost): the task runs again."""
-    return outcome["status"] == "failed" and bool((outcome.get("error") or {}).get("retry"))
+CANCELLED = Outcome("cancelled", error=TaskError("Cancelled", "the job was cancelled"))
+
+
+@dataclass(frozen=True)
+class RunningTask:
+    """A task handed to the executor: a job's (`task`, its row in the store) or a synchronous
+    fit's (`future`, which its caller waits on)."""
+
+    kind: str
+    submitted: float   # monotonic time it was handed over: its duration when the worker gives none
+    task: Optional[TaskRow] = None
+    future: Optional[cf.Future[Outcome]] = None
+
+    @property
+    def job_id(self) -> Optional[str]:
+        """The job it belongs to; None for a synchronous fit."""
+        return None if self.task is None else self.task.job_id
+
+
+def _key(task: TaskRow) -> str:
+    return f"{task.job_id}:{task.idx}"
 
 
 class Dispatcher:
-    def __init__(self, store: JobStore, executor, settings: Settings, metrics: Metrics):
+    def __init__(self, store: JobStore, executor: WorkerPool, settings: Settings, metrics: Metrics):
         self.store, self.executor, self.settings, self.metrics = store, executor, settings, metrics
+        # the executor's optional abilities, asked once: a local pool's queues and direct starts
+        self._queueing: Optional[QueueingPool] = executor.queueing()
         self.owner = str(uuid.uuid4())
-        self.sync: "queue.Queue[tuple[str, str, dict, cf.Future]]" = queue.Queue()
-        # key -> ("job", job_id, idx, task, kind, t0) | ("sync", future, kind, t0); t0: when submitted
-        self.running: dict[str, tuple] = {}
-        self.pending: list[tuple[str, int, dict]] = []   # job outcomes not yet written to the store
+        self.sync: queue.Queue[tuple[str, str, TaskRequest, cf.Future[Outcome]]] = queue.Queue()
+        self.running: dict[str, RunningTask] = {}
+        self.pending: list[tuple[str, int, Outcome]] = []   # job outcomes not yet written to the store
         self.starts: list[tuple[str, int, float]] = []   # acknowledged starts not yet written (attempts)
         self._pending_since = 0.0
         self._flush_now = False
         self.ready: deque[TaskRow] = deque()   # job tasks claimed (leased to us) but not on a worker yet
         self._task_seconds: Optional[float] = None   # moving average of job tasks' wall time
-        self._cancels: "queue.Queue[cf.Future]" = queue.Queue()
+        self._cancels: queue.Queue[cf.Future[Outcome]] = queue.Queue()
         self._stop = threading.Event()
         self._wake = threading.Event()
         self._lock = threading.Lock()   # the executor's workers and `running`: a round, or a direct start
@@ -80,8 +102,8 @@ class Dispatcher:
         self._no_jobs_until = 0.0
 
     # --- called from the web layer -------------------------------------------------------------
-    def submit_sync(self, kind: str, request: dict | str) -> cf.Future:
-        fut: cf.Future = cf.Future()
+    def submit_sync(self, kind: str, request: TaskRequest) -> cf.Future[Outcome]:
+        fut: cf.Future[Outcome] = cf.Future()
         reason = self.executor.unready()
         if reason is not None:   # nothing would run it (a Dask cluster without workers): say so now
             fut.set_exception(RuntimeError(reason))
@@ -94,19 +116,19 @@ class Dispatcher:
         self.executor.wake()
         return fut
 
-    def _start_sync_now(self, key: str, kind: str, request: dict | str, fut: cf.Future) -> bool:
+    def _start_sync_now(self, key: str, kind: str, request: TaskRequest, fut: cf.Future[Outcome]) -> bool:
         """Start a synchronous fit on an idle worker now, where the dispatcher would: with a
         synchronous fit waiting it gives a free worker to a job task only if one is already claimed
         (`ready`), and to the first fit queued."""
-        can_start_now = getattr(self.executor, "can_start_now", None)   # local workers only
-        if can_start_now is None or not self._lock.acquire(blocking=False):
+        pool = self._queueing   # local workers only
+        if pool is None or not self._lock.acquire(blocking=False):
             return False
         try:
             if self._stop.is_set() or not self.is_alive() or self.ready or not self.sync.empty() \
-                    or not can_start_now():
+                    or not pool.can_start_now():
                 return False
             fut.set_running_or_notify_cancel()
-            self.running[key] = ("sync", fut, kind, time.monotonic())
+            self.running[key] = RunningTask(kind, time.monotonic(), future=fut)
             self._last_pick = "sync"
             try:
                 self.executor.submit(key, kind, request)
@@ -122,7 +144,7 @@ class Dispatcher:
         with self.sync.mutex:
             return sum(1 for item in self.sync.queue if not item[3].cancelled())
 
-    def cancel_sync(self, fut: cf.Future, kind: str = "fit") -> None:
+    def cancel_sync(self, fut: cf.Future[Outcome], kind: str = "fit") -> None:
         """The caller gave up (timeout, disconnect): free the worker instead of finishing the fit."""
         if fut.cancel():              # still queued: it will never start
             self.metrics.count_fit(kind, "abandoned", None)
@@ -181,8 +203,8 @@ class Dispatcher:
             # their leases run out and a live server requeues them; the shutdown itself must finish
             log.exception("could not hand the running tasks back at shutdown")
         for item in list(self.running.values()):
-            if item[0] == "sync" and not item[1].done():
-                item[1].set_exception(RuntimeError("the server is shutting down"))
+            if item.future is not None and not item.future.done():
+                item.future.set_exception(RuntimeError("the server is shutting down"))
 
     # --- the loop --------------------------------------------------------------------------------
     def _loop(self) -> None:
@@ -227,7 +249,7 @@ class Dispatcher:
         if self.sync.empty() or reserve == 0:
             return self.sync.empty()
         capacity = self.executor.capacity()
-        jobs_running = sum(1 for item in self.running.values() if item[0] == "job")
+        jobs_running = sum(1 for item in self.running.values() if item.task is not None)
         if capacity > 1:
             return jobs_running < min(reserve, capacity - 1)
         return self._last_pick == "sync"   # one worker: alternate
@@ -250,13 +272,14 @@ class Dispatcher:
 
     def _set_depth(self) -> None:
         """Tasks a local worker holds: the one it runs and about QUEUE_SECONDS of work behind it."""
-        if not hasattr(self.executor, "depth"):
+        pool = self._queueing
+        if pool is None:
             return
         queued = 1   # one behind, while the tasks' length is not known or they are long
         if self._task_seconds is not None and self._ahead_per_worker() >= 1:
             queued = max(1, min(MAX_QUEUED, int(QUEUE_SECONDS / max(self._task_seconds, 1e-6))))
-        self.executor.depth = 1 + queued
-        self.executor.task_seconds = self._task_seconds
+        pool.depth = 1 + queued
+        pool.task_seconds = self._task_seconds
 
     def _queue_job_tasks(self, room: int) -> None:
         """Up to `room` claimed tasks behind the running ones, one message per worker where the
@@ -266,17 +289,18 @@ class Dispatcher:
             return
         now = time.monotonic()
         for task in batch:
-            self.running[f"{task.job_id}:{task.idx}"] = ("job", task.job_id, task.idx, task, task.kind, now)
+            self.running[_key(task)] = RunningTask(task.kind, now, task=task)
         self._last_pick = "job"
-        submit_batch = getattr(self.executor, "submit_batch", None)
-        if submit_batch is None:
+        pool = self._queueing
+        if pool is None:
             for task in batch:
-                self.executor.submit(f"{task.job_id}:{task.idx}", task.kind, task.request)
+                self.executor.submit(_key(task), task.kind, task.request)
             return
-        left = submit_batch([(f"{task.job_id}:{task.idx}", task.kind, task.request) for task in batch])
+        left = pool.submit_batch([(_key(task), task.kind, task.request) for task in batch])
         for key, _, _ in reversed(left):   # no room after all (a worker was replaced): back in line
-            item = self.running.pop(key)
-            self.ready.appendleft(item[3])
+            row = self.running.pop(key).task
+            assert row is not None   # (the batch holds job tasks only)
+            self.ready.appendleft(row)
 
     def _start_sync(self) -> bool:
         while True:
@@ -285,7 +309,7 @@ class Dispatcher:
             except queue.Empty:
                 return False
             if fut.set_running_or_notify_cancel():     # False: the caller gave up while it waited
-                self.running[key] = ("sync", fut, kind, time.monotonic())
+                self.running[key] = RunningTask(kind, time.monotonic(), future=fut)
                 self.executor.submit(key, kind, request)
                 self._last_pick = "sync"
                 return True
@@ -331,9 +355,8 @@ class Dispatcher:
             if not self.ready:
                 return False
         task = self.ready.popleft()
-        key = f"{task.job_id}:{task.idx}"
-        self.running[key] = ("job", task.job_id, task.idx, task, task.kind, time.monotonic())
-        self.executor.submit(key, task.kind, task.request)
+        self.running[_key(task)] = RunningTask(task.kind, time.monotonic(), task=task)
+        self.executor.submit(_key(task), task.kind, task.request)
         self._last_pick = "job"
         return True
 
@@ -345,50 +368,52 @@ class Dispatcher:
             item = self.running.pop(key, None)
             if item is None:
                 continue
-            kind, t0 = item[-2], item[-1]
-            if outcome["status"] == "not_started":   # its worker was replaced before it began
-                if item[0] == "job":
-                    self.ready.appendleft(item[3])
+            if outcome.status == "not_started":   # its worker was replaced before it began
+                if item.task is not None:
+                    self.ready.appendleft(item.task)
                     continue
                 # (synchronous fits only go to a free worker, so never queue behind another)
-                outcome = {"status": "failed", "error": {"type": "WorkerLost", "field": None, "retry": True,
-                                                         "detail": "the worker process was replaced; retry"}}
-            if _is_retry(outcome):
-                self.metrics.worker_losses.labels(kind).inc()
-            seconds = outcome.get("seconds", time.monotonic() - t0)   # the worker's count: not queued time
-            self.metrics.count_fit(kind, outcome["status"], seconds)
-            error = outcome.get("error") or {}
-            if error.get("type") == "InternalError":
-                log.error("task %s (%s) failed with an internal error: %s\n%s", key, kind,
-                          error.get("detail"), error.get("trace", ""), extra={"task_id": key})
-            if item[0] == "sync":
-                if not item[1].done():
-                    item[1].set_result(outcome)
-            else:
+                outcome = lost("the worker process was replaced; retry")
+            if outcome.is_retry:
+                self.metrics.worker_losses.labels(item.kind).inc()
+            # the worker's count: not queued time
+            seconds = outcome.seconds if outcome.seconds is not None else time.monotonic() - item.submitted
+            self.metrics.count_fit(item.kind, outcome.status, seconds)
+            error = outcome.error
+            if error is not None and error.type == "InternalError":
+                log.error("task %s (%s) failed with an internal error: %s\n%s", key, item.kind,
+                          error.detail, error.trace or "", extra={"task_id": key})
+            if item.future is not None:
+                if not item.future.done():
+                    item.future.set_result(outcome)
+            elif item.task is not None:
                 self._task_seconds = seconds if self._task_seconds is None else \
                     0.8 * self._task_seconds + 0.2 * seconds
-                self._add_pending(item[1], item[2], outcome)
-                if not self._has_tasks(item[1]):   # perhaps the job's last: its caller waits for it
+                self._add_pending(item.task.job_id, item.task.idx, outcome)
+                if not self._has_tasks(item.task.job_id):   # perhaps the job's last: its caller waits for it
                     self._flush_now = True
 
     def _add_start(self, key: str) -> None:
         item = self.running.get(key)
-        if item is None or item[0] != "job":
+        if item is None or item.task is None:
             return
         if not self.pending and not self.starts:
             self._pending_since = time.monotonic()
-        self.starts.append((item[1], item[2], time.time()))
+        self.starts.append((item.task.job_id, item.task.idx, time.time()))
+
+    def _running_jobs(self) -> list[TaskRow]:
+        return [item.task for item in self.running.values() if item.task is not None]
 
     def _held(self) -> list[tuple[str, int]]:
         """The job tasks this dispatcher knows it owns: on a worker, claimed ahead, or not yet written."""
-        return ([(item[1], item[2]) for item in self.running.values() if item[0] == "job"]
+        return ([(t.job_id, t.idx) for t in self._running_jobs()]
                 + [(t.job_id, t.idx) for t in self.ready] + [(job_id, idx) for job_id, idx, _ in self.pending])
 
     def _has_tasks(self, job_id: str) -> bool:
-        return any(item[0] == "job" and item[1] == job_id for item in self.running.values()) or \
+        return any(item.job_id == job_id for item in self.running.values()) or \
             any(t.job_id == job_id for t in self.ready)
 
-    def _add_pending(self, job_id: str, idx: int, outcome: dict) -> None:
+    def _add_pending(self, job_id: str, idx: int, outcome: Outcome) -> None:
         if not self.pending:
             self._pending_since = time.monotonic()
         self.pending.append((job_id, idx, outcome))
@@ -403,18 +428,20 @@ class Dispatcher:
                 and time.monotonic() - self._pending_since < FLUSH_SECONDS):
             return
         self._flush_now = False
-        retried = [p for p in self.pending if _is_retry(p[2])]
-        finished = [p for p in self.pending if not _is_retry(p[2])]
+        retried = [p for p in self.pending if p[2].is_retry]
+        finished = [p for p in self.pending if not p[2].is_retry]
         # the starts with the outcomes, in one transaction, before the releases: a release reads the attempts
-        self.store.finish_many(self.owner, [(job_id, idx, o["status"], o.get("result_json"), o.get("error"))
+        self.store.finish_many(self.owner, [(job_id, idx, o.status, o.result_json, o.error_dict())
                                             for job_id, idx, o in finished], started=self.starts)
         self.starts = []
         self.pending = retried
         for job_id, idx, outcome in retried:
-            status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, outcome["error"])
+            error = outcome.error
+            assert error is not None   # (a retry is a failure)
+            status = self.store.release(job_id, idx, self.owner, self.settings.task_max_attempts, error.as_dict())
             if status == "queued":
                 self.metrics.give_backs.labels("lost_worker").inc()
-                log.warning("task %s:%s re-queued: %s", job_id, idx, outcome["error"].get("detail"),
+                log.warning("task %s:%s re-queued: %s", job_id, idx, error.detail,
                             extra={"task_id": f"{job_id}:{idx}"})
             self.pending.remove((job_id, idx, outcome))
         self._pending_since = time.monotonic()
@@ -426,23 +453,21 @@ class Dispatcher:
             except queue.Empty:
                 return
             for key, item in list(self.running.items()):
-                if item[0] == "sync" and item[1] is fut:
+                if item.future is fut:
                     self.executor.cancel(key)
                     self.running.pop(key)
-                    self.metrics.count_fit(item[2], "abandoned", None)
+                    self.metrics.count_fit(item.kind, "abandoned", None)
 
     def _stop_cancelled(self) -> None:
-        jobs = {item[1] for item in self.running.values() if item[0] == "job"} | {t.job_id for t in self.ready}
+        jobs = {t.job_id for t in self._running_jobs()} | {t.job_id for t in self.ready}
         for job_id in jobs:
             if self.store.is_cancelled(job_id):
-                cancelled = {"status": "cancelled", "error": {
-                    "type": "Cancelled", "field": None, "detail": "the job was cancelled"}}
                 for key, item in list(self.running.items()):
-                    if item[0] == "job" and item[1] == job_id:
+                    if item.task is not None and item.task.job_id == job_id:
                         self.executor.cancel(key)
                         self.running.pop(key)
-                        self._add_pending(job_id, item[2], cancelled)
+                        self._add_pending(job_id, item.task.idx, CANCELLED)
                 for task in [t for t in self.ready if t.job_id == job_id]:
                     self.ready.remove(task)
-                    self._add_pending(job_id, task.idx, cancelled)
+                    self._add_pending(job_id, task.idx, CANCELLED)
                 self._write_pending()

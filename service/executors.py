@@ -1,10 +1,10 @@
 """Where fits run: persistent local worker processes (default) or a Dask cluster (scale-out).
 
-Both expose the same small interface to the dispatcher: `capacity()`, `free()`, `queue_room()`,
-`submit(key, kind, request)`, `poll() -> [(key, outcome)]`, `started() -> [key]`, `cancel(key)`,
-`shutdown()`.
+Both answer the dispatcher's `WorkerPool` Protocol (service/pool.py): `capacity()`, `free()`,
+`queue_room()`, `submit(key, kind, request)`, `poll() -> [(key, Outcome)]`, `started() -> [key]`,
+`cancel(key)`, `shutdown()`; the local pool is also a `QueueingPool` (`queueing()` says so).
 
-A failed outcome whose error carries `retry: True` lost its worker to something outside the task
+A failed outcome whose error carries `retry` lost its worker to something outside the task
 (a crash, a kill, a lost Dask worker): the dispatcher runs the task again. A task that hit its CPU
 or wall-time limit is not retried: it would hit it again.
 
@@ -15,7 +15,7 @@ of the time. `submit_batch` hands several tasks to a worker in one message, and 
 to one task carries the start of the next, so a batch of small fits costs one message per task and
 its outcomes are read together. Each outcome is sent the moment its task ends: a worker lost
 mid-batch loses only the task it was running (retried, its start already charged), and the tasks
-queued behind it come back as {"status": "not_started"}, for the dispatcher to hand out again,
+queued behind it come back as `Outcome("not_started")`, for the dispatcher to hand out again,
 uncharged. A queued task can be withdrawn.
 """
 from __future__ import annotations
@@ -27,21 +27,26 @@ import resource
 import signal
 import time
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, Union
 
 from greyfit.service.lifeline import WorkerRegistry, die_with_parent, start_process
+from greyfit.service.outcome import Outcome, lost, timed_out
+from greyfit.service.pool import QueueingPool, Submission, TaskRequest, WorkerPool
+from greyfit.service.settings import Settings
 from greyfit.service.tasks import run_task
 
-Outcome = dict[str, Any]
+# a worker's message to the pool: (key, STARTED) when it begins a task, (key, outcome) when it ends
+STARTED = "started"
+Reply = tuple[str, Union[Outcome, str]]
 
 # one worker process per core does the parallel work: BLAS threads of their own would only fight
 # over the same cores (an operator's own setting wins)
 SINGLE_THREADED = {"OPENBLAS_NUM_THREADS": "1", "OMP_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}
 
 
-def _take(msg, todo: deque, conn) -> bool:
+def _take(msg: Any, todo: deque[Submission], conn: mp_connection.Connection) -> bool:
     """A message to a worker: a task (key, kind, request), a list of tasks (a batch), (key,) to
     withdraw a task not started yet, or None to stop (returns False)."""
     if msg is None:
@@ -52,21 +57,21 @@ def _take(msg, todo: deque, conn) -> bool:
         for task in todo:
             if task[0] == msg[0]:
                 todo.remove(task)
-                conn.send((msg[0], {"status": "withdrawn"}))
+                conn.send((msg[0], Outcome("withdrawn")))
                 break
     else:
         todo.append(msg)
     return True
 
 
-def _worker_main(conn, cpu_seconds: float, parent_pid: Optional[int] = None) -> None:
+def _worker_main(conn: mp_connection.Connection, cpu_seconds: float, parent_pid: Optional[int] = None) -> None:
     """Loop of one local worker process: receive tasks, run each under a CPU-time limit, reply."""
     if parent_pid is not None:
         die_with_parent(parent_pid)   # a server killed with SIGKILL takes its workers with it
     signal.signal(signal.SIGINT, signal.SIG_IGN)   # Ctrl-C stops the server, which stops us
     import greyfit.solvers.fit  # noqa: F401  (import CasADi once, not per task)
-    todo: deque = deque()
-    done: list = []   # the last outcome, sent with the next start: one message per task of a batch
+    todo: deque[Submission] = deque()
+    done: list[Reply] = []   # the last outcome, sent with the next start: one message per task of a batch
     while True:
         try:
             while conn.poll():        # read everything sent meanwhile: a withdrawal comes after its task
@@ -85,7 +90,7 @@ def _worker_main(conn, cpu_seconds: float, parent_pid: Optional[int] = None) -> 
             return
         key, kind, request = todo.popleft()
         # the acknowledged start (the attempt is charged now), with the outcome before it
-        conn.send([*done, (key, {"status": "started"})])
+        conn.send([*done, (key, STARTED)])
         done = []
         used = resource.getrusage(resource.RUSAGE_SELF)
         spent = used.ru_utime + used.ru_stime
@@ -97,11 +102,10 @@ def _worker_main(conn, cpu_seconds: float, parent_pid: Optional[int] = None) -> 
         resource.setrlimit(resource.RLIMIT_CPU, (soft, hard))
         started = time.monotonic()
         outcome = run_task(kind, request, cpu_seconds)
-        outcome["seconds"] = time.monotonic() - started
-        done = [(key, outcome)]
+        done = [(key, replace(outcome, seconds=time.monotonic() - started))]
 
 
-def _stop(conn, done: list) -> None:
+def _stop(conn: mp_connection.Connection, done: list[Reply]) -> None:
     """A graceful stop: the last outcome goes, and compiles started in the background finish, so
     the next process finds their libraries on disk (the pool waits for that as long as its
     `shutdown(grace)` says; the server's 2 s, `greyfit batch` a compile's own limit)."""
@@ -111,15 +115,14 @@ def _stop(conn, done: list) -> None:
     wait_for_builds(COMPILE_TIMEOUT_S)
 
 
-def _death_reason(code: Optional[int], cpu_seconds: float) -> dict:
+def _death_reason(code: Optional[int], cpu_seconds: float) -> Outcome:
     """Why a worker ended mid-task. RLIMIT_CPU's soft limit sends SIGXCPU (the hard limit is not
     set), so SIGKILL is someone else: the OOM killer or an operator. That, and any crash, is retried."""
     if code == -signal.SIGXCPU:
-        return {"type": "Timeout", "field": None, "detail": f"exceeded the CPU-time limit of {cpu_seconds:g} s"}
+        return timed_out(f"exceeded the CPU-time limit of {cpu_seconds:g} s")
     how = f"signal {signal.Signals(-code).name}" if code is not None and code < 0 and \
         -code in signal.valid_signals() else f"exit code {code}"
-    return {"type": "WorkerLost", "field": None, "retry": True,
-            "detail": f"the worker process died ({how}): killed or crashed, not a fault of this request"}
+    return lost(f"the worker process died ({how}): killed or crashed, not a fault of this request")
 
 
 def _cpu_seconds_of(pid: int) -> Optional[float]:
@@ -138,9 +141,9 @@ STALL_CHECK_SECONDS = 1.0   # how often a busy worker's CPU clock is read
 
 @dataclass
 class _Slot:
-    process: Any
-    conn: Any
-    keys: list = field(default_factory=list)   # the task it runs, then those queued behind (`depth`)
+    process: Any   # a multiprocessing Process of the spawn context
+    conn: mp_connection.Connection
+    keys: list[str] = field(default_factory=list)   # the task it runs, then those queued behind (`depth`)
     started: float = 0.0                        # when the task it runs started (about; exact once acknowledged)
     cpu: Optional[float] = None                 # the worker's CPU time when last read ...
     progressed: float = 0.0                     # ... and when it last had moved
@@ -216,13 +219,13 @@ class LocalWorkerPool:
         """Places left behind the tasks of busy workers: each holds up to `depth` tasks in all."""
         return sum(max(0, self.depth - len(s.keys)) for s in self.slots if s.keys)
 
-    def submit_batch(self, tasks: list[tuple[str, str, Any]]) -> list[tuple[str, str, Any]]:
+    def submit_batch(self, tasks: list[Submission]) -> list[Submission]:
         """Hand out several tasks, one message per worker: free workers first (a live one first),
         then behind busy ones, up to `depth` tasks a worker; returns the tasks nothing had room for."""
         if not tasks:
             return []
         slots = sorted(self.slots, key=lambda s: (len(s.keys), not s.process.is_alive()))
-        given: dict[int, list] = {}
+        given: dict[int, list[Submission]] = {}
         rest = list(tasks)
         while rest:   # round robin, the emptiest first: two workers share a batch, not one takes it all
             placed = False
@@ -253,11 +256,15 @@ class LocalWorkerPool:
         when they die, so the pool is always able to."""
         return None
 
+    def queueing(self) -> QueueingPool:
+        """Its workers hold queued tasks and take batches: the pool itself."""
+        return self
+
     def can_start_now(self) -> bool:
         """Whether submit() would start a task at once; quick, so a caller's thread may ask (Dispatcher)."""
         return self._idle() is not None
 
-    def submit(self, key: str, kind: str, request: Any) -> None:
+    def submit(self, key: str, kind: str, request: TaskRequest) -> None:
         """To a free worker (a live one first), else behind the tasks of a worker with room (`depth`)."""
         slot = self._idle() or next((s for s in self.slots if not s.keys), None) or \
             min((s for s in self.slots if len(s.keys) < self.depth), key=lambda s: len(s.keys))
@@ -278,7 +285,7 @@ class LocalWorkerPool:
             slot.process.kill()
         slot.process.join(timeout=5)
         slot.conn.close()
-        self._returned += [(key, {"status": "not_started"}) for key in slot.keys[1:]]
+        self._returned += [(key, Outcome("not_started")) for key in slot.keys[1:]]
         self.slots[i] = self._spawn()
 
     def poll(self) -> list[tuple[str, Outcome]]:
@@ -292,7 +299,7 @@ class LocalWorkerPool:
                 while slot.keys and slot.conn.poll():
                     msg = slot.conn.recv()
                     for key, outcome in msg if isinstance(msg, list) else [msg]:
-                        if outcome["status"] == "started":
+                        if not isinstance(outcome, Outcome):   # STARTED
                             slot.started = slot.progressed = time.monotonic()   # its wall clock starts now
                             self._started.append(key)
                             continue
@@ -306,19 +313,15 @@ class LocalWorkerPool:
             if not slot.keys:
                 continue
             if not slot.process.is_alive():
-                done.append((slot.keys[0], {"status": "failed", "error": _death_reason(slot.process.exitcode,
-                                                                                      self.cpu_seconds)}))
+                done.append((slot.keys[0], _death_reason(slot.process.exitcode, self.cpu_seconds)))
                 self._replace(i)
             elif self._stalled(slot):
-                done.append((slot.keys[0], {"status": "failed", "error": {
-                    "type": "WorkerLost", "field": None, "retry": True,
-                    "detail": f"the worker process used no CPU for {self.stall_seconds:g} s mid-task (stopped or "
-                              "hung): replaced, not a fault of this request"}}))
+                done.append((slot.keys[0], lost(
+                    f"the worker process used no CPU for {self.stall_seconds:g} s mid-task (stopped or "
+                    "hung): replaced, not a fault of this request")))
                 self._replace(i)
             elif time.monotonic() - slot.started > self.wall_seconds:
-                done.append((slot.keys[0], {"status": "failed", "error": {
-                    "type": "Timeout", "field": None,
-                    "detail": f"exceeded the wall-time limit of {self.wall_seconds:g} s"}}))
+                done.append((slot.keys[0], timed_out(f"exceeded the wall-time limit of {self.wall_seconds:g} s")))
                 self._replace(i)
         done += self._returned
         self._returned = []
@@ -377,7 +380,7 @@ class LocalWorkerPool:
             self.registry.close()
 
 
-def make_executor(settings):
+def make_executor(settings: Settings) -> WorkerPool:
     if settings.executor == "dask":
         if not settings.dask_scheduler:
             raise ValueError("GREYFIT_EXECUTOR=dask needs GREYFIT_DASK_SCHEDULER (e.g. tcp://host:8786)")

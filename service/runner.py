@@ -3,32 +3,35 @@ from __future__ import annotations
 
 from fastapi import HTTPException, Response
 
-from greyfit.solvers.errors import DataError, FitError, ModelDefinitionError
-
-_ERRORS = {"DataError": DataError, "ModelDefinitionError": ModelDefinitionError}
+from greyfit.service.outcome import Outcome, fit_error_of
+from greyfit.solvers.errors import FitError
 
 
 class WorkerTaskFailed(Exception):
     """A worker's task ended in an unexpected exception: answered as a 500 like any other bug."""
 
 
-def outcome_or_raise(outcome: dict, retry_after: int = 2) -> Response:
+def outcome_or_raise(outcome: Outcome, retry_after: int = 2) -> Response:
     """The worker's result JSON as the response (not parsed again), or the matching error.
 
-    A lost worker is a 503 with `Retry-After` (`retry_after` seconds), as every 503 is documented."""
-    if outcome["status"] == "succeeded":
-        return Response(outcome["result_json"], media_type="application/json")
-    err = outcome["error"]
-    cls = _ERRORS.get(err["type"])
-    if cls is not None:
-        raise cls(err["detail"], err.get("field"))
-    if err["type"] in ("Timeout", "WorkerLost"):
-        if err["type"] == "WorkerLost":
-            raise HTTPException(503, f"{err['detail']}; retry", headers={"Retry-After": str(retry_after)})
-        raise HTTPException(504, err["detail"])
-    if err["type"] == "DependencyMissing":   # an optional extra of this server is not installed
-        raise HTTPException(501, err["detail"])
-    if err["type"] == "ValidationError":
-        raise FitError(err["detail"])
+    An error of the solvers' `FitError` tree is raised again as the nearest class of the tree (the
+    app answers 422 for all of them). A lost worker is a 503 with `Retry-After` (`retry_after`
+    seconds), as every 503 is documented."""
+    if outcome.status == "succeeded" and outcome.result_json is not None:
+        return Response(outcome.result_json, media_type="application/json")
+    err = outcome.error
+    if err is None:   # (a synchronous fit is never withdrawn nor handed back: the dispatcher fails it)
+        raise WorkerTaskFailed(f"the task ended without a result ({outcome.status})")
+    fit_error = fit_error_of(err)
+    if fit_error is not None:
+        raise fit_error
+    if err.type == "WorkerLost":
+        raise HTTPException(503, f"{err.detail}; retry", headers={"Retry-After": str(retry_after)})
+    if err.type == "Timeout":
+        raise HTTPException(504, err.detail)
+    if err.type == "DependencyMissing":   # an optional extra of this server is not installed
+        raise HTTPException(501, err.detail)
+    if err.type == "ValidationError":
+        raise FitError(err.detail)
     # a bug in the task (the dispatcher logged its trace): the answer every bug gets, with a request id
-    raise WorkerTaskFailed(f"{err['type']}: {err['detail']}")
+    raise WorkerTaskFailed(f"{err.type}: {err.detail}")

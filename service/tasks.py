@@ -1,4 +1,4 @@
-"""What a worker runs: one request in, one JSON-ready outcome out (never raises)."""
+"""What a worker runs: one request in, one `Outcome` out (never raises)."""
 from __future__ import annotations
 
 import traceback
@@ -7,7 +7,9 @@ from typing import Any, Callable
 
 from pydantic import ValidationError
 
+from greyfit.service.outcome import Outcome, TaskError
 from greyfit.service.task_kinds import KINDS, TASK_KINDS
+from greyfit.solvers.errors import FitError
 
 __all__ = ["run_task", "TASK_KINDS"]
 
@@ -53,28 +55,23 @@ def _parse(model, request: dict | str):
     return model.model_validate_json(request) if isinstance(request, str) else model.model_validate(request)
 
 
-def run_task(kind: str, request: dict | str, cpu_seconds: float = 600.0) -> dict:
-    """{'status': 'succeeded', 'result_json': '...'} or {'status': 'failed', 'error': {type, field, detail}}.
+def run_task(kind: str, request: dict | str, cpu_seconds: float = 600.0) -> Outcome:
+    """The task's outcome: succeeded with its result's JSON text, or failed with its error.
 
     The request may be the JSON text itself, and the result comes back as JSON text: the server
     stores and returns both without parsing them again.
     """
-    from greyfit.solvers.errors import FitError
     try:
         runner = _runners()[kind]
         result = runner(request, cpu_seconds)
-        return {"status": "succeeded", "result_json": result.model_dump_json()}
+        return Outcome("succeeded", result_json=result.model_dump_json())
     except FitError as exc:
-        return {"status": "failed", "error": {"type": type(exc).__name__, "field": exc.field,
-                                              "detail": exc.message}}
+        return Outcome.failed(TaskError.of_fit_error(exc))
     except ValidationError as exc:
-        return {"status": "failed", "error": {"type": "ValidationError", "field": None,
-                                              "detail": str(exc), "errors": [
-                                                  {"loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]}}
+        return Outcome.failed(TaskError("ValidationError", str(exc), errors=[
+            {"loc": list(e["loc"]), "msg": e["msg"]} for e in exc.errors()]))
     except ImportError as exc:   # an optional extra (matplotlib for reports) is not installed
-        return {"status": "failed", "error": {"type": "DependencyMissing", "field": None,
-                                              "detail": str(exc)}}
+        return Outcome.failed(TaskError("DependencyMissing", str(exc)))
     except Exception as exc:  # a bug or a CasADi failure: the task fails, the worker goes on
-        return {"status": "failed", "error": {"type": "InternalError", "field": None,
-                                              "detail": f"{type(exc).__name__}: {exc}",
-                                              "trace": traceback.format_exc(limit=5)}}
+        return Outcome.failed(TaskError("InternalError", f"{type(exc).__name__}: {exc}",
+                                        trace=traceback.format_exc(limit=5)))

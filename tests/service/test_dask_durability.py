@@ -59,7 +59,7 @@ def test_a_task_waiting_for_a_dask_worker_is_not_timed_out(tmp_path):
             # warm the worker (CasADi's import, the model's compiled functions) without a wall-time
             # limit, so that the job's fits are short beside it on a loaded machine
             warm = other.submit(run_task, "fit", msd_request(0, n=41), 600.0, pure=False).result()
-            assert warm["status"] == "succeeded"
+            assert warm.status == "succeeded"
             with TestClient(create_app(settings)) as c:
                 blocker = other.submit(time.sleep, 2.5 * wall, pure=False)
                 _until(lambda: other.processing() and any(other.processing().values()), 30, "the blocker runs")

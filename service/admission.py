@@ -14,7 +14,7 @@ import asyncio
 import time
 
 from fastapi import HTTPException
-from starlette.types import ASGIApp, Receive, Scope, Send
+from starlette.types import ASGIApp, Message, Receive, Scope, Send
 
 from greyfit.service.problems import problem
 
@@ -50,7 +50,7 @@ class BodyBudget:
         seen = 0
         more_body = True
 
-        async def limited() -> dict:
+        async def limited() -> Message:
             nonlocal seen, more_body
             if not more_body:   # the body is in: what follows is a disconnect, waited for as long as it takes
                 return await receive()

@@ -25,7 +25,7 @@ def cmd_keys(args) -> int:
     from greyfit.service.clients import KeyRefused, KeyStore
     from greyfit.service.settings import Settings
     from greyfit.service.store import make_engine
-    settings = Settings(**({"data_dir": Path(args.data_dir)} if args.data_dir else {}))
+    settings = Settings(data_dir=Path(args.data_dir)) if args.data_dir else Settings()
     engine = make_engine(settings.resolved_database_url())
     try:
         keys = KeyStore(engine)

@@ -54,7 +54,7 @@ def cmd_serve(args) -> int:
     # as problem+json: service.http_protocol)
     from greyfit.service.http_protocol import bounded_protocol
     uvicorn.run(app, host=args.host, port=args.port, log_level="info", log_config=None,
-                http=bounded_protocol(settings.request_head_seconds), timeout_keep_alive=settings.keep_alive_seconds)
+                http=bounded_protocol(settings.request_head_seconds), timeout_keep_alive=settings.keep_alive_seconds)   # type: ignore[arg-type]  # declared int, used as a float (loop.call_later)
     return 0
 
 

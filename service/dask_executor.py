@@ -190,7 +190,7 @@ class DaskExecutor:
         while self._start_events:
             key = self._by_dask_key.get(self._start_events.popleft())
             entry = self.futures.get(key) if key else None
-            if entry is not None and entry.started is None:   # (a start of a forgotten submission: ignored)
+            if key and entry is not None and entry.started is None:   # (a forgotten submission's: ignored)
                 entry.started = now
                 self._started.append(key)
 

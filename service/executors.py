@@ -205,7 +205,7 @@ class LocalWorkerPool:
         proc = self.ctx.Process(target=_worker_main, args=(child, self.cpu_seconds, os.getpid()), daemon=True)
         start_process(proc)
         child.close()
-        if self.registry is not None:
+        if self.registry is not None and proc.pid is not None:   # (a started process has its pid)
             self.registry.record(proc.pid)
         return _Slot(proc, parent)
 

@@ -27,7 +27,7 @@ class BoundedHttpToolsProtocol(HttpToolsProtocol):
 
     _head_deadline: Optional[asyncio.TimerHandle] = None
 
-    def connection_made(self, transport) -> None:  # type: ignore[override]
+    def connection_made(self, transport) -> None:
         super().connection_made(transport)
         self._arm_head_deadline()
 

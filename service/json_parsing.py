@@ -11,11 +11,13 @@ import os
 import re
 import threading
 import time
-from typing import Any, Optional
+from typing import Any, Optional, TypeVar
 
 from pydantic import BaseModel, ValidationError
 
 from greyfit.service.json_shape import ListLimits, ShapeError, check_shape
+
+M = TypeVar("M", bound=BaseModel)
 
 # errors listed in one answer at most; the rest are counted
 MAX_ERRORS = 50
@@ -34,7 +36,7 @@ def _refuse_duplicates(pairs: list[tuple[str, Any]]) -> dict:
     return out
 
 
-def loads_strict(body: bytes) -> Any:
+def loads_strict(body: bytes | str) -> Any:
     """json.loads that raises JSONDecodeError on a duplicate key (FastAPI reports it as a 422).
 
     A key twice in one object is an error: json.loads would silently keep the last value, so a
@@ -43,7 +45,7 @@ def loads_strict(body: bytes) -> Any:
     try:
         return json.loads(body, object_pairs_hook=_refuse_duplicates)
     except _DuplicateKey as exc:
-        text = body.decode("utf-8", "replace")
+        text = body if isinstance(body, str) else body.decode("utf-8", "replace")   # (the CLI reads text)
         key = str(exc)
         # point at the second occurrence of the key (the first one that is a key, not a value)
         hits = [m.start() for m in re.finditer(re.escape(json.dumps(key)) + r"\s*:", text)]
@@ -87,7 +89,7 @@ def validate_json(model: type[BaseModel], body: bytes | str) -> tuple[Optional[B
         return None, None
 
 
-def validate_strict(model: type[BaseModel], data: Any) -> BaseModel:
+def validate_strict(model: type[M], data: Any) -> M:
     """`model` validated from parsed JSON (a dict) as strictly as the service validates a body:
     for the command line, which reads files with loads_strict. Raises pydantic's ValidationError."""
     return model.model_validate_json(json.dumps(data), strict=True)

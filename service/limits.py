@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 from greyfit.schemas.fit import FitRequest
+from greyfit.schemas.simulate import SimulateRequest
 from greyfit.service.problems import LimitExceeded
 from greyfit.service.settings import Settings
 
@@ -82,7 +83,7 @@ def frequency_values(req) -> int:
     return total
 
 
-def data_values(req: FitRequest) -> int:
+def data_values(req: FitRequest | SimulateRequest) -> int:
     """How many numbers the request's experiments carry (the synchronous size measure)."""
     total = 0
     for exp in list(req.experiments) + list(getattr(req, "validation", [])):

@@ -139,12 +139,13 @@ def install_openapi(app: FastAPI, settings: Settings) -> None:
             app.openapi_schema = describe(app, settings)
         return app.openapi_schema
 
-    app.openapi = openapi
+    app.openapi = openapi   # type: ignore[method-assign]  # FastAPI's documented way to replace the description
 
 
 def install_docs(app: FastAPI) -> None:
     """Serve /docs (Swagger UI) and /redoc (ReDoc) with assets from service/static/, no network needed."""
     app.mount(STATIC_URL, StaticFiles(directory=STATIC), name="static")
+    spec_url = app.openapi_url or "/openapi.json"   # (create_app always serves the description)
 
     def url(request: Request, path: str) -> str:
         # behind a proxy that strips a prefix, the browser must ask for the prefixed path
@@ -153,7 +154,7 @@ def install_docs(app: FastAPI) -> None:
     @app.get("/docs", include_in_schema=False)
     async def swagger_ui(request: Request) -> HTMLResponse:
         return get_swagger_ui_html(
-            openapi_url=url(request, app.openapi_url), title=f"{app.title} - Swagger UI",
+            openapi_url=url(request, spec_url), title=f"{app.title} - Swagger UI",
             swagger_js_url=url(request, f"{STATIC_URL}/swagger-ui/swagger-ui-bundle.js"),
             swagger_css_url=url(request, f"{STATIC_URL}/swagger-ui/swagger-ui.css"),
             swagger_favicon_url=url(request, f"{STATIC_URL}/swagger-ui/favicon-32x32.png"),
@@ -162,7 +163,7 @@ def install_docs(app: FastAPI) -> None:
     @app.get("/redoc", include_in_schema=False)
     async def redoc(request: Request) -> HTMLResponse:
         return get_redoc_html(
-            openapi_url=url(request, app.openapi_url), title=f"{app.title} - ReDoc",
+            openapi_url=url(request, spec_url), title=f"{app.title} - ReDoc",
             redoc_js_url=url(request, f"{STATIC_URL}/redoc/redoc.standalone.js"),
             redoc_favicon_url=url(request, f"{STATIC_URL}/swagger-ui/favicon-32x32.png"),
             with_google_fonts=False)

@@ -122,7 +122,7 @@ def answer_examples() -> dict[tuple[str, str, str], dict]:
     """(method, path, status) -> an example answer body."""
     job = msd_job_record()
     summary = {k: v for k, v in job.items() if k != "tasks"}
-    out = {("get", "/healthz", "200"): {"status": "ok"},
+    out: dict[tuple[str, str, str], dict] = {("get", "/healthz", "200"): {"status": "ok"},
            ("get", "/readyz", "200"): {"status": "ready", "executor": "local"},
            ("get", "/v1/jobs", "200"): {"data": [summary], "count": 1},
            ("get", "/v1/jobs/{job_id}", "200"): job,

@@ -173,7 +173,8 @@ def compare_figure(plt, records: list[Series], kind: str, svg: bool = False,
             if out in rec.measured:
                 y, yh = rec.measured[out], rec.simulated[out]
                 ok = np.isfinite(y) & np.isfinite(yh)
-                fit = 100 * (1 - np.linalg.norm(yh[ok] - y[ok]) / max(np.linalg.norm(y[ok] - y[ok].mean()), 1e-300))
+                spread = max(float(np.linalg.norm(y[ok] - y[ok].mean())), 1e-300)
+                fit = 100 * (1 - float(np.linalg.norm(yh[ok] - y[ok])) / spread)
                 ax.plot(rec.time, y, label="measured", **MEASURED_LINE)
                 ax.plot(rec.time, yh, color="C0", lw=SIMULATED_LW, label=f"simulated (fit {fit:.1f} %)", zorder=2)
                 ax.legend(loc="upper right", fontsize=7, frameon=False)
@@ -319,13 +320,14 @@ def build_report(req: ReportRequest, svg: bool = False) -> Report:
         from greyfit.service.report_design import design_report
         return design_report(result, request if isinstance(request, DesignRequest) else None, req.title, svg)
     plt = _pyplot()
-    discovery = isinstance(result, DiscoveryResult)
-    fit = result.fit if discovery else result
+    discovery = result if isinstance(result, DiscoveryResult) else None
+    fit = result.fit if isinstance(result, DiscoveryResult) else result
     model = _report_model(result, request)
     report = Report(title=req.title or ("greyfit discovery report" if discovery else "greyfit fit report"))
-    if discovery and isinstance(request, FitRequest) and result.added_inputs:   # series the augmented model needs
+    if discovery and isinstance(request, FitRequest) and discovery.added_inputs:   # series the augmented model needs
+        added = discovery.added_inputs
         request = request.model_copy(update={"experiments": [
-            e.model_copy(update={"inputs": {**e.inputs, **result.added_inputs.get(e.name, {})}})
+            e.model_copy(update={"inputs": {**e.inputs, **added.get(e.name, {})}})
             for e in request.experiments]})
     _time_domain_figures(plt, report, fit, request, model, svg)
     from greyfit.service.report_residuals import profile_figure
@@ -334,10 +336,10 @@ def build_report(req: ReportRequest, svg: bool = False) -> Report:
         if figure is not None:
             report.figures.append(figure)
     if discovery:
-        figs, notes = discovery_figures(plt, result, request if isinstance(request, FitRequest) else None, svg)
+        figs, notes = discovery_figures(plt, discovery, request if isinstance(request, FitRequest) else None, svg)
         report.figures += figs
         report.notes += notes
-    report.summary_html = summary_html(fit, result if discovery else None, model)
+    report.summary_html = summary_html(fit, discovery, model)
     return report
 
 
@@ -384,7 +386,7 @@ def write_report(req: ReportRequest, out_dir: Path, formats: tuple[str, ...] = (
         if "png" in formats:
             paths.append(out_dir / f"{f.name}.png")
             paths[-1].write_bytes(f.png)
-        if "svg" in formats:
+        if "svg" in formats and f.svg is not None:   # (drawn whenever svg is asked for)
             paths.append(out_dir / f"{f.name}.svg")
             paths[-1].write_text(f.svg)
     page = out_dir / "report.html"

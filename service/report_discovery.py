@@ -23,7 +23,8 @@ MAX_DISCREPANCIES = 4   # equations drawn (the most likely first)
 
 
 def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) -> tuple[list[Figure], list[str]]:
-    figs, notes = [], []
+    figs: list[Figure] = []
+    notes: list[str] = []
     units = dict(result.model.units)
     outs = _shown(list(result.before.rmse), 4 * MAX_OUTPUTS, "outputs", "discovery metrics", notes)
     fig, axes = plt.subplots(1, 2, figsize=(9, 3.2))
@@ -58,9 +59,9 @@ def discovery_figures(plt, result: DiscoveryResult, request, svg: bool = False) 
     for kind, records, x0 in kinds:
         experiments = [exp.model_copy(update={"inputs": {**exp.inputs, **result.added_inputs.get(exp.name, {})}})
                        for exp in records[:1]]
-        after = _simulated_series(result.model, params, experiments, prepared.options, x0)[0]
-        before = _simulated_series(result.model, without, experiments, prepared.options, x0)[0]
-        figs.append(_overlay(plt, kind, after, before, terms, units, svg, notes))
+        with_terms = _simulated_series(result.model, params, experiments, prepared.options, x0)[0]
+        without_terms = _simulated_series(result.model, without, experiments, prepared.options, x0)[0]
+        figs.append(_overlay(plt, kind, with_terms, without_terms, terms, units, svg, notes))
     return figs, notes
 
 

@@ -16,11 +16,12 @@ from __future__ import annotations
 
 import json
 import os
+import sqlite3
 import time
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Optional
+from typing import Any, Optional, cast
 
 from sqlalchemy import (
     Column,
@@ -46,6 +47,8 @@ from sqlalchemy import (
 from sqlalchemy.engine import Engine, make_url
 from sqlalchemy.exc import DBAPIError, IntegrityError, InterfaceError, InternalError, OperationalError
 from sqlalchemy.exc import TimeoutError as PoolTimeout
+
+from greyfit.schemas.jobs import JobStatus
 
 metadata = MetaData()
 
@@ -301,9 +304,9 @@ def _compress_texts_with_lz4(engine: Engine) -> None:
     if engine.dialect.name != "postgresql":
         return
     with engine.connect() as conn:
-        if int(conn.execute(text("SHOW server_version_num")).scalar()) < 140000:
+        if int(conn.execute(text("SHOW server_version_num")).scalar_one()) < 140000:
             return
-        current = dict(conn.execute(text(
+        current: dict[str, str] = dict(conn.execute(text(
             "SELECT c.relname || '.' || a.attname, a.attcompression FROM pg_attribute a "
             "JOIN pg_class c ON c.oid = a.attrelid WHERE c.relname IN ('tasks', 'task_requests') "
             "AND c.relnamespace = to_regnamespace(current_schema())::oid")).all())
@@ -518,7 +521,8 @@ class JobStore:
         chunk, at = RESULT_CHUNK, 0
         while True:
             with self.engine.connect() as conn:
-                with conn.connection.driver_connection.blobopen("tasks", "result", rowid, readonly=True) as blob:
+                sqlite = cast(sqlite3.Connection, conn.connection.driver_connection)   # (an SQLite engine's)
+                with sqlite.blobopen("tasks", "result", rowid, readonly=True) as blob:
                     blob.seek(at)
                     data = blob.read(chunk)
             if data:
@@ -737,7 +741,7 @@ def _summaries(conn, ids: list[str]) -> dict[str, dict]:
     return summary
 
 
-def status_of_counts(cancelled: bool, counts: dict[str, int]) -> str:
+def status_of_counts(cancelled: bool, counts: dict[str, int]) -> JobStatus:
     """queued | running | succeeded | failed | cancelled, from the number of tasks in each status.
 
     A job whose tasks have all ended is `succeeded` if at least one task succeeded (failed tasks

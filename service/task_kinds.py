@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 from pydantic import BaseModel
+
+if TYPE_CHECKING:
+    from greyfit.schemas.report import ReportPublic, ReportRequest
 
 
 def _load(path: str) -> Any:
@@ -151,7 +154,7 @@ TASK_KINDS = tuple(KINDS)
 JOB_KINDS = tuple(name for name, k in KINDS.items() if k.jobs_path)
 
 
-def run_report(request: BaseModel) -> BaseModel:
+def run_report(request: ReportRequest) -> ReportPublic:
     """The report page of a result (matplotlib: in a worker, never in the web process)."""
     from greyfit.service.report import report_public
     from greyfit.solvers.errors import DataError

@@ -36,7 +36,7 @@ def job_summary(entry: dict[str, Any]) -> JobSummary:
         id=job["id"], kind=job["kind"], label=job["label"], status=status_of_counts(bool(job["cancelled"]), counts),
         progress=JobProgress(done=done, total=job["total"], succeeded=counts.get("succeeded", 0),
                              failed=counts.get("failed", 0)),
-        created_at=utc(job["created_at"]), started_at=utc(entry["started_at"]),
+        created_at=datetime.fromtimestamp(job["created_at"], timezone.utc), started_at=utc(entry["started_at"]),
         finished_at=utc(entry["finished_at"]) if done == job["total"] else None)
 
 

@@ -1,5 +1,5 @@
 import json
-from typing import Annotated
+from typing import Annotated, Any
 
 from fastapi import APIRouter, Depends, HTTPException, Query, Request
 from fastapi.responses import HTMLResponse
@@ -28,15 +28,17 @@ from greyfit.service.store import task_requests, tasks
 router = APIRouter(prefix="/v1", tags=["report"], dependencies=[Depends(require_api_key)],
                    route_class=StrictJSONRoute)
 
-HTML = {200: {"content": {"text/html": {}}, "description": "one self-contained HTML page"}}
-NOT_FINISHED = {409: {"description": "the task has no result yet (queued, running, failed or cancelled): wait "
-                                     "for it, or report another task",
-                      "content": {PROBLEM: {"schema": {"$ref": "#/components/schemas/Problem"}}}}}
+Responses = dict[int | str, dict[str, Any]]   # APIRouter's `responses`
+HTML: Responses = {200: {"content": {"text/html": {}}, "description": "one self-contained HTML page"}}
+NOT_FINISHED: Responses = {409: {
+    "description": "the task has no result yet (queued, running, failed or cancelled): wait for it, or report "
+                   "another task",
+    "content": {PROBLEM: {"schema": {"$ref": "#/components/schemas/Problem"}}}}}
 
 
 async def _page(request: Request, payload: dict | str) -> HTMLResponse:
     response = await run_sync(request, "report", payload)
-    return HTMLResponse(json.loads(response.body)["html"])
+    return HTMLResponse(json.loads(bytes(response.body))["html"])
 
 
 def _check_report(body: ReportRequest, settings: Settings) -> None:
@@ -63,7 +65,7 @@ async def create_report(body: ReportRequest, request: Request) -> HTMLResponse:
     response = await run_sync_request(request, "report", body, check=_check_report, count=_report_values,
                                       elsewhere="Draw it with the command line: greyfit report result.json "
                                                 "--request request.json --out DIR")
-    return HTMLResponse(json.loads(response.body)["html"])
+    return HTMLResponse(json.loads(bytes(response.body))["html"])
 
 
 @router.get("/jobs/{job_id}/report", response_class=HTMLResponse, responses={**HTML, **NOT_FINISHED})

@@ -5,7 +5,7 @@ The route handlers stay one call; the size of "too large" and where to send it i
 from __future__ import annotations
 
 import asyncio
-from typing import Callable
+from typing import Callable, TypeVar
 
 from fastapi import HTTPException, Request, Response
 from pydantic import BaseModel
@@ -15,11 +15,13 @@ from greyfit.service.problems import Overloaded, RequestTooLarge
 from greyfit.service.runner import outcome_or_raise
 from greyfit.service.settings import Settings
 
+M = TypeVar("M", bound=BaseModel)
+
 DISCONNECT_POLL_SECONDS = 0.25
 
 
-async def run_sync_request(request: Request, kind: str, body: BaseModel, *,
-                           check: Callable[[BaseModel, Settings], None], count: Callable[[BaseModel], int],
+async def run_sync_request(request: Request, kind: str, body: M, *,
+                           check: Callable[[M, Settings], None], count: Callable[[M], int],
                            elsewhere: str) -> Response:
     """Check `body` against this server's limits (422 naming the field), refuse it with 413 if its
     data carry more numbers than a synchronous request may (`elsewhere` says where to send it),

@@ -68,7 +68,7 @@ class Metrics:
         registry.register(self._gauges)
 
     def watch(self, read: Callable[[], list[Gauge]]) -> None:
-        """The gauges, read at each scrape (service.app sets it when the dispatcher starts)."""
+        """The gauges, read at each scrape (service.http.app sets it when the dispatcher starts)."""
         self._gauges.read = read
 
     def count_request(self, method: str, route: str, status: int) -> None:

@@ -6,9 +6,9 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.executors import LocalWorkerPool
-from greyfit.service.outcome import Outcome
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.executors import LocalWorkerPool
+from greyfit.service.jobs.outcome import Outcome
 from greyfit.solvers.methods.multistart import MULTISTART_CPU_STATUS
 from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
 

@@ -6,10 +6,10 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from greyfit.service import tasks
-from greyfit.service.outcome import Outcome
-from greyfit.service.problems import install_handlers
-from greyfit.service.runner import outcome_or_raise
+from greyfit.service.http.problems import install_handlers
+from greyfit.service.http.runner import outcome_or_raise
+from greyfit.service.jobs import tasks
+from greyfit.service.jobs.outcome import Outcome
 from greyfit.solvers.errors import DataError, FitError
 
 

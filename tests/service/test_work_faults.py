@@ -9,8 +9,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 
-from greyfit.service.app import create_app
-from greyfit.service.store import JobStore, make_engine
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.store import JobStore, make_engine
 from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
 
 

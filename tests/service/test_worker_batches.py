@@ -8,9 +8,9 @@ import time
 
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.executors import LocalWorkerPool
-from greyfit.service.outcome import Outcome
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.executors import LocalWorkerPool
+from greyfit.service.jobs.outcome import Outcome
 from tests.service.conftest import make_settings, msd_request, slow_request, wait_for_job
 from tests.systems import MSD_TRUTH
 

@@ -35,8 +35,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from sqlalchemy import bindparam, create_engine, select, text, update  # noqa: E402
 from sqlalchemy.engine import make_url  # noqa: E402
 
-from greyfit.service import store as store_module  # noqa: E402
-from greyfit.service.store import JobStore, jobs, make_engine, task_requests, tasks  # noqa: E402
+from greyfit.service.jobs import store as store_module  # noqa: E402
+from greyfit.service.jobs.store import JobStore, jobs, make_engine, task_requests, tasks  # noqa: E402
 
 OLD_QUERY = (select(tasks.c.job_id, tasks.c.idx, tasks.c.attempts, jobs.c.kind)
              .join(jobs, jobs.c.id == tasks.c.job_id).where(tasks.c.status == "queued")

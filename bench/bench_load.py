@@ -41,7 +41,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from greyfit.schemas import FitRequest  # noqa: E402
-from greyfit.service.json_parsing import parse_and_validate  # noqa: E402
+from greyfit.service.http.json_parsing import parse_and_validate  # noqa: E402
 from tests.servers import free_port, large_fit_request, msd_request, probe_healthz, start_server, stop_server  # noqa: E402
 
 BODIES_MEGABYTES = 20

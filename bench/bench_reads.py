@@ -25,7 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from sqlalchemy import text  # noqa: E402
 
-from greyfit.service.store import JobStore, make_engine  # noqa: E402
+from greyfit.service.jobs.store import JobStore, make_engine  # noqa: E402
 from tests.servers import free_port, start_server, stop_server  # noqa: E402
 
 

@@ -65,7 +65,7 @@ def show_loop(candidates, label: str, figures: Path | None = None) -> None:
     res = discover(req)
     if figures is not None:
         from greyfit.schemas.report import ReportRequest
-        from greyfit.service.report import write_report
+        from greyfit.service.report.page import write_report
         title = "Heated block with radiative loss, declared with convection only"
         paths = write_report(ReportRequest(result=res, request=req, title=title), figures, ("png",))
         print("report written: " + ", ".join(str(p) for p in paths))

@@ -102,8 +102,8 @@ class ServiceUnreachable(ConnectionError):
 
 
 def invalid_request(exc: ValidationError) -> InvalidRequest:
-    """The service's 422 for a request that failed validation here (service.problems words it alike)."""
-    from greyfit.service.error_text import describe, request_model
+    """The service's 422 for a request that failed validation here (service.http.problems words it alike)."""
+    from greyfit.service.http.error_text import describe, request_model
     errors = describe(exc.errors(include_url=False, include_input=False, include_context=False),
                       request_model(exc.title))
     detail = "; ".join(f"{e['loc']}: {e['msg']}" for e in errors[:5])
@@ -114,7 +114,7 @@ def validated(model: type[BaseModel], value: Union[BaseModel, dict]) -> BaseMode
     """`value` as `model`: a dict validated as strictly as the service validates a body."""
     if isinstance(value, model):
         return value
-    from greyfit.service.json_parsing import validate_strict
+    from greyfit.service.http.json_parsing import validate_strict
     try:
         return validate_strict(model, value.model_dump(mode="json", exclude_unset=True)
                                if isinstance(value, BaseModel) else value)

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # The gate before the tests: ruff (the configured rules and import order), mypy on the contract and
-# the numerics, and import-linter's layer contracts (pyproject.toml holds all three configurations).
+# the numerics and the service, and import-linter's layer contracts (pyproject.toml holds all three configurations).
 # Exits non-zero on the first failing check. Usage: bash scripts/lint.sh [python]  (default .venv's)
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -20,9 +20,9 @@ for d in schemas solvers service; do
 done
 find "$stage" -name __pycache__ -prune -exec rm -rf {} +
 
-echo "lint: mypy greyfit.schemas greyfit.solvers"
+echo "lint: mypy greyfit.schemas greyfit.solvers greyfit.service"
 (cd "$stage" && "$BIN/mypy" --config-file "$OLDPWD/pyproject.toml" --cache-dir "$OLDPWD/build/mypy_cache" \
-    -p greyfit.schemas -p greyfit.solvers)
+    -p greyfit.schemas -p greyfit.solvers -p greyfit.service)
 
 echo "lint: import-linter"
 (cd "$stage" && PYTHONPATH=. "$BIN/lint-imports" "$OLDPWD/pyproject.toml" --no-cache)

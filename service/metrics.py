@@ -65,10 +65,10 @@ class Metrics:
         self.refused = Counter("greyfit_refused", "Requests refused at a capacity limit (503), by limit.",
                                ["limit"], registry=registry)
         self._gauges = _Gauges()
-        registry.register(self._gauges)   # type: ignore[arg-type]
+        registry.register(self._gauges)
 
     def watch(self, read: Callable[[], list[Gauge]]) -> None:
-        """The gauges, read at each scrape (service.app sets it when the dispatcher starts)."""
+        """The gauges, read at each scrape (service.http.app sets it when the dispatcher starts)."""
         self._gauges.read = read
 
     def count_request(self, method: str, route: str, status: int) -> None:

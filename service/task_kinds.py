@@ -4,7 +4,7 @@ Why: a kind used to be spelt in five places (the worker's runners, the jobs sche
 CLI batch's schema table, the client's job table, the routes), so a new route with jobs cost eight
 files. Every one of those now reads `KINDS`, and so do the OpenAPI description (which paths answer
 synchronously, the example bodies) and the tests that send every route its example. A new kind is
-its schemas, its solver function and one entry here; `service/routes/tasks.py` makes its synchronous
+its schemas, its solver function and one entry here; `service/http/routes/tasks.py` makes its synchronous
 and job routes from the entry.
 
 This module imports only the schemas and the standard library: the client reads it too.
@@ -13,9 +13,12 @@ from __future__ import annotations
 
 import importlib
 from dataclasses import dataclass
-from typing import Any, Callable, Optional
+from typing import TYPE_CHECKING, Any, Callable, Optional
 
 from pydantic import BaseModel
+
+if TYPE_CHECKING:
+    from greyfit.schemas.report import ReportPublic, ReportRequest
 
 
 def _load(path: str) -> Any:
@@ -56,8 +59,8 @@ class TaskKind:
     jobs_path: Optional[str] = None   # POST route taking a batch job of these (generated when `generate`)
     job_body: Optional[str] = None    # the job body schema (`schemas.jobs.job_create`), with jobs_path
     job_example: Optional[Example] = None   # the jobs route's example body (else none is shown)
-    limits: str = "greyfit.service.limits:check_limits"    # check(request, settings, prefix)
-    values: str = "greyfit.service.limits:data_values"     # number of data values (sync size limit)
+    limits: str = "greyfit.service.http.limits:check_limits"    # check(request, settings, prefix)
+    values: str = "greyfit.service.http.limits:data_values"     # number of data values (sync size limit)
     tag: str = "fits"
     summary: str = ""                 # the sync route's docstring (OpenAPI)
     job_summary: str = ""
@@ -87,8 +90,8 @@ class TaskKind:
         return _load(self.values)
 
 
-_FREQ_LIMITS = "greyfit.service.limits:check_frequency_limits"
-_EXAMPLES = "greyfit.service.openapi_examples"
+_FREQ_LIMITS = "greyfit.service.http.limits:check_frequency_limits"
+_EXAMPLES = "greyfit.service.http.openapi_examples"
 
 KINDS: dict[str, TaskKind] = {k.name: k for k in (
     TaskKind("fit", "greyfit.schemas.fit:FitRequest", "greyfit.schemas.fit:FitResult",
@@ -116,7 +119,7 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              "greyfit.solvers.frequency:fit_frequency_response", sync_path="/v1/frequency-fits",
              jobs_path="/v1/frequency-fits/jobs", job_body="greyfit.schemas.frequency:FrequencyJobCreate",
              limits=_FREQ_LIMITS,
-             values="greyfit.service.limits:frequency_values",
+             values="greyfit.service.http.limits:frequency_values",
              example=Example("pi_loop", "A fourth-order plant measured in a PI loop at two controller "
                              "settings (Parameter estimation from frequency data, Ohki)",
                              f"{_EXAMPLES}:frequency_pi_loop"),
@@ -129,7 +132,8 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              "greyfit.solvers.design:design_experiment", caps_cpu=False,   # bounded by its iterations and starts
              sync_path="/v1/designs", jobs_path="/v1/designs/jobs",
              job_body="greyfit.schemas.design:DesignJobCreate",
-             limits="greyfit.service.limits:check_design_limits", values="greyfit.service.limits:design_values",
+             limits="greyfit.service.http.limits:check_design_limits",
+             values="greyfit.service.http.limits:design_values",
              example=Example("msd_design", "The input that shrinks the mass-spring-damper's intervals most "
                              "(D-optimal), beside the single step that was run", f"{_EXAMPLES}:msd_design"),
              summary="Design the next experiment's input: D/A/E-optimal for the parameters' intervals, or "
@@ -139,21 +143,21 @@ KINDS: dict[str, TaskKind] = {k.name: k for k in (
              operation="create_design", job_operation="create_design_job", tag="designs"),
     TaskKind("simulate", "greyfit.schemas.simulate:SimulateRequest", "greyfit.schemas.simulate:SimulateResult",
              "greyfit.solvers.simulation.simulate:simulate_request", caps_cpu=False, generate=False,
-             sync_path="/v1/simulate",   # service/routes/simulate.py
+             sync_path="/v1/simulate",   # service/http/routes/simulate.py
              example=Example("msd_simulate", "The mass-spring-damper record simulated with c = 0.8, k = 5",
                              f"{_EXAMPLES}:msd_simulation")),
     TaskKind("report", "greyfit.schemas.report:ReportRequest", "greyfit.schemas.report:ReportPublic",
              "greyfit.service.task_kinds:run_report", caps_cpu=False, generate=False,
-             sync_path="/v1/report"),   # service/routes/report.py
+             sync_path="/v1/report"),   # service/http/routes/report.py
 )}
 
 TASK_KINDS = tuple(KINDS)
 JOB_KINDS = tuple(name for name, k in KINDS.items() if k.jobs_path)
 
 
-def run_report(request: BaseModel) -> BaseModel:
+def run_report(request: ReportRequest) -> ReportPublic:
     """The report page of a result (matplotlib: in a worker, never in the web process)."""
-    from greyfit.service.report import report_public
+    from greyfit.service.report.page import report_public
     from greyfit.solvers.errors import DataError
     try:
         return report_public(request)

@@ -74,7 +74,7 @@ def start_server(data_dir: Path, port: int, workers: int = 2, log: Path | None =
 
 def children_of(pid: int) -> set[int]:
     """The live processes whose parent is `pid` (from /proc; Linux)."""
-    from greyfit.service.lifeline import start_time
+    from greyfit.service.jobs.lifeline import start_time
     found = set()
     for entry in os.listdir("/proc"):
         if entry.isdigit() and start_time(int(entry)) is not None:
@@ -89,7 +89,7 @@ def children_of(pid: int) -> set[int]:
 
 def alive(pids: set[int]) -> set[int]:
     """Those of `pids` still running (a zombie has ended)."""
-    from greyfit.service.lifeline import start_time
+    from greyfit.service.jobs.lifeline import start_time
     return {p for p in pids if start_time(p) is not None}
 
 

@@ -43,6 +43,9 @@ def test_fit_reads_stdin_and_reports_bad_input(tmp_path):
     bad.write_text("{not json")
     proc = run_cli("fit", str(bad))
     assert proc.returncode == 2 and "not valid JSON" in proc.stderr
+    bad.write_text('{"model": {}, "model": {}}')   # a key twice is refused, as over HTTP (read as text here)
+    proc = run_cli("fit", str(bad))
+    assert proc.returncode == 2 and "duplicate key 'model' in one object" in proc.stderr
 
 
 def test_report_takes_o_for_its_directory_as_the_other_commands_do(tmp_path):
@@ -54,7 +57,7 @@ def test_report_takes_o_for_its_directory_as_the_other_commands_do(tmp_path):
                    "--formats", "png")
     assert proc.returncode == 0, proc.stderr
     assert (tmp_path / "figures" / "report.html").is_file() and str(tmp_path / "figures" / "report.html") in proc.stdout
-    from greyfit.service.cli import build_parser
+    from greyfit.service.cli.commands import build_parser
     assert build_parser().parse_args(["report", "r.json", "--out", "d"]).out == "d"   # --out still works
     proc = run_cli("report", str(result))
     assert proc.returncode == 2 and "-o/--out" in proc.stderr

@@ -2,7 +2,7 @@
 gives the JSON request's estimates to the last digit; a bad file is one line and exit 2."""
 import json
 
-from greyfit.service.cli import main
+from greyfit.service.cli.commands import main
 from tests.test_cli import EXAMPLE, ROOT, run_cli
 
 MODEL = ROOT / "examples" / "msd_model.json"

@@ -183,7 +183,7 @@ def test_fail_on_leaves_a_good_fit_alone():
 
 
 def test_every_option_has_help_text():
-    from greyfit.service.cli import build_parser
+    from greyfit.service.cli.commands import build_parser
     parser = build_parser()
     subparsers = next(a for a in parser._actions if a.dest == "command")
     assert set(subparsers.choices) == {"fit", "discover", "serve", "batch", "simulate", "report", "design", "keys"}

@@ -68,7 +68,7 @@ def test_user_facing_text_cites_the_source_documents_by_title():
     for page in pages:
         hits = SEED_WORDING.findall(page.read_text(encoding="utf-8"))
         assert not hits, f"{page.relative_to(ROOT)} says {hits}: cite the document by its title (docs/sources.md)"
-    from greyfit.service.app import create_app
+    from greyfit.service.http.app import create_app
     from greyfit.service.settings import Settings
 
     spec = json.dumps(create_app(Settings(data_dir=ROOT / "build" / "docs-test")).openapi(), ensure_ascii=False)

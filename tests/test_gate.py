@@ -39,7 +39,7 @@ def test_the_tree_as_committed_passes(tree):
 @pytest.mark.parametrize("where, text, tool", [
     ("solvers/methods/batch.py", "\nimport os\n", "ruff"),                     # unused import
     ("solvers/inference/statistics.py", "\n\ndef _bad() -> int:\n    return 'text'\n", "mypy"),
-    ("solvers/inference/statistics.py", "\n\ndef _up():\n    from greyfit.service import app\n    return app\n",
+    ("solvers/inference/statistics.py", "\n\ndef _up():\n    from greyfit.service.http import app\n    return app\n",
      "import-linter"),                                                         # solvers -> service
 ])
 def test_a_violation_fails_the_gate(tree, where, text, tool):

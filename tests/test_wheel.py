@@ -48,7 +48,7 @@ def test_installed_beside_a_users_schemas_and_pypis_schemas(wheel, tmp_path):
         (project / folder).mkdir(parents=True)
         (project / folder / "__init__.py").write_text("USER = True\n")
     code = ("import schemas, greyfit; from greyfit.client import Client; from greyfit import FitRequest; "
-            "from greyfit.solvers.fit import fit_model; from greyfit.service.app import create_app; "
+            "from greyfit.solvers.fit import fit_model; from greyfit.service.http.app import create_app; "
             "import json; req = FitRequest.model_validate(json.load(open(%r))); r = fit_model(req); "
             "assert schemas.USER and r.success, r.message; print(greyfit.__version__, r.parameters['k'].value)"
             % str(ROOT / "examples" / "msd_request.json"))

@@ -6,7 +6,7 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from greyfit.service.settings import Settings
 from tests.servers import msd_request, slow_request  # noqa: F401  (the tests import them from here)
 from tests.systems import msd_experiment, msd_model, simulate_msd  # noqa: F401

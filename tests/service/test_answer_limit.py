@@ -4,7 +4,7 @@ import time
 
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import assert_problem, make_settings, msd_request
 
 LIMIT = 2048

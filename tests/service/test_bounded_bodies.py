@@ -11,9 +11,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from greyfit.schemas.fit import FitRequest, JobCreate
-from greyfit.service.app import create_app
-from greyfit.service.json_parsing import MAX_ERRORS
-from greyfit.service.json_shape import MAX_KEYS, ListLimits, ShapeError, check_shape
+from greyfit.service.http.app import create_app
+from greyfit.service.http.json_parsing import MAX_ERRORS
+from greyfit.service.http.json_shape import MAX_KEYS, ListLimits, ShapeError, check_shape
 from tests.service.conftest import assert_problem, make_settings
 
 JSON = {"content-type": "application/json"}

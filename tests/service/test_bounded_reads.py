@@ -6,7 +6,7 @@ Defect: GET /v1/jobs?limit=200 over 200 jobs of 1 000 tasks answered every task 
 from fastapi.testclient import TestClient
 from sqlalchemy import event
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 

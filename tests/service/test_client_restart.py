@@ -85,8 +85,8 @@ def test_a_server_that_is_not_there_is_said_so_after_the_retries():
 def test_an_invalid_dict_is_refused_with_the_services_words():
     """Before anything is sent (no server here): the loc/msg the service's 422 and the CLI give."""
     from greyfit.schemas import FitRequest
-    from greyfit.service.error_text import error_lines
-    from greyfit.service.json_parsing import validate_strict
+    from greyfit.service.http.error_text import error_lines
+    from greyfit.service.http.json_parsing import validate_strict
     body = msd_request(1)
     body["metod"] = "multiple_shooting"
     body["experiments"][0]["time"][3] = "0.3"

@@ -11,10 +11,10 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine, text
 
-from greyfit.service.app import create_app
-from greyfit.service.cli import main as greyfit
-from greyfit.service.clients import KeyStore
-from greyfit.service.store import JobStore, make_engine
+from greyfit.service.cli.commands import main as greyfit
+from greyfit.service.http.app import create_app
+from greyfit.service.http.clients import KeyStore
+from greyfit.service.jobs.store import JobStore, make_engine
 from tests.servers import free_port, start_server, stop_server
 from tests.service.conftest import make_settings, msd_request, slow_request
 

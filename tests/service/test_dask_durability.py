@@ -12,7 +12,7 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.servers import free_port
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 from tests.systems import MSD_TRUTH
@@ -48,7 +48,7 @@ def test_a_task_waiting_for_a_dask_worker_is_not_timed_out(tmp_path):
     """Defect: the wall clock ran from submission, so tasks queued behind a busy worker failed as
     `Timeout` without having run. The only worker thread is held for 2.5x the wall-time limit; the
     job's tasks wait that long and still succeed, each charged one attempt (its one start)."""
-    from greyfit.service.tasks import run_task
+    from greyfit.service.jobs.tasks import run_task
 
     with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=True, host="127.0.0.1",
                                   dashboard_address=None) as cluster:
@@ -59,7 +59,7 @@ def test_a_task_waiting_for_a_dask_worker_is_not_timed_out(tmp_path):
             # warm the worker (CasADi's import, the model's compiled functions) without a wall-time
             # limit, so that the job's fits are short beside it on a loaded machine
             warm = other.submit(run_task, "fit", msd_request(0, n=41), 600.0, pure=False).result()
-            assert warm["status"] == "succeeded"
+            assert warm.status == "succeeded"
             with TestClient(create_app(settings)) as c:
                 blocker = other.submit(time.sleep, 2.5 * wall, pure=False)
                 _until(lambda: other.processing() and any(other.processing().values()), 30, "the blocker runs")

@@ -2,7 +2,7 @@
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 distributed = pytest.importorskip("distributed")

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from greyfit.service.store import DataDirNotWritable, check_data_dir
+from greyfit.service.jobs.store import DataDirNotWritable, check_data_dir
 from tests.servers import free_port
 
 ROOT = Path(__file__).resolve().parents[2]

@@ -1,5 +1,5 @@
 """POST /v1/designs through a worker: the example's design, and a bad one named (issue 44)."""
-from greyfit.service.openapi_examples import msd_design
+from greyfit.service.http.openapi_examples import msd_design
 from tests.service.conftest import assert_problem
 
 

@@ -4,7 +4,7 @@ import json
 import numpy as np
 import pytest
 
-from greyfit.service.cli import main as cli_main
+from greyfit.service.cli.commands import main as cli_main
 from tests.frequency_systems import NAMES, TRUTH, frequency_data, seed001_model, sine_records
 from tests.service.conftest import assert_problem
 

@@ -7,8 +7,8 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.store import JobStore, make_engine
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.store import JobStore, make_engine
 from tests.frequency_systems import NAMES, TRUTH, frequency_data, seed001_model
 from tests.service.conftest import assert_problem, make_settings, wait_for_job
 

@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.cli import main as cli_main
+from greyfit.service.cli.commands import main as cli_main
+from greyfit.service.http.app import create_app
 from tests.linearised_systems import (
     PENDULUM_TRUTH,
     pendulum_equilibrium,

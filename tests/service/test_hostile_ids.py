@@ -4,7 +4,7 @@ an index past its INTEGER range did too)."""
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 

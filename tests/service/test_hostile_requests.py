@@ -4,7 +4,7 @@ import json
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import assert_problem, make_settings, msd_request
 
 
@@ -124,7 +124,7 @@ def test_a_task_that_fails_unexpectedly_is_a_500_with_the_logged_request_id(tmp_
     not the exception's text."""
     from fastapi import Request
 
-    from greyfit.service.routes.sync import run_sync
+    from greyfit.service.http.routes.sync import run_sync
 
     app = create_app(make_settings(tmp_path))
 

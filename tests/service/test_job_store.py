@@ -20,8 +20,8 @@ from sqlalchemy import (
     text,
 )
 
-from greyfit.service.app import create_app
-from greyfit.service.store import JobStore, make_engine, task_requests, tasks
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.store import JobStore, make_engine, task_requests, tasks
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 
@@ -314,7 +314,7 @@ def test_postgres_stores_request_and_result_texts_with_lz4(postgres_url):
 def test_a_large_result_is_read_a_slice_at_a_time(store, monkeypatch):
     """A result longer than RESULT_CHUNK comes out of result_pages as slices of at most that many
     characters (a query each), which join to the stored text; a short one is one piece."""
-    from greyfit.service import store as store_module
+    from greyfit.service.jobs import store as store_module
     monkeypatch.setattr(store_module, "RESULT_CHUNK", 1000)
     job_id = store.create_job("fit", [{"n": 1}, {"n": 2}], None)
     big = json.dumps({"values": list(range(2000)), "name": "é" * 300})   # ~10 kB, not all ASCII

@@ -6,8 +6,9 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.executors import LocalWorkerPool
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.executors import LocalWorkerPool
+from greyfit.service.jobs.outcome import Outcome
 from greyfit.solvers.methods.multistart import MULTISTART_CPU_STATUS
 from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
 
@@ -169,8 +170,8 @@ def test_cpu_limit_kills_a_runaway_worker_and_says_why():
         while not done and time.monotonic() < deadline:
             done = pool.poll()
             time.sleep(0.05)
-        assert done[0][1]["status"] == "failed"
-        assert "exceeded the CPU-time limit of 1 s" in done[0][1]["error"]["detail"]
+        assert done[0][1].status == "failed"
+        assert "exceeded the CPU-time limit of 1 s" in done[0][1].error.detail
     finally:
         pool.shutdown()
 
@@ -185,14 +186,14 @@ def test_a_crashed_worker_fails_only_its_task():
         while not done and time.monotonic() < deadline:
             done = pool.poll()
             time.sleep(0.02)
-        assert done[0][0] == "a" and done[0][1]["error"]["type"] == "WorkerLost"
-        assert "died" in done[0][1]["error"]["detail"]
+        assert done[0][0] == "a" and done[0][1].error.type == "WorkerLost"
+        assert "died" in done[0][1].error.detail
         pool.submit("b", "fit", msd_request(0))
         deadline, done = time.monotonic() + 60, []
         while not done and time.monotonic() < deadline:
             done = pool.poll()
             time.sleep(0.02)
-        assert done[0][0] == "b" and done[0][1]["status"] == "succeeded"
+        assert done[0][0] == "b" and done[0][1].status == "succeeded"
     finally:
         pool.shutdown()
 
@@ -216,13 +217,13 @@ def test_a_task_queued_behind_another_runs_next_or_can_be_withdrawn():
         pool.submit("b", "fit", msd_request(1))               # queued behind a
         assert (pool.free(), pool.queue_room()) == (0, 0)
         done = _poll_until(pool, {"a", "b"})
-        assert done["a"]["status"] == done["b"]["status"] == "succeeded"
-        assert done["a"]["seconds"] > 0 and pool.free() == 1
+        assert done["a"].status == done["b"].status == "succeeded"
+        assert done["a"].seconds > 0 and pool.free() == 1
         pool.submit("slow", "fit", slow_request())
         pool.submit("c", "fit", msd_request(2))
         assert pool.cancel("c")                               # withdrawn before it started
         done = _poll_until(pool, {"slow", "c"})
-        assert done["c"] == {"status": "withdrawn"} and done["slow"]["status"] == "succeeded"
+        assert done["c"] == Outcome("withdrawn") and done["slow"].status == "succeeded"
     finally:
         pool.shutdown()
 
@@ -236,10 +237,10 @@ def test_a_task_queued_behind_a_killed_one_comes_back_not_started():
         pool.submit("next", "fit", msd_request(0))
         time.sleep(0.3)
         assert pool.cancel("slow")                            # ends the worker
-        assert _poll_until(pool, {"next"}) == {"next": {"status": "not_started"}}
+        assert _poll_until(pool, {"next"}) == {"next": Outcome("not_started")}
         assert pool.free() == 1
         pool.submit("next", "fit", msd_request(0))            # handed out again, it runs
-        assert _poll_until(pool, {"next"})["next"]["status"] == "succeeded"
+        assert _poll_until(pool, {"next"})["next"].status == "succeeded"
     finally:
         pool.shutdown()
 

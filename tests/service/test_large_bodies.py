@@ -8,9 +8,9 @@ import time
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.json_body import LARGE_BODY_BYTES
-from greyfit.service.json_parsing import parse_and_validate
+from greyfit.service.http.app import create_app
+from greyfit.service.http.json_body import LARGE_BODY_BYTES
+from greyfit.service.http.json_parsing import parse_and_validate
 from tests.service.conftest import assert_problem, make_settings, msd_request, wait_for_job
 from tests.service.test_real_server_bodies import large_fit_request
 

@@ -8,7 +8,7 @@ import warnings
 
 import pytest
 
-from greyfit.service.logs import REQUEST_ID, configure_logging
+from greyfit.service.http.logs import REQUEST_ID, configure_logging
 
 KEYS = {"time", "level", "logger", "message", "request_id", "task_id"}
 

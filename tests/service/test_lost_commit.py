@@ -12,7 +12,7 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy.engine import make_url
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 

@@ -12,7 +12,7 @@ from pydantic import ValidationError
 import greyfit
 from greyfit.client import Client, GreyfitError
 from greyfit.schemas import FitRequest
-from greyfit.service.cli import main
+from greyfit.service.cli.commands import main
 from greyfit.solvers.errors import DataError
 from greyfit.solvers.fit import fit_model
 from tests.servers import free_port, start_server, stop_server

@@ -119,7 +119,7 @@ def test_the_documented_job_example_is_accepted_and_its_fit_converges(client):
 
 
 def test_every_shipped_example_is_a_copy_of_the_repository_example():
-    shipped = ROOT / "service" / "static" / "examples"
+    shipped = ROOT / "service" / "http" / "static" / "examples"
     copies = {"msd_request.json": "msd_request.json", "msd_result.json": "msd_result.json",
               "frequency_pi_loop_request.json": "frequency_pi_loop_request.json"}
     assert {p.name for p in shipped.glob("*.json")} == set(copies)

@@ -16,10 +16,10 @@ from fastapi import FastAPI, HTTPException
 from fastapi.testclient import TestClient
 from sqlalchemy import create_engine
 
-from greyfit.service.app import CountRequests, create_app
+from greyfit.service.http.app import CountRequests, create_app
+from greyfit.service.http.openapi import SYNC_PATHS
+from greyfit.service.http.routes.files import FILE_KINDS
 from greyfit.service.metrics import Metrics
-from greyfit.service.openapi import SYNC_PATHS
-from greyfit.service.routes.files import FILE_KINDS
 from greyfit.service.task_kinds import KINDS
 from tests.servers import free_port
 from tests.service.conftest import make_settings, msd_request, wait_for_job

@@ -8,9 +8,9 @@ import pytest
 from fastapi.testclient import TestClient
 
 from greyfit.schemas import FitRequest
-from greyfit.service.app import create_app
-from greyfit.service.openapi import OPERATION_IDS
-from greyfit.service.openapi_examples import msd_result
+from greyfit.service.http.app import create_app
+from greyfit.service.http.openapi import OPERATION_IDS
+from greyfit.service.http.openapi_examples import msd_result
 from tests.service.conftest import EXAMPLE, make_settings, msd_request, wait_for_job
 
 

@@ -20,7 +20,7 @@ from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 from sqlalchemy.exc import OperationalError
 
-from greyfit.service.app import create_app
+from greyfit.service.http.app import create_app
 from tests.service.conftest import make_settings, msd_request, wait_for_job
 
 

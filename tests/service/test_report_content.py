@@ -12,7 +12,7 @@ import pytest
 
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.report import ReportRequest
-from greyfit.service.report_html import summary_html
+from greyfit.service.report.html import summary_html
 from greyfit.solvers.fit import fit_model
 from tests.frequency_systems import TRUTH, frequency_data, seed001_model
 
@@ -111,7 +111,7 @@ def test_a_bad_frequency_request_names_its_fields_not_union_internals(frequency_
 def test_discrepancy_is_drawn_against_its_variable_where_discovery_returns_it():
     """The field is added by the shape step of discovery; the figure reads it defensively."""
     plt = pytest.importorskip("matplotlib.pyplot")
-    from greyfit.service.report_discovery import discrepancy_figure
+    from greyfit.service.report.discovery import discrepancy_figure
     x = np.linspace(-1, 1, 200)
     equation = SimpleNamespace(equation="v", variable="x", variable_samples={"e1": x.tolist()},
                                samples={"e1": (20 * x ** 3 + 0.01 * np.sin(40 * x)).tolist()},
@@ -136,7 +136,7 @@ def test_compare_keeps_both_lines_visible_at_a_98_percent_fit():
     import matplotlib.image as mpimg
     import matplotlib.pyplot as plt
 
-    from greyfit.service.report import Series, compare_figure
+    from greyfit.service.report.page import Series, compare_figure
     t = np.linspace(0, 10, 201)
     simulated = np.sin(t)
     measured = simulated + 0.02 * np.random.default_rng(0).standard_normal(t.size)   # about 98 % fit

@@ -6,7 +6,7 @@ import pytest
 from greyfit.schemas.design import DesignRequest
 from greyfit.schemas.report import ReportRequest
 from greyfit.schemas.simulate import SimulateRequest
-from greyfit.service.openapi_examples import msd_design
+from greyfit.service.http.openapi_examples import msd_design
 from greyfit.solvers.design import design_experiment
 from greyfit.solvers.simulation.simulate import simulate_request
 from tests.service.test_report_figures import RecordingPyplot
@@ -23,7 +23,7 @@ def _lines(fig) -> dict[str, np.ndarray]:
 
 
 def test_the_input_figure_draws_the_designed_input_and_the_baseline(plt):
-    from greyfit.service.report_design import input_figure
+    from greyfit.service.report.design import input_figure
     request = DesignRequest.model_validate(msd_design())
     result = design_experiment(request)
     input_figure(plt, result, request, False, [])
@@ -49,7 +49,7 @@ def _rival_design() -> dict:
 
 
 def test_the_outputs_figure_draws_the_model_and_the_rival_s_best_imitation(plt):
-    from greyfit.service.report_design import output_figure
+    from greyfit.service.report.design import output_figure
     request = DesignRequest.model_validate(_rival_design())
     result = design_experiment(request)
     output_figure(plt, result, request, False, [])
@@ -71,7 +71,7 @@ def test_the_outputs_figure_draws_the_model_and_the_rival_s_best_imitation(plt):
 
 def test_the_page_states_the_predicted_gain_and_a_mismatched_request_is_refused():
     pytest.importorskip("matplotlib")
-    from greyfit.service.report import build_report
+    from greyfit.service.report.page import build_report
     request = DesignRequest.model_validate(msd_design())
     result = design_experiment(request)
     report = build_report(ReportRequest(result=result, request=request))
@@ -98,7 +98,7 @@ def test_the_discovery_page_gives_the_design_request_of_an_ambiguous_step():
     import re
     from types import SimpleNamespace
 
-    from greyfit.service.report_html import _next_experiment
+    from greyfit.service.report.html import _next_experiment
     body = _rival_design()
     step = SimpleNamespace(effect="quadratic_drag", equation="v", design=body)
     page = _next_experiment(SimpleNamespace(steps=[SimpleNamespace(effect="offset", equation="x", design=None), step]))

@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 
 from greyfit.schemas.fit import FitRequest
-from greyfit.service.report_html import summary_html
+from greyfit.service.report.html import summary_html
 from greyfit.solvers.fit import fit_model
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -43,7 +43,7 @@ def plt():
 
 def test_labels_give_the_confidence_level_the_fit_used(plt):
     """Every label said 95 % whatever options.confidence_level was."""
-    from greyfit.service.report import parameter_figure
+    from greyfit.service.report.page import parameter_figure
     body = json.loads(json.dumps(EXAMPLE))
     body.setdefault("options", {})["confidence_level"] = 0.9
     result = fit_model(FitRequest.model_validate(body))
@@ -89,7 +89,7 @@ def lightly_damped_fit():
 
 
 def test_bode_and_nyquist_draw_the_model_through_its_resonance_not_a_chord(plt):
-    from greyfit.service.report_frequency import frequency_figures, model_response
+    from greyfit.service.report.frequency import frequency_figures, model_response
     result = lightly_damped_fit()
     assert result.quality == "good" and result.confidence_level == 0.9   # the frequency fit records it too
     p = {k: v.value for k, v in result.parameters.items()}
@@ -144,7 +144,7 @@ def sign_changes(values: np.ndarray, tol: float) -> int:
 def test_the_discrepancy_figure_draws_the_smooth_law_of_its_variable_not_a_sawtooth(plt, duffing_discovery):
     """The line was the fit at the samples (the law plus terms in the other states), sorted by the
     variable: a sawtooth. It is now the law on a grid of the variable."""
-    from greyfit.service.report_discovery import discrepancy_figure
+    from greyfit.service.report.discovery import discrepancy_figure
     from tests import partial_systems as ps
     _, result = duffing_discovery
     assert [s.effect for s in result.steps] == ["cubic_stiffness"], result.conclusion
@@ -177,7 +177,7 @@ def test_the_discrepancy_points_are_partial_residuals_that_scatter_about_the_law
     """Raw d against one variable strays from the curve by the linear terms in the other variables
     (held at their means on the curve): the points drawn are d less those terms, so they scatter about
     the curve by exactly the fit's residual (a GAM term plot's partial residuals)."""
-    from greyfit.service.report_discovery import discrepancy_figure
+    from greyfit.service.report.discovery import discrepancy_figure
     _, result = duffing_discovery
     eq = result.discrepancy.equations[0]
     x, d = np.array(eq.variable_samples["est"]), np.array(eq.samples["est"])
@@ -200,7 +200,7 @@ def test_the_discovery_overlay_keeps_the_measured_line_visible_and_its_axes_carr
 
     import matplotlib.image as mpimg
 
-    from greyfit.service.report_discovery import discovery_figures
+    from greyfit.service.report.discovery import discovery_figures
     request, result = duffing_discovery
     figures, notes = discovery_figures(plt, result, request)
     assert [f.name for f in figures] == ["discovery_metrics", "discrepancy", "discovery_overlay"], notes
@@ -222,8 +222,8 @@ def test_the_discovery_overlay_keeps_the_measured_line_visible_and_its_axes_carr
 def test_the_residual_against_time_is_measured_minus_simulated_per_output(plt):
     """The figure beside the correlations (SITB's resid): its lines are the fit's own residuals,
     re-simulated from the request, with the sign y - ŷ."""
-    from greyfit.service.report import estimation_series
-    from greyfit.service.report_residuals import residual_time_figure
+    from greyfit.service.report.page import estimation_series
+    from greyfit.service.report.residuals import residual_time_figure
     body = json.loads(json.dumps(EXAMPLE))
     body.setdefault("options", {})["return_traces"] = True
     result = fit_model(FitRequest.model_validate(body))
@@ -241,7 +241,7 @@ def test_the_residual_against_time_is_measured_minus_simulated_per_output(plt):
 
 
 def test_the_profile_curves_cross_the_threshold_at_the_interval_ends(plt):
-    from greyfit.service.report_residuals import profile_figure
+    from greyfit.service.report.residuals import profile_figure
     body = json.loads(json.dumps(EXAMPLE))
     body.setdefault("options", {})["profile"] = ["c"]
     result = fit_model(FitRequest.model_validate(body))
@@ -279,7 +279,7 @@ def test_the_discovery_validation_overlay_shows_the_added_term_on_a_record_the_f
     """A second Duffing record (another input) as validation: the final model follows it closer than
     the same model without its added terms."""
     from greyfit.schemas.discovery import DiscoverRequest
-    from greyfit.service.report_discovery import discovery_figures
+    from greyfit.service.report.discovery import discovery_figures
     from tests import coloured_records as cr
     request, result = duffing_discovery
     body = request.model_dump(mode="json", exclude_unset=True)

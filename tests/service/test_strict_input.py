@@ -10,9 +10,9 @@ from pathlib import Path
 import pytest
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.json_body import LARGE_BODY_BYTES
-from greyfit.service.openapi_examples import examples as openapi_examples
+from greyfit.service.http.app import create_app
+from greyfit.service.http.json_body import LARGE_BODY_BYTES
+from greyfit.service.http.openapi_examples import examples as openapi_examples
 from greyfit.service.task_kinds import KINDS
 from tests.service.conftest import EXAMPLE, assert_problem, make_settings
 

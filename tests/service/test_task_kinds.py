@@ -19,7 +19,8 @@ def test_every_kind_loads_its_schemas_and_runner():
 
 def test_workers_routes_cli_and_client_offer_the_same_kinds(client):
     from greyfit import client as client_module
-    from greyfit.service import cli_service, tasks
+    from greyfit.service.cli import serve as cli_service
+    from greyfit.service.jobs import tasks
     assert set(tasks._runners()) == set(TASK_KINDS)
     assert client_module.JOB_KINDS == cli_service.JOB_KINDS == JOB_KINDS
     spec = client.get("/openapi.json").json()

@@ -9,8 +9,8 @@ import pytest
 from fastapi.testclient import TestClient
 from sqlalchemy import event, text
 
-from greyfit.service.app import create_app
-from greyfit.service.store import JobStore, make_engine
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.store import JobStore, make_engine
 from tests.service.conftest import assert_problem, make_settings, msd_request, slow_request, wait_for_job
 
 
@@ -156,7 +156,7 @@ def test_cancelling_a_job_of_short_tasks_drops_the_tasks_claimed_ahead(client):
     assert statuses.count("succeeded") >= 20 and statuses.count("cancelled") >= 100
     dispatcher = client.app.state.dispatcher
     assert not any(t.job_id == job_id for t in dispatcher.ready)
-    assert not any(item[1] == job_id for item in dispatcher.running.values())
+    assert not any(item.job_id == job_id for item in dispatcher.running.values())
 
 
 def test_a_graceful_stop_hands_back_the_tasks_claimed_ahead_without_counting_a_start(tmp_path):
@@ -181,7 +181,7 @@ def test_a_worker_traceback_is_logged_with_the_task(client, caplog):
     caplog.set_level(logging.ERROR, logger="greyfit.dispatcher")
     fut = client.app.state.dispatcher.submit_sync("no-such-kind", {})
     outcome = fut.result(timeout=60)
-    assert outcome["error"]["type"] == "InternalError"
+    assert outcome.error.type == "InternalError"
     logged = "\n".join(r.getMessage() for r in caplog.records)
     assert "internal error" in logged and "sync-" in logged and "KeyError" in logged and "Traceback" in logged
 
@@ -192,7 +192,7 @@ def sync_done_when_the_job_starts(dispatcher, job_id: str, burst: list, timeout:
     deadline = time.monotonic() + timeout
     while time.monotonic() < deadline:
         done = sum(f.done() for f in burst)
-        if any(item[0] == "job" and item[1] == job_id for item in list(dispatcher.running.values())):
+        if any(item.job_id == job_id for item in list(dispatcher.running.values())):
             return done
         time.sleep(0.001)
     raise AssertionError(f"no task of job {job_id} started in {timeout} s")
@@ -211,7 +211,7 @@ def test_jobs_progress_under_a_burst_of_synchronous_fits(tmp_path):
         assert job["status"] == "succeeded"
         assert done_before <= 10, f"the job waited for {done_before} of 40 synchronous fits"
         outcomes = [f.result(timeout=120) for f in cf.as_completed(burst, timeout=180)]
-        assert all(o["status"] == "succeeded" for o in outcomes)
+        assert all(o.status == "succeeded" for o in outcomes)
 
 
 def test_three_server_deaths_right_after_a_claim_do_not_fail_the_task(tmp_path):

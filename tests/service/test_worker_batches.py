@@ -8,8 +8,9 @@ import time
 
 from fastapi.testclient import TestClient
 
-from greyfit.service.app import create_app
-from greyfit.service.executors import LocalWorkerPool
+from greyfit.service.http.app import create_app
+from greyfit.service.jobs.executors import LocalWorkerPool
+from greyfit.service.jobs.outcome import Outcome
 from tests.service.conftest import make_settings, msd_request, slow_request, wait_for_job
 from tests.systems import MSD_TRUTH
 
@@ -30,9 +31,9 @@ def poll_until(pool, keys, seconds=60):
     return done, started
 
 
-def assert_msd_truth(outcome: dict, tol: float = 0.05) -> None:
+def assert_msd_truth(outcome: Outcome, tol: float = 0.05) -> None:
     """c and k as simulated (tests.systems.MSD_TRUTH; m is fixed), within `tol` relative."""
-    params = json.loads(outcome["result_json"])["parameters"]
+    params = json.loads(outcome.result_json)["parameters"]
     for name in ("c", "k"):
         assert abs(params[name]["value"] / MSD_TRUTH[name] - 1) < tol, (name, params[name]["value"])
 
@@ -48,7 +49,7 @@ def test_a_batch_goes_to_a_worker_in_one_message_up_to_its_depth():
         done, started = poll_until(pool, {"t0", "t1", "t2", "t3"})
         assert sorted(started) == ["t0", "t1", "t2", "t3"]           # every start acknowledged
         for key in ("t0", "t1", "t2", "t3"):
-            assert done[key]["status"] == "succeeded"
+            assert done[key].status == "succeeded"
             assert_msd_truth(done[key])
         assert pool.free() == 1
     finally:
@@ -74,10 +75,10 @@ def test_a_worker_killed_mid_batch_gives_back_only_what_it_had_not_finished():
         os.kill(pool.slots[0].process.pid, signal.SIGKILL)
         more, _ = poll_until(pool, {"slow", "c"})   # a and b were reported before the kill
         done.update(more)
-        assert done["a"]["status"] == done["b"]["status"] == "succeeded"   # finished: kept, not re-run
-        assert done["slow"]["status"] == "failed" and done["slow"]["error"]["retry"] is True
-        assert done["slow"]["error"]["type"] == "WorkerLost"
-        assert done["c"] == {"status": "not_started"}                      # queued: handed back
+        assert done["a"].status == done["b"].status == "succeeded"   # finished: kept, not re-run
+        assert done["slow"].status == "failed" and done["slow"].error.retry is True
+        assert done["slow"].error.type == "WorkerLost"
+        assert done["c"] == Outcome("not_started")                      # queued: handed back
         assert pool.free() == 1
     finally:
         pool.shutdown()

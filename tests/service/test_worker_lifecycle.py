@@ -8,7 +8,7 @@ import sys
 
 import httpx
 
-from greyfit.service.lifeline import WorkerRegistry, start_time
+from greyfit.service.jobs.lifeline import WorkerRegistry, start_time
 from tests.servers import children_of, free_port, long_fit, start_server, stop_server, wait_gone, wait_running
 
 
@@ -46,7 +46,7 @@ def test_a_starting_server_sweeps_the_workers_a_dead_server_registered(tmp_path)
     killed by the next server on the same folder; a live server's workers and other processes are not."""
     folder = tmp_path / "workers"
     # a "server" that registers a child (no parent-death signal) and is then killed
-    script = (f"import subprocess, sys, time; from greyfit.service.lifeline import WorkerRegistry; "
+    script = (f"import subprocess, sys, time; from greyfit.service.jobs.lifeline import WorkerRegistry; "
               f"r = WorkerRegistry({str(folder)!r}); "
               f"p = subprocess.Popen([sys.executable, '-c', {SLEEPER!r}], start_new_session=True); "
               f"r.record(p.pid); print(p.pid, flush=True); time.sleep(120)")

@@ -110,7 +110,7 @@ def test_report_request_is_held_to_the_fits_limits(tmp_path, client):
     fit apply to it, named by field (it went to the worker unchecked)."""
     from fastapi.testclient import TestClient
 
-    from greyfit.service.app import create_app
+    from greyfit.service.http.app import create_app
     from tests.service.conftest import make_settings
 
     body = msd_request(3)

@@ -9,7 +9,7 @@ from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.jobs import ON_FIRST_USE, job_create
 from greyfit.schemas.model import Expression, Model, Name
 
-# the families of solvers/discovery/families, in the registry's order (schemas do not import
+# the families of solvers/screening/families, in the registry's order (schemas do not import
 # solvers: tests/solvers/test_discovery_families.py checks the two agree)
 Effect = Literal["coulomb", "quadratic_drag", "cubic_stiffness", "coupling_law", "offset", "sqrt_flow",
                  "radiation", "arrhenius", "saturable_rate", "saturation", "dead_zone", "output_offset",

@@ -175,7 +175,7 @@ def screen_of(model: dict, experiment: dict, fit, options=None, output_scorer=No
     """The discovery screen of `model` at the fit `fit` (a fit of any spelling of it: its parameters are
     by name); `output_scorer`, one built at this fit for another spelling, saves the sensitivities."""
     from greyfit.schemas.discovery import DiscoveryOptions
-    from greyfit.solvers.discovery.screening import screen
+    from greyfit.solvers.screening.screening import screen
     return screen(request_of(model, experiment), fit, options or DiscoveryOptions(), set(), output_scorer)
 
 

@@ -1,6 +1,6 @@
-"""Lack of fit by the discovery screen's score test, run on every output-error fit.
+"""Lack of fit by the screen's score test, run on every output-error fit.
 
-The discovery screen (`solvers.discovery.screening.screen`) regresses the fit's output residual on
+The screen discovery also runs (`solvers.screening.screening.screen`) regresses the fit's output residual on
 each library candidate's output sensitivity with the fitted parameters projected out: one
 Gauss-Newton step of the fit augmented by that candidate, i.e. a score (Lagrange-multiplier) test
 at β = 0, on an effective sample size that allows for coloured residuals, Bonferroni-corrected over
@@ -153,7 +153,7 @@ def missing_effect_warnings(request: FitRequest, result: FitResult) -> list[FitW
     if why:
         return [FitWarning(code="lack_of_fit_not_screened", message=f"lack of fit not screened: {why}",
                            detail={"reason": why})]
-    from greyfit.solvers.discovery.screening import screen  # the discovery wing, only when used
+    from greyfit.solvers.screening.screening import screen  # the candidate library loads on the first screened fit only
 
     opts = DiscoveryOptions(effects=SCREENED_EFFECTS, significance=SIGNIFICANCE, min_explained=MIN_EXPLAINED)
     screened, at = _with_validation(request, result)

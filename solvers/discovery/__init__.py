@@ -1,13 +1,11 @@
 """Discovery: fit, trace the residual to a missing physical effect, add it, refit, report.
 
-The steps in the order they run are in `loop`; screening in `screening`, `scoring_equations`,
-`scoring_outputs`; the effect library in `effects`, read from the registry of families in `families/`
-(one module per family: add one there and one line in `families/__init__.py`, and its name in
-schemas/discovery.py's `Effect`); discrimination by refit and parsimony in `discriminate`; refits in
-`confirm`; model rewrites in `augment`.
+The steps in the order they run are in `loop`; discrimination by refit and parsimony in
+`discriminate`; refits in `confirm`. The screen, its scorers, the candidates, the model rewrites and
+the effect library with its families are one layer below, in `solvers/screening/`: the fit's
+lack-of-fit check runs the same screen, and a plain fit imports nothing of this package.
 
-`discover` loads the loop on first use: every fit's lack-of-fit check runs the screen, and a fresh
-process's first fit need not import the refits and rewrites (12 ms) to do it.
+`discover` loads the loop on first use, so importing this package costs nothing until it runs.
 """
 from __future__ import annotations
 

@@ -24,7 +24,7 @@ import numpy as np
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate
 from greyfit.solvers.discovery.confirm import LoopState, Refitted, refit_candidate
-from greyfit.solvers.discovery.screening import Scored, Screening
+from greyfit.solvers.screening.screening import Scored, Screening
 
 LINE_UP = 0.7     # |correlation| of the contributions above which a catch-all follows a law
 MAX_POINTED = 2   # laws refitted beside a leading catch-all

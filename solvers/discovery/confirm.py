@@ -31,10 +31,7 @@ from greyfit.schemas.discovery import (
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery.budget import Clock, RefitCost, RefitLimits, refit_cpu_cap
-from greyfit.solvers.discovery.effects import Candidate
 from greyfit.solvers.discovery.refit_test import refit_likelihood_ratio
-from greyfit.solvers.discovery.scoring_outputs import OutputScorer
-from greyfit.solvers.discovery.screening import Scored, Screening, screen
 from greyfit.solvers.discovery.shape import ShapeResult
 from greyfit.solvers.discovery.summary import equation_names, validate
 from greyfit.solvers.discovery.warm_start import gauss_newton_start, start_is_sound
@@ -43,6 +40,9 @@ from greyfit.solvers.errors import FitError
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.methods.multistart import CPU_STATUSES
 from greyfit.solvers.methods.registry import simulates_outputs
+from greyfit.solvers.screening.effects import Candidate
+from greyfit.solvers.screening.scoring_outputs import OutputScorer
+from greyfit.solvers.screening.screening import Scored, Screening, screen
 
 
 @dataclass

@@ -31,7 +31,6 @@ import numpy as np
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, RunnerUp, ValidationSummary
 from greyfit.solvers.discovery.budget import contender_limits
-from greyfit.solvers.discovery.candidate import Candidate
 from greyfit.solvers.discovery.catch_all import catch_all_cap, pointed_laws, prefer_law
 from greyfit.solvers.discovery.confirm import (
     REFIT_MAX_ITER,
@@ -44,10 +43,11 @@ from greyfit.solvers.discovery.confirm import (
 from greyfit.solvers.discovery.parsimony import catch_all_objection, stand_in_verdict, validation_objection
 from greyfit.solvers.discovery.refit_test import AR_MAX_ORDER, ar_coefficients, residual_series, whiten
 from greyfit.solvers.discovery.revise import accept
-from greyfit.solvers.discovery.screening import Scored, Screening
 from greyfit.solvers.discovery.shape_test import memory_objection, shape_note
 from greyfit.solvers.discovery.summary import equation_names, mean_nrmse
 from greyfit.solvers.errors import FitError
+from greyfit.solvers.screening.candidate import Candidate
+from greyfit.solvers.screening.screening import Scored, Screening
 
 MARGIN = 0.2                 # contenders explain at least (1 − MARGIN) of what the leader explains
 MAX_CONTENDERS = 3           # refits per round, the leader included ...

@@ -50,7 +50,6 @@ from greyfit.solvers.discovery.confirm import LoopState, screen_state
 from greyfit.solvers.discovery.discriminate import discriminate
 from greyfit.solvers.discovery.ground import solid_ground
 from greyfit.solvers.discovery.leftover import leftover_at
-from greyfit.solvers.discovery.screening import Scored, Screening
 from greyfit.solvers.discovery.shape import shape_at
 from greyfit.solvers.discovery.summary import (
     added_inputs,
@@ -63,6 +62,7 @@ from greyfit.solvers.discovery.summary import (
 from greyfit.solvers.errors import ModelDefinitionError
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.model.expressions import compile_expression
+from greyfit.solvers.screening.screening import Scored, Screening
 
 __all__ = ["discover", "LoopState", "try_in_rank_order", "Progress"]
 

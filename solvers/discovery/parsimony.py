@@ -20,8 +20,8 @@ from typing import Literal
 
 from greyfit.schemas.discovery import DiscoverRequest, RejectedCandidate, ValidationSummary
 from greyfit.solvers.discovery.confirm import LoopState, Refitted
-from greyfit.solvers.discovery.screening import Screening
 from greyfit.solvers.discovery.summary import equation_names, mean_nrmse, validation_worse
+from greyfit.solvers.screening.screening import Screening
 
 PILE_MIN_RELATIVE = 0.1
 STAND_IN_SIGMAS = 5.0

@@ -18,11 +18,11 @@ import math
 import numpy as np
 
 from greyfit.schemas.fit import FitRequest, FitResult
-from greyfit.solvers.discovery.scoring import chi2_sf
-from greyfit.solvers.discovery.screening import fitted_values
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.methods.registry import simulates_outputs
 from greyfit.solvers.methods.shooting import OutputErrorModel
+from greyfit.solvers.screening.scoring import chi2_sf
+from greyfit.solvers.screening.screening import fitted_values
 
 AR_MAX_ORDER = 20
 

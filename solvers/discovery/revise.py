@@ -28,9 +28,9 @@ from greyfit.solvers.discovery.confirm import (
     with_estimates,
 )
 from greyfit.solvers.discovery.refit_test import output_residual
-from greyfit.solvers.discovery.screening import Scored, Screening
 from greyfit.solvers.discovery.summary import equation_names, summarize, validation_worse
 from greyfit.solvers.errors import FitError
+from greyfit.solvers.screening.screening import Scored, Screening
 
 
 def accept(request: DiscoverRequest, state: LoopState, r: Refitted, screening: Screening, note: str = "",

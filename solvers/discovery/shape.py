@@ -24,7 +24,6 @@ import numpy as np
 
 from greyfit.schemas.discovery import Discrepancy, DiscrepancyEquation
 from greyfit.schemas.fit import FitRequest, FitResult
-from greyfit.solvers.discovery.screening import fitted_values
 from greyfit.solvers.discovery.shape_kalman import Linearised, best_intensity, imprint, log_likelihood, smooth
 from greyfit.solvers.discovery.shape_relate import (
     MAX_PUBLIC_SAMPLES,
@@ -37,6 +36,7 @@ from greyfit.solvers.discovery.shape_relate import (
 from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.errors import FitError
 from greyfit.solvers.methods.shooting import OutputErrorModel
+from greyfit.solvers.screening.screening import fitted_values
 
 PRIOR_SCALE = 1e2        # prior std of z_0 in units of (state scale × σ): diffuse against the data
 REFINE_CHANNELS = 2      # the best channels relinearised about their first estimate

@@ -26,13 +26,13 @@ import numpy as np
 
 from greyfit.schemas.discovery import RejectedCandidate
 from greyfit.schemas.fit import FitResult
-from greyfit.solvers.discovery.candidate import Candidate
 from greyfit.solvers.discovery.confirm import LoopState, Refitted
 from greyfit.solvers.discovery.leftover import UNEXPLAINED_RATIO, looks_like_coloured_noise
 from greyfit.solvers.discovery.parsimony import rejected
-from greyfit.solvers.discovery.screening import Screening
 from greyfit.solvers.discovery.shape import ShapeResult
 from greyfit.solvers.discovery.shape_relate import ShapeEstimate, relate, shape_agreement
+from greyfit.solvers.screening.candidate import Candidate
+from greyfit.solvers.screening.screening import Screening
 
 SHAPE_DISAGREEMENT = 0.2   # a law explaining this much less of d̂ than a free smooth function does not have its shape
 MEMORY_SHARE = 0.6         # d̂ explained less than this by any smooth function of one variable: it has memory

@@ -6,9 +6,9 @@ import numpy as np
 from greyfit.schemas.discovery import CandidateScore, DiscoverRequest, DiscoveryStep, FitSummary, ValidationSummary
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.effects import Candidate
-from greyfit.solvers.discovery.screening import Scored, Screening
 from greyfit.solvers.errors import FitError
+from greyfit.solvers.screening.effects import Candidate
+from greyfit.solvers.screening.screening import Scored, Screening
 
 
 def equation_names(screening: Screening, cand: Candidate) -> str:

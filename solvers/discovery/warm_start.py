@@ -26,8 +26,8 @@ import numpy as np
 
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.scoring import RegressionScorer
 from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.screening.scoring import RegressionScorer
 
 MAX_RELATIVE_MOVE = 0.5
 START_MAX_RMSE_RATIO = 10.0   # a start whose simulation misses the records by more than this × the fit's: unsound

@@ -13,13 +13,13 @@ import pytest
 
 from greyfit.schemas import FitRequest
 from greyfit.solvers.data.experiments import prepare_experiments
-from greyfit.solvers.discovery import scoring_outputs
 from greyfit.solvers.dynamics import compiled as compiled_mod
 from greyfit.solvers.methods.shooting import single_pass, structured
 from greyfit.solvers.methods.shooting.model import OutputErrorModel
 from greyfit.solvers.model import compiler as compiler_mod
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.screening import scoring_outputs
 from tests.systems import msd_experiment, msd_model, simulate_msd
 
 needs_cc = pytest.mark.skipif(compiled_mod.compiler() is None, reason="no C compiler on this machine")

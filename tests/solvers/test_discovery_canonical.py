@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.canonical import canonical_form
+from greyfit.solvers.screening.canonical import canonical_form
 from tests import generated_models as gm
 from tests import respell as rs
 
@@ -74,7 +74,7 @@ def test_a_spring_between_two_bodies_is_one_coupling_law_and_a_lamp_power_an_inp
     """The two-body block lacks a cubic part of the spring between the bodies; the thermal block a heater
     power in u²: each is a candidate of its family, significant, and the first structural candidate."""
     from greyfit.schemas.discovery import DiscoveryOptions
-    from greyfit.solvers.discovery.screening import screen
+    from greyfit.solvers.screening.screening import screen
     for kind, seed, effect, term in (("mechanical", 2, "coupling_law", "k2 -> k2 + k2_z1_z2"),
                                      ("thermal", 1, "input_law", "+ c_u2_T1*u^2")):
         case, exp, fit = _fitted(kind, seed)
@@ -89,7 +89,7 @@ def test_labels_say_the_law_and_the_output_read():
     """A square-root law is not called Torricelli outflow on a model that is not a tank; sensor terms
     print what the output reads, not `h`."""
     from greyfit.schemas.discovery import DiscoveryOptions
-    from greyfit.solvers.discovery.screening import screen
+    from greyfit.solvers.screening.screening import screen
     case, exp, fit = _fitted("thermal", 1)
     s = screen(rs.request_of(case.model, exp), fit, DiscoveryOptions(), set())
     roots = [sc.candidate for sc in s.scored if sc.candidate.effect == "sqrt_flow"]
@@ -103,8 +103,8 @@ def test_labels_say_the_law_and_the_output_read():
 def test_a_new_term_is_divided_by_what_divides_the_whole_equation_in_every_spelling(equation):
     """The new parameter is a force wherever the equation is forces over a mass, however it is spelt:
     its value (and so the refit) does not depend on the spelling."""
-    from greyfit.solvers.discovery.augment import add_term
     from greyfit.solvers.model.compiler import compile_model
+    from greyfit.solvers.screening.augment import add_term
     model = Model.model_validate({"states": ["x", "v"], "inputs": ["F"], "constants": {"m": 4.0},
                                   "parameters": [{"name": n, "value": 1.0} for n in ("k", "c", "b")],
                                   "equations": {"x": "v", "v": equation}})

@@ -14,16 +14,16 @@ from greyfit.solvers.discovery import discover
 from greyfit.solvers.discovery.budget import Clock
 from greyfit.solvers.discovery.catch_all import LINE_UP, catch_all_cap, line_up, prefer_law
 from greyfit.solvers.discovery.confirm import LoopState, continues_in_time, off_on_validation, profile_decides
-from greyfit.solvers.discovery.effects import Candidate
 from greyfit.solvers.discovery.ground import (
     MULTISTART_CPU_FACTOR,
     MULTISTART_CPU_FLOOR_S,
     MULTISTART_MIN_ITER,
     multistart_bounds,
 )
-from greyfit.solvers.discovery.scoring import RegressionScorer
-from greyfit.solvers.discovery.screening import Scored
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.screening.effects import Candidate
+from greyfit.solvers.screening.scoring import RegressionScorer
+from greyfit.solvers.screening.screening import Scored
 from tests.suite_systems import noisy, simulate
 
 
@@ -164,8 +164,8 @@ def test_the_multistart_is_bounded_relative_to_the_base_fit():
 def test_laws_the_screen_dropped_with_a_large_gain_are_refitted_best_per_family():
     from greyfit.schemas.discovery import DiscoveryOptions
     from greyfit.solvers.discovery.loop import BELOW_SCREEN_REFITS, below_screen
-    from greyfit.solvers.discovery.scoring import Score
-    from greyfit.solvers.discovery.screening import Screening
+    from greyfit.solvers.screening.scoring import Score
+    from greyfit.solvers.screening.screening import Screening
 
     def scored(family, bic_drop, beta=1.0, significant=False, sign=1.0, **kw):
         c = Candidate(family, {0: [np.ones(3)]}, f"{family} {bic_drop}", family, lambda m: (m, []), family=family,
@@ -186,8 +186,8 @@ def test_laws_the_screen_dropped_with_a_large_gain_are_refitted_best_per_family(
 
 def test_a_delay_is_refitted_beside_every_lag_the_library_offers():
     from greyfit.solvers.discovery.catch_all import pointed_candidates
-    from greyfit.solvers.discovery.scoring import Score
-    from greyfit.solvers.discovery.screening import Screening
+    from greyfit.solvers.screening.scoring import Score
+    from greyfit.solvers.screening.screening import Screening
 
     def scored(effect, explained, **kw):
         c = Candidate(effect, {0: [np.ones(3)]}, effect, effect, lambda m: (m, []), family=effect, **kw)

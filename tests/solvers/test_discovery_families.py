@@ -6,7 +6,7 @@ import pytest
 
 from greyfit.schemas.discovery import ALL_EFFECTS, Effect
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.families import BY_NAME, EFFECT_NAMES, FAMILIES, Family
+from greyfit.solvers.screening.families import BY_NAME, EFFECT_NAMES, FAMILIES, Family
 
 
 def test_schema_effect_names_are_the_registry_names_in_its_order():
@@ -19,7 +19,7 @@ def test_every_family_implements_the_protocol_and_says_what_it_supports():
     for family in FAMILIES:
         assert isinstance(family, Family), family
         assert family.scope in ("equation", "parameter", "input", "output"), family.name
-        assert family.__class__.__module__.startswith("greyfit.solvers.discovery.families."), family.name
+        assert family.__class__.__module__.startswith("greyfit.solvers.screening.families."), family.name
     generic = {f.name for f in FAMILIES if f.generic}
     assert generic == {"state_dependent", "input_delay", "sensor_lag", "input_lag", "extra_pole", "hidden_store"}
 
@@ -27,8 +27,8 @@ def test_every_family_implements_the_protocol_and_says_what_it_supports():
 def _screen(model: dict, record: dict, **opts):
     from greyfit.schemas.discovery import DiscoveryOptions
     from greyfit.schemas.fit import FitRequest
-    from greyfit.solvers.discovery.screening import screen
     from greyfit.solvers.fit import fit_model
+    from greyfit.solvers.screening.screening import screen
     req = FitRequest.model_validate({"model": model, "experiments": [record], "method": "multiple_shooting",
                                      "options": {"input_interpolation": "zoh"}})
     return screen(req, fit_model(req), DiscoveryOptions(**opts), set())
@@ -50,7 +50,7 @@ def test_the_same_column_from_two_families_is_one_hypothesis_and_every_term_coun
 
 def test_a_switch_on_the_relative_speed_of_a_state_and_an_input_is_proposed():
     """Seed 000's damper d4 switches with |q̇4 − ẇ|: a declared difference of a state and an input."""
-    from greyfit.solvers.discovery.families.base import declared_differences
+    from greyfit.solvers.screening.families.base import declared_differences
     from tests.systems import seat_model
     pairs = {(a, b) for _, a, b in declared_differences(Model.model_validate(seat_model()))}
     assert any(b in ("w", "wd") for _, b in pairs), pairs
@@ -59,9 +59,9 @@ def test_a_switch_on_the_relative_speed_of_a_state_and_an_input_is_proposed():
 def test_record_specific_parameters_are_switched_off_on_validation():
     from greyfit.schemas.discovery import DiscoverRequest
     from greyfit.schemas.fit import FitRequest
-    from greyfit.solvers.discovery.augment import replace_parameter, with_parameter
     from greyfit.solvers.discovery.summary import validate
     from greyfit.solvers.fit import fit_model
+    from greyfit.solvers.screening.augment import replace_parameter, with_parameter
     from tests import coloured_records as cr
     model = cr.msd_position_model()
     est, val = cr.msd_record(300, 1), cr.msd_record(300, 2, name="val", t0=6.0)

@@ -9,9 +9,9 @@ from greyfit.schemas.discovery import DiscoverRequest
 from greyfit.schemas.fit import FitRequest
 from greyfit.schemas.model import Model
 from greyfit.solvers.discovery import discover
-from greyfit.solvers.discovery.families.lags import ExtraPole, InputLag, SensorLag
 from greyfit.solvers.fit import fit_model
 from greyfit.solvers.model.compiler import compile_model
+from greyfit.solvers.screening.families.lags import ExtraPole, InputLag, SensorLag
 from tests.lag_systems import SYSTEMS, TRUTH, declared, lag_record
 
 

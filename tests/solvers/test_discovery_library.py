@@ -194,7 +194,7 @@ def test_a_catch_all_does_not_stand_in_for_a_named_law_whose_size_is_not_determi
 
 def test_vectorised_scores_equal_the_one_by_one_scores():
     """The lack-of-fit check scores a dozen columns on every fit in one pass: the same numbers."""
-    from greyfit.solvers.discovery.scoring import RegressionScorer
+    from greyfit.solvers.screening.scoring import RegressionScorer
     rng = np.random.default_rng(3)
     n = 400
     jac = rng.standard_normal((n, 3))

@@ -8,8 +8,8 @@ from greyfit.schemas.discovery import DiscoverRequest, DiscoveryOptions
 from greyfit.schemas.fit import FitRequest
 from greyfit.solvers.discovery import discover
 from greyfit.solvers.discovery.loop import LoopState, try_in_rank_order
-from greyfit.solvers.discovery.screening import Scored, screen
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.screening.screening import Scored, screen
 from tests import partial_systems as ps
 from tests.emps import PUBLISHED, emps_position_request
 from tests.systems import msd_input, msd_model, simulate_msd

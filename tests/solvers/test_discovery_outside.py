@@ -8,7 +8,7 @@ import pytest
 from bench.discovery_generator import generate
 from greyfit.schemas.discovery import DiscoverRequest
 from greyfit.solvers.discovery import discover
-from greyfit.solvers.discovery.families.base import changes_sign, keeps_positive
+from greyfit.solvers.screening.families.base import changes_sign, keeps_positive
 
 
 def _discover(group: str, seed: int):

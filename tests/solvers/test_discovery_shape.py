@@ -54,8 +54,8 @@ def test_a_law_without_the_learned_shape_is_labelled_approximates():
     has the shape of what is missing in the equation of ẏ; a switching force explains much less of
     it than a free smooth function of y and is labelled "approximates; not identified". A constant
     has no shape to judge."""
-    from greyfit.solvers.discovery.candidate import Candidate
     from greyfit.solvers.discovery.shape_test import agreement_with_shape, shape_note
+    from greyfit.solvers.screening.candidate import Candidate
     record = cr.duffing_record(2000, 1, kind="white", level=0.01)
     req, fit = _fit(ps.duffing_model(), [record])
     shape = estimate_shape(req, fit)

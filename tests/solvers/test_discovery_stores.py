@@ -1,4 +1,4 @@
-"""The hidden store (solvers/discovery/families/stores.py): an unmeasured first-order storage
+"""The hidden store (solvers/screening/families/stores.py): an unmeasured first-order storage
 exchanging with a declared state, on systems with known truth."""
 from __future__ import annotations
 
@@ -7,8 +7,8 @@ import pytest
 
 from greyfit.schemas.fit import FitRequest
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.families.stores import add_store, low_pass
 from greyfit.solvers.fit import fit_model
+from greyfit.solvers.screening.families.stores import add_store, low_pass
 from tests.generators.misspec import make_case
 
 

@@ -55,7 +55,7 @@ def test_disturbed_step_jacobians_match_the_casadi_graph(interpolation):
     their disturbance columns."""
     from types import SimpleNamespace
 
-    from greyfit.solvers.discovery.scoring_outputs import _disturbed_step
+    from greyfit.solvers.screening.scoring_outputs import _disturbed_step
     request = _request("single_shooting", interpolation)
     cm = compile_model(request.model)
     data = prepare_experiments(request.experiments, cm)

@@ -1,4 +1,4 @@
-"""The lack-of-fit screen's vectorised statistics (solvers/discovery/scoring.py) against their
+"""The lack-of-fit screen's vectorised statistics (solvers/screening/scoring.py) against their
 definitions: the effective sample size from autocorrelations summed directly in the time domain,
 and the score pass that leaves out columns too weak to be significant.
 """
@@ -7,7 +7,7 @@ from dataclasses import astuple
 import numpy as np
 import pytest
 
-from greyfit.solvers.discovery.scoring import (
+from greyfit.solvers.screening.scoring import (
     RegressionScorer,
     effective_n,
     effective_n_many,

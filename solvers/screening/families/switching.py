@@ -8,16 +8,16 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import (
+from greyfit.solvers.screening.augment import fresh_name, replace_parameter, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import (
     NeedsTracedEquation,
     Scope,
     bind,
     declared_differences,
     param_regressor,
 )
-from greyfit.solvers.discovery.families.time_varying import varying_parameters
+from greyfit.solvers.screening.families.time_varying import varying_parameters
 
 THRESHOLDS = np.linspace(0.1, 0.9, 17)   # quantiles of |s| the switch is tried at
 

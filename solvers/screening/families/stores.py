@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import add_term, fresh_name, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, Regressor, fmt
-from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind
+from greyfit.solvers.screening.augment import add_term, fresh_name, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, Regressor, fmt
+from greyfit.solvers.screening.families.base import NeedsTracedEquation, Scope, bind
 
 # τ as a fraction of the record's length: from a few percent (a store that fills within the
 # record) to the whole record (one that is still filling at its end); geometric, 4 points

@@ -7,11 +7,11 @@ import casadi as ca
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import add_term, fresh_name, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext
-from greyfit.solvers.discovery.families.base import Scope, bind
-from greyfit.solvers.discovery.scoring_equations import TraceData
 from greyfit.solvers.model.expressions import compile_expression, names_in, parse
+from greyfit.solvers.screening.augment import add_term, fresh_name, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext
+from greyfit.solvers.screening.families.base import Scope, bind
+from greyfit.solvers.screening.scoring_equations import TraceData
 
 
 class Custom:

@@ -12,10 +12,10 @@ import numpy as np
 
 from greyfit.schemas.discovery import CustomCandidate
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, OutputFit, fmt, structure
-from greyfit.solvers.discovery.families import FAMILIES, USER, Family
-from greyfit.solvers.discovery.families.sensor import measured_values, quantisation_step
-from greyfit.solvers.discovery.scoring_equations import TraceData
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, OutputFit, fmt, structure
+from greyfit.solvers.screening.families import FAMILIES, USER, Family
+from greyfit.solvers.screening.families.sensor import measured_values, quantisation_step
+from greyfit.solvers.screening.scoring_equations import TraceData
 
 __all__ = ["Candidate", "OutputFit", "library", "structure", "fmt"]
 

@@ -18,9 +18,9 @@ import numpy as np
 from greyfit.schemas.fit import FitOptions
 from greyfit.solvers.data.derivatives import savgol_coefficients, smooth_and_differentiate
 from greyfit.solvers.data.experiments import ExperimentData
-from greyfit.solvers.discovery.scoring import RegressionScorer
 from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.screening.scoring import RegressionScorer
 
 
 @dataclass

@@ -15,11 +15,11 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext
-from greyfit.solvers.discovery.canonical import canonical_form
-from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, param_regressor
-from greyfit.solvers.discovery.families.time_varying import varying_parameters
+from greyfit.solvers.screening.augment import fresh_name, replace_parameter, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext
+from greyfit.solvers.screening.canonical import canonical_form
+from greyfit.solvers.screening.families.base import NeedsTracedEquation, Scope, bind, param_regressor
+from greyfit.solvers.screening.families.time_varying import varying_parameters
 
 # (label, law in model syntax of the difference d, samples, what the coupling then is)
 LAWS = (("2", "({d})^2", lambda d: d * d, "a cubic part: force ∝ ({d}) + β·({d})³"),

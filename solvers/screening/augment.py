@@ -2,8 +2,8 @@
 from __future__ import annotations
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.canonical import canonical_form
 from greyfit.solvers.model.expressions import parse, substitute, unparse
+from greyfit.solvers.screening.canonical import canonical_form
 
 
 def add_term(model: Model, equation: str, term: str, sign: str = "+") -> Model:

@@ -1,8 +1,8 @@
 """Cubic (hardening or softening) stiffness: a force −k3·x³ on the velocity of a position."""
 from __future__ import annotations
 
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext
-from greyfit.solvers.discovery.families.base import TermFamily
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext
+from greyfit.solvers.screening.families.base import TermFamily
 
 
 class CubicStiffness(TermFamily):

@@ -14,8 +14,8 @@ from itertools import combinations
 
 import numpy as np
 
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext
-from greyfit.solvers.discovery.families.base import TermFamily, declared_differences
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext
+from greyfit.solvers.screening.families.base import TermFamily, declared_differences
 
 # (text, function) of the single-variable powers and the two-variable products, degree 2 and 3
 SINGLE = (("{a}^2", lambda a: a * a), ("{a}*abs({a})", lambda a: a * np.abs(a)), ("{a}^3", lambda a: a ** 3))

@@ -10,14 +10,14 @@ import numpy as np
 from greyfit.schemas.discovery import DiscoveryOptions
 from greyfit.schemas.fit import FitRequest, FitResult
 from greyfit.solvers.data.experiments import prepare_experiments
-from greyfit.solvers.discovery.effects import Candidate, OutputFit, library
-from greyfit.solvers.discovery.scoring import RegressionScorer, Score
-from greyfit.solvers.discovery.scoring_equations import EquationScorer, build_trace
-from greyfit.solvers.discovery.scoring_outputs import OutputScorer, column_views
 from greyfit.solvers.methods.registry import simulates_outputs
 from greyfit.solvers.methods.shooting import OutputErrorModel
 from greyfit.solvers.model.compiler import compile_model
 from greyfit.solvers.model.parameters import build_layout
+from greyfit.solvers.screening.effects import Candidate, OutputFit, library
+from greyfit.solvers.screening.scoring import RegressionScorer, Score
+from greyfit.solvers.screening.scoring_equations import EquationScorer, build_trace
+from greyfit.solvers.screening.scoring_outputs import OutputScorer, column_views
 
 
 @dataclass

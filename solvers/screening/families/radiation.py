@@ -8,8 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import TermFamily, declared_differences
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import TermFamily, declared_differences
 
 
 class Radiation(TermFamily):

@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import TermFamily, changes_sign
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import TermFamily, changes_sign
 
 WIDTHS = (0.001, 0.003, 0.01, 0.03)   # ε as fractions of the RMS of v: the refit chooses among them
 

@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, param_regressor, shared_free
+from greyfit.solvers.screening.augment import fresh_name, replace_parameter, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import NeedsTracedEquation, Scope, bind, param_regressor, shared_free
 
 MAX_SWITCHES = 6   # switch times of one parameter chosen jointly at most
 # candidate switch times per parameter: every column is propagated through the output sensitivities

@@ -21,11 +21,11 @@ from typing import cast
 import casadi as ca
 import numpy as np
 
-from greyfit.solvers.discovery.scoring import RegressionScorer
 from greyfit.solvers.dynamics.columns import Columns
 from greyfit.solvers.dynamics.integration import make_step
 from greyfit.solvers.methods.shooting import OutputErrorModel, sensitivity_jacobian
 from greyfit.solvers.model.compiler import CompiledModel
+from greyfit.solvers.screening.scoring import RegressionScorer
 
 
 def _disturbed_step(oem: OutputErrorModel) -> Columns:

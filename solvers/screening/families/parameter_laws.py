@@ -12,10 +12,10 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, param_regressor
-from greyfit.solvers.discovery.families.time_varying import varying_parameters
+from greyfit.solvers.screening.augment import fresh_name, replace_parameter, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import NeedsTracedEquation, Scope, bind, param_regressor
+from greyfit.solvers.screening.families.time_varying import varying_parameters
 
 # an absolute temperature in a process rarely doubles over a record (300 -> 600 K); a variable that
 # does (a level, a flow, a temperature in °C) is not one Arrhenius' law is written in

@@ -12,9 +12,9 @@ from typing import Any, Literal, Protocol, runtime_checkable
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import add_term, fresh_name, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, Regressor
-from greyfit.solvers.discovery.canonical import canonical_form
+from greyfit.solvers.screening.augment import add_term, fresh_name, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, Regressor
+from greyfit.solvers.screening.canonical import canonical_form
 
 # where a family's terms enter: a term in a state equation, a law of a declared parameter, a
 # change of an input, or the output path (the sensor)

@@ -12,9 +12,9 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import fresh_name, rewrite_output, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, OutputFit, fmt
-from greyfit.solvers.discovery.families.base import Scope, bind
+from greyfit.solvers.screening.augment import fresh_name, rewrite_output, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, OutputFit, fmt
+from greyfit.solvers.screening.families.base import Scope, bind
 
 _NAME = re.compile(r"[A-Za-z_][A-Za-z0-9_]*")
 

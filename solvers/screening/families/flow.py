@@ -13,9 +13,9 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import replace_in_equations
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import (
+from greyfit.solvers.screening.augment import replace_in_equations
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import (
     NeedsTracedEquation,
     Scope,
     add_parameter_term,

@@ -26,12 +26,12 @@ import numpy as np
 
 from greyfit.schemas.model import Model
 from greyfit.solvers.data.preprocess import looks_piecewise_constant
-from greyfit.solvers.discovery.augment import fresh_name, replace_in_equations, rewrite_output, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, Regressor
-from greyfit.solvers.discovery.families.base import NeedsTracedEquation, Scope, bind, sensitivity_regressor
-from greyfit.solvers.discovery.families.inputs import NeedsInputs
 from greyfit.solvers.model.compiler import CompiledModel
 from greyfit.solvers.model.expressions import names_in, parse, substitute, unparse
+from greyfit.solvers.screening.augment import fresh_name, replace_in_equations, rewrite_output, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, Regressor
+from greyfit.solvers.screening.families.base import NeedsTracedEquation, Scope, bind, sensitivity_regressor
+from greyfit.solvers.screening.families.inputs import NeedsInputs
 
 LOWEST_TAU = 0.1   # the new time constant's lower bound, in sample intervals: the refit's RK4 stays stable
 

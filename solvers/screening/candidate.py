@@ -15,8 +15,8 @@ import numpy as np
 from greyfit.schemas.discovery import CustomCandidate
 from greyfit.schemas.model import Model
 from greyfit.solvers.data.experiments import ExperimentData
-from greyfit.solvers.discovery.canonical import canonical_form
-from greyfit.solvers.discovery.scoring_equations import TraceData
+from greyfit.solvers.screening.canonical import canonical_form
+from greyfit.solvers.screening.scoring_equations import TraceData
 
 Regressor = dict[int, list[np.ndarray]]
 Rewrite = Callable[[Model], tuple[Model, list[str]]]

@@ -7,9 +7,9 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import fresh_name, replace_parameter, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import Scope, bind, sensitivity_regressor
+from greyfit.solvers.screening.augment import fresh_name, replace_parameter, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import Scope, bind, sensitivity_regressor
 
 MAX_LAG = 20   # samples
 

@@ -17,9 +17,9 @@ from typing import Any
 import numpy as np
 
 from greyfit.schemas.model import Model
-from greyfit.solvers.discovery.augment import add_term, fresh_name, with_parameter
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext, fmt
-from greyfit.solvers.discovery.families.base import TermFamily, bind, keeps_positive
+from greyfit.solvers.screening.augment import add_term, fresh_name, with_parameter
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext, fmt
+from greyfit.solvers.screening.families.base import TermFamily, bind, keeps_positive
 
 SCALES = (0.1, 0.3, 1.0, 3.0)   # starting K as multiples of the state's median: the refit chooses, then fits K
 

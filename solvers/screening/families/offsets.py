@@ -3,8 +3,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from greyfit.solvers.discovery.candidate import Candidate, LibraryContext
-from greyfit.solvers.discovery.families.base import TermFamily
+from greyfit.solvers.screening.candidate import Candidate, LibraryContext
+from greyfit.solvers.screening.families.base import TermFamily
 
 
 class Offset(TermFamily):

@@ -226,8 +226,8 @@ def new_parameters(fit: FitResult, names: list[str]) -> list[NewParameter]:
 
 def correlation_after(sc: Scored, new_req: FitRequest, new_fit: FitResult, screening: Screening) -> float | None:
     """Correlation of the refitted model's output residual with the candidate's column (was: corr_before).
-    One simulation of the refitted model; the column is the one screened. None where it is not
-    defined.
+    One simulation of the refitted model; the column is the candidate's through the output
+    sensitivities, also for one ranked best on the equation residuals. None where it is not defined.
 
     Parameters
     ----------
@@ -243,12 +243,12 @@ def correlation_after(sc: Scored, new_req: FitRequest, new_fit: FitResult, scree
     Returns
     -------
     float or None
-        The correlation; None for a candidate not scored on the outputs, without an output scorer, on
-        a size mismatch, a constant column or residual, or when the refit cannot be simulated.
+        The correlation; None without an output scorer, for a candidate with no column there, on a
+        size mismatch, a constant column or residual, or when the refit cannot be simulated.
     """
     try:
-        if sc.scored_on != "outputs" or screening.output_scorer is None:
-            return None
+        if screening.output_scorer is None:   # the candidate's column through the outputs, whichever
+            return None                       # residual screened it best
         g = screening.output_scorer.stack(sc.candidate.equations, sc.candidate.outputs)
         r = output_residual(new_req, new_fit)
         if g is None or g.size != r.size or np.std(g) == 0 or np.std(r) == 0:

@@ -129,11 +129,13 @@ def _hausman(d: np.ndarray, v_oe: np.ndarray, v_d: np.ndarray, names: list, orde
     """dᵀ V_d⁺ d over the directions where V_d is at least `EXCESS_MIN` of V_OE."""
     try:
         chol = np.linalg.cholesky(v_oe)
+        z = np.linalg.solve(chol, d)
+        k = np.linalg.solve(chol, np.linalg.solve(chol, v_d).T)
+        if not (np.all(np.isfinite(z)) and np.all(np.isfinite(k))):
+            return None   # a covariance too ill-conditioned to whiten by: no test, not a failed fit
+        lam, u = np.linalg.eigh(0.5 * (k + k.T))
     except np.linalg.LinAlgError:
         return None
-    z = np.linalg.solve(chol, d)
-    k = np.linalg.solve(chol, np.linalg.solve(chol, v_d).T)
-    lam, u = np.linalg.eigh(0.5 * (k + k.T))
     keep = lam > EXCESS_MIN
     stat = float(np.sum((u[:, keep].T @ z) ** 2 / lam[keep])) if keep.any() else 0.0
     dof = int(keep.sum())
